@@ -1,0 +1,212 @@
+//! Premultiplied RGBA images.
+
+use crate::error::CoreError;
+
+/// An 8-bit RGBA image whose colour channels are premultiplied by alpha
+/// (`colour <= alpha` for every pixel), stored row-major without padding.
+#[derive(Clone, PartialEq, Eq)]
+pub struct PremulImage {
+    width: u32,
+    height: u32,
+    data: Vec<u8>,
+}
+
+impl std::fmt::Debug for PremulImage {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "PremulImage({}x{})", self.width, self.height)
+    }
+}
+
+/// Premultiplies one straight-alpha channel value, rounding to nearest.
+#[inline]
+pub fn premultiply(c: u8, a: u8) -> u8 {
+    ((c as u32 * a as u32 + 127) / 255) as u8
+}
+
+/// Recovers a straight-alpha channel value from a premultiplied one (0 when alpha is 0).
+/// `premultiply(unpremultiply(p, a), a) == p` for every valid `p <= a`.
+#[inline]
+pub fn unpremultiply(p: u8, a: u8) -> u8 {
+    if a == 0 {
+        0
+    } else {
+        ((p as u32 * 255 + a as u32 / 2) / a as u32).min(255) as u8
+    }
+}
+
+impl PremulImage {
+    /// A fully transparent image.
+    pub fn new(width: u32, height: u32) -> Self {
+        Self {
+            width,
+            height,
+            data: vec![0; width as usize * height as usize * 4],
+        }
+    }
+
+    /// Wraps premultiplied RGBA bytes, checking the length and the premultiplied invariant.
+    pub fn from_premul(width: u32, height: u32, data: Vec<u8>) -> Result<Self, CoreError> {
+        let expected = width as usize * height as usize * 4;
+        if data.len() != expected {
+            return Err(CoreError::BufferLength {
+                what: "premultiplied image".into(),
+                expected,
+                found: data.len(),
+            });
+        }
+        let img = Self {
+            width,
+            height,
+            data,
+        };
+        img.check_premultiplied("premultiplied image")?;
+        Ok(img)
+    }
+
+    /// Converts straight-alpha RGBA bytes to a premultiplied image.
+    pub fn from_straight(width: u32, height: u32, rgba: &[u8]) -> Result<Self, CoreError> {
+        let expected = width as usize * height as usize * 4;
+        if rgba.len() != expected {
+            return Err(CoreError::BufferLength {
+                what: "straight RGBA image".into(),
+                expected,
+                found: rgba.len(),
+            });
+        }
+        let mut data = rgba.to_vec();
+        for px in data.chunks_exact_mut(4) {
+            let a = px[3];
+            for c in &mut px[..3] {
+                *c = premultiply(*c, a);
+            }
+        }
+        Ok(Self {
+            width,
+            height,
+            data,
+        })
+    }
+
+    /// An opaque image from RGB bytes.
+    pub fn from_rgb(width: u32, height: u32, rgb: &[u8]) -> Result<Self, CoreError> {
+        let expected = width as usize * height as usize * 3;
+        if rgb.len() != expected {
+            return Err(CoreError::BufferLength {
+                what: "RGB image".into(),
+                expected,
+                found: rgb.len(),
+            });
+        }
+        let mut data = Vec::with_capacity(expected / 3 * 4);
+        for px in rgb.chunks_exact(3) {
+            data.extend_from_slice(&[px[0], px[1], px[2], 255]);
+        }
+        Ok(Self {
+            width,
+            height,
+            data,
+        })
+    }
+
+    /// Width in pixels.
+    pub fn width(&self) -> u32 {
+        self.width
+    }
+    /// Height in pixels.
+    pub fn height(&self) -> u32 {
+        self.height
+    }
+    /// Premultiplied RGBA bytes, row-major.
+    pub fn as_bytes(&self) -> &[u8] {
+        &self.data
+    }
+    /// Mutable premultiplied RGBA bytes. Callers keep `colour <= alpha`.
+    pub fn as_bytes_mut(&mut self) -> &mut [u8] {
+        &mut self.data
+    }
+    /// Consumes the image, returning its bytes.
+    pub fn into_bytes(self) -> Vec<u8> {
+        self.data
+    }
+    /// The pixel at `(x, y)` (premultiplied RGBA).
+    pub fn pixel(&self, x: u32, y: u32) -> [u8; 4] {
+        let i = (y as usize * self.width as usize + x as usize) * 4;
+        [self.data[i], self.data[i + 1], self.data[i + 2], self.data[i + 3]]
+    }
+    /// Sets the pixel at `(x, y)` (premultiplied RGBA).
+    pub fn set_pixel(&mut self, x: u32, y: u32, p: [u8; 4]) {
+        let i = (y as usize * self.width as usize + x as usize) * 4;
+        self.data[i..i + 4].copy_from_slice(&p);
+    }
+
+    /// Straight-alpha RGBA bytes (for PNG files).
+    pub fn to_straight(&self) -> Vec<u8> {
+        let mut out = self.data.clone();
+        for px in out.chunks_exact_mut(4) {
+            let a = px[3];
+            for c in &mut px[..3] {
+                *c = unpremultiply(*c, a);
+            }
+        }
+        out
+    }
+
+    /// RGB bytes of this image composited over an opaque background colour.
+    pub fn over_background(&self, bg: [u8; 3]) -> Vec<u8> {
+        let mut out = Vec::with_capacity(self.data.len() / 4 * 3);
+        for px in self.data.chunks_exact(4) {
+            let t = 255 - px[3] as u32;
+            for c in 0..3 {
+                out.push((px[c] as u32 + (bg[c] as u32 * t + 127) / 255).min(255) as u8);
+            }
+        }
+        out
+    }
+
+    /// Checks `colour <= alpha` everywhere.
+    pub fn check_premultiplied(&self, what: &str) -> Result<(), CoreError> {
+        for (i, px) in self.data.chunks_exact(4).enumerate() {
+            let m = px[0].max(px[1]).max(px[2]);
+            if m > px[3] {
+                let w = self.width.max(1) as usize;
+                return Err(CoreError::NotPremultiplied {
+                    what: what.into(),
+                    x: (i % w) as u32,
+                    y: (i / w) as u32,
+                    colour: m,
+                    alpha: px[3],
+                });
+            }
+        }
+        Ok(())
+    }
+
+    /// Fraction of pixels with non-zero alpha.
+    pub fn coverage(&self) -> f64 {
+        let n = self.data.chunks_exact(4).filter(|p| p[3] > 0).count();
+        n as f64 / (self.width as f64 * self.height as f64).max(1.0)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn premultiply_roundtrip_is_exact() {
+        for a in 0..=255u8 {
+            for p in 0..=a {
+                assert_eq!(premultiply(unpremultiply(p, a), a), p, "p={p} a={a}");
+            }
+        }
+    }
+
+    #[test]
+    fn straight_roundtrip() {
+        let img = PremulImage::from_straight(2, 1, &[200, 100, 50, 128, 10, 20, 30, 255]).unwrap();
+        let back = PremulImage::from_straight(2, 1, &img.to_straight()).unwrap();
+        assert_eq!(img, back);
+        assert!(PremulImage::from_premul(1, 1, vec![10, 0, 0, 5]).is_err());
+        assert!(PremulImage::from_premul(1, 1, vec![0, 0, 0]).is_err());
+    }
+}

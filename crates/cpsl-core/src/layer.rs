@@ -1,0 +1,201 @@
+//! Layers and validated layer sets.
+
+use crate::camera::Camera;
+use crate::error::CoreError;
+use crate::image::PremulImage;
+use crate::limits::Limits;
+use serde::{Deserialize, Serialize};
+
+/// What a layer holds, as decided by the layering stage.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum LayerRole {
+    /// A promoted salient instance.
+    Instance,
+    /// A depth region (merged background or depth slice).
+    Region,
+    /// The farthest layer, filled behind everything in front of it.
+    Background,
+}
+
+/// Optional descriptive metadata of a layer.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LayerMeta {
+    /// Human-readable name.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub name: Option<String>,
+    /// The layer's role.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub role: Option<LayerRole>,
+    /// Mean saliency of the layer's pixels, in [0, 1].
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub saliency: Option<f32>,
+}
+
+/// One CPSL layer `L_k = (C_k, alpha_k, z_k)`: premultiplied colour and alpha plus the depth of
+/// its fronto-parallel plane in the reference camera.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Layer {
+    /// Premultiplied RGBA.
+    pub image: PremulImage,
+    /// Reference depth `z_k` (scene units along the optical axis).
+    pub depth: f64,
+    /// Optional metadata.
+    pub meta: LayerMeta,
+}
+
+impl Layer {
+    /// A layer without metadata.
+    pub fn new(image: PremulImage, depth: f64) -> Self {
+        Self {
+            image,
+            depth,
+            meta: LayerMeta::default(),
+        }
+    }
+}
+
+/// A validated, depth-ordered stack of layers seen by one reference camera.
+///
+/// Invariants (checked by [`LayerSet::new`]): at least one layer and at most
+/// `limits.max_layers`; the camera is valid and within the size limits; every layer has the
+/// camera's size; depths are finite, positive and strictly increasing (nearest first); images
+/// are premultiplied.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LayerSet {
+    camera: Camera,
+    layers: Vec<Layer>,
+}
+
+impl LayerSet {
+    /// Validates and builds a layer set.
+    pub fn new(camera: Camera, layers: Vec<Layer>, limits: &Limits) -> Result<Self, CoreError> {
+        camera.validate()?;
+        limits.check_size("camera", camera.width, camera.height)?;
+        if layers.is_empty() {
+            return Err(CoreError::Empty);
+        }
+        if layers.len() > limits.max_layers {
+            return Err(CoreError::TooManyLayers {
+                found: layers.len(),
+                max: limits.max_layers,
+            });
+        }
+        let mut previous: Option<f64> = None;
+        for (index, layer) in layers.iter().enumerate() {
+            let (w, h) = (layer.image.width(), layer.image.height());
+            if (w, h) != (camera.width, camera.height) {
+                return Err(CoreError::SizeMismatch {
+                    index,
+                    width: w,
+                    height: h,
+                    cam_width: camera.width,
+                    cam_height: camera.height,
+                });
+            }
+            if !(layer.depth.is_finite() && layer.depth > 0.0) {
+                return Err(CoreError::BadDepth {
+                    index,
+                    depth: layer.depth,
+                });
+            }
+            if let Some(p) = previous {
+                if layer.depth <= p {
+                    return Err(CoreError::DepthOrder {
+                        index,
+                        depth: layer.depth,
+                        previous: p,
+                    });
+                }
+            }
+            previous = Some(layer.depth);
+            layer.image.check_premultiplied(&format!("layer {index}"))?;
+        }
+        Ok(Self { camera, layers })
+    }
+
+    /// The reference camera.
+    pub fn camera(&self) -> &Camera {
+        &self.camera
+    }
+    /// Layers, nearest first.
+    pub fn layers(&self) -> &[Layer] {
+        &self.layers
+    }
+    /// Number of layers `K`.
+    pub fn len(&self) -> usize {
+        self.layers.len()
+    }
+    /// Always false: a valid layer set has at least one layer.
+    pub fn is_empty(&self) -> bool {
+        self.layers.is_empty()
+    }
+    /// Consumes the set, returning camera and layers.
+    pub fn into_parts(self) -> (Camera, Vec<Layer>) {
+        (self.camera, self.layers)
+    }
+
+    /// Closed-form composite of equation 2 at the reference view, in `[0, 1]` premultiplied
+    /// RGBA: `I = sum_k P_k prod_{j<k} (1 - alpha_j)`. This is the ground truth an identity
+    /// render must reproduce.
+    pub fn composite_reference(&self) -> Vec<[f32; 4]> {
+        let n = self.camera.width as usize * self.camera.height as usize;
+        let mut out = vec![[0.0f32; 4]; n];
+        for (i, o) in out.iter_mut().enumerate() {
+            let mut t = 1.0f32;
+            for l in &self.layers {
+                let p = &l.image.as_bytes()[i * 4..i * 4 + 4];
+                for c in 0..4 {
+                    o[c] += t * (p[c] as f32 / 255.0);
+                }
+                t *= 1.0 - p[3] as f32 / 255.0;
+            }
+        }
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn cam() -> Camera {
+        Camera::from_fov(4, 3, 60.0)
+    }
+    fn layer(d: f64) -> Layer {
+        Layer::new(PremulImage::new(4, 3), d)
+    }
+
+    #[test]
+    fn accepts_valid_and_rejects_each_violation() {
+        let l = Limits::default();
+        assert!(LayerSet::new(cam(), vec![layer(1.0), layer(2.0)], &l).is_ok());
+        assert_eq!(LayerSet::new(cam(), vec![], &l), Err(CoreError::Empty));
+        assert!(matches!(
+            LayerSet::new(cam(), vec![layer(2.0), layer(2.0)], &l),
+            Err(CoreError::DepthOrder { index: 1, .. })
+        ));
+        assert!(matches!(
+            LayerSet::new(cam(), vec![layer(f64::NAN)], &l),
+            Err(CoreError::BadDepth { index: 0, .. })
+        ));
+        assert!(matches!(
+            LayerSet::new(cam(), vec![layer(-1.0)], &l),
+            Err(CoreError::BadDepth { .. })
+        ));
+        let small = Layer::new(PremulImage::new(2, 3), 1.0);
+        assert!(matches!(
+            LayerSet::new(cam(), vec![small], &l),
+            Err(CoreError::SizeMismatch { index: 0, .. })
+        ));
+        let tight = Limits {
+            max_layers: 1,
+            ..Limits::default()
+        };
+        assert!(matches!(
+            LayerSet::new(cam(), vec![layer(1.0), layer(2.0)], &tight),
+            Err(CoreError::TooManyLayers { .. })
+        ));
+    }
+}

@@ -1,0 +1,190 @@
+//! The layer-set manifest (`manifest.json`), format `cpsl-layerset` version 1.
+//!
+//! ```json
+//! {
+//!   "format": "cpsl-layerset",
+//!   "version": 1,
+//!   "camera": { "width": 640, "height": 480, "fx": 554.3, "fy": 554.3, "cx": 319.5, "cy": 239.5 },
+//!   "layers": [
+//!     { "file": "layer_00.png", "depth": 2.0, "meta": { "role": "region" } },
+//!     { "file": "layer_01.png", "depth": 8.0, "meta": { "role": "background" } }
+//!   ]
+//! }
+//! ```
+//! Layers are listed nearest first; each file is an RGBA PNG (straight alpha, 8 bits) of the
+//! camera's size next to the manifest. Unknown fields are rejected so that typos are caught.
+
+use crate::camera::Camera;
+use crate::layer::LayerMeta;
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+/// Format name written in every manifest.
+pub const FORMAT_NAME: &str = "cpsl-layerset";
+/// Newest manifest version this build reads and writes.
+pub const FORMAT_VERSION: u32 = 1;
+
+/// Camera as written in a manifest (same fields as [`Camera`]).
+pub type CameraSpec = Camera;
+
+/// One layer entry of a manifest.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct LayerEntry {
+    /// File name of the layer image, relative to the manifest (no directories).
+    pub file: String,
+    /// Reference depth `z_k`.
+    pub depth: f64,
+    /// Optional metadata.
+    #[serde(default, skip_serializing_if = "is_default_meta")]
+    pub meta: LayerMeta,
+}
+
+fn is_default_meta(m: &LayerMeta) -> bool {
+    *m == LayerMeta::default()
+}
+
+/// The parsed manifest.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Manifest {
+    /// Always [`FORMAT_NAME`].
+    pub format: String,
+    /// Format version, at most [`FORMAT_VERSION`].
+    pub version: u32,
+    /// Reference camera.
+    pub camera: CameraSpec,
+    /// Layers, nearest first.
+    pub layers: Vec<LayerEntry>,
+}
+
+/// Why a manifest was rejected.
+#[derive(Debug, Error, Clone, PartialEq)]
+pub enum ManifestError {
+    /// Not valid JSON or not the expected shape.
+    #[error("invalid JSON: {0}")]
+    Json(String),
+    /// The `format` field is not `cpsl-layerset`.
+    #[error("field `format`: expected \"{FORMAT_NAME}\", found \"{0}\"")]
+    Format(String),
+    /// The version is newer than this build understands (or zero).
+    #[error("field `version`: this build reads versions 1..={FORMAT_VERSION}, found {0}")]
+    Version(u32),
+    /// A layer file name is unsafe or duplicated.
+    #[error("field `layers[{index}].file`: {reason}, found \"{file}\"")]
+    FileName {
+        /// Layer index.
+        index: usize,
+        /// The file name.
+        file: String,
+        /// What is wrong with it.
+        reason: &'static str,
+    },
+}
+
+impl Manifest {
+    /// Parses and checks a manifest: shape, format name, version and file names. Camera,
+    /// depths and sizes are checked when the layer set is built.
+    pub fn parse(bytes: &[u8]) -> Result<Self, ManifestError> {
+        // Look at format and version first so that a newer file gets a version error rather
+        // than an unknown-field error.
+        #[derive(Deserialize)]
+        struct Head {
+            format: Option<String>,
+            version: Option<u32>,
+        }
+        let head: Head =
+            serde_json::from_slice(bytes).map_err(|e| ManifestError::Json(e.to_string()))?;
+        match head.format.as_deref() {
+            Some(FORMAT_NAME) => {}
+            Some(other) => return Err(ManifestError::Format(other.into())),
+            None => return Err(ManifestError::Json("missing field `format`".into())),
+        }
+        match head.version {
+            Some(v) if (1..=FORMAT_VERSION).contains(&v) => {}
+            Some(v) => return Err(ManifestError::Version(v)),
+            None => return Err(ManifestError::Json("missing field `version`".into())),
+        }
+        let m: Manifest =
+            serde_json::from_slice(bytes).map_err(|e| ManifestError::Json(e.to_string()))?;
+        let mut seen = std::collections::HashSet::new();
+        for (index, l) in m.layers.iter().enumerate() {
+            if let Some(reason) = unsafe_file_name(&l.file) {
+                return Err(ManifestError::FileName {
+                    index,
+                    file: l.file.clone(),
+                    reason,
+                });
+            }
+            if !seen.insert(l.file.as_str()) {
+                return Err(ManifestError::FileName {
+                    index,
+                    file: l.file.clone(),
+                    reason: "file is used by an earlier layer",
+                });
+            }
+        }
+        Ok(m)
+    }
+
+    /// Serialises as pretty JSON.
+    pub fn to_json(&self) -> String {
+        serde_json::to_string_pretty(self).expect("manifest serialises")
+    }
+}
+
+/// Why a file name is unsafe to join to the layer-set directory, if it is.
+pub fn unsafe_file_name(name: &str) -> Option<&'static str> {
+    if name.is_empty() {
+        Some("must not be empty")
+    } else if name.contains('/') || name.contains('\\') {
+        Some("must be a plain file name without directories")
+    } else if name == "." || name == ".." || name.starts_with('.') {
+        Some("must not start with '.'")
+    } else if name.len() > 255 || name.chars().any(|c| c.is_control()) {
+        Some("must be at most 255 printable characters")
+    } else {
+        None
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn doc(version: u32, file: &str) -> String {
+        format!(
+            r#"{{"format":"cpsl-layerset","version":{version},
+            "camera":{{"width":4,"height":3,"fx":2,"fy":2,"cx":1.5,"cy":1}},
+            "layers":[{{"file":"{file}","depth":1.5}}]}}"#
+        )
+    }
+
+    #[test]
+    fn parses_and_round_trips() {
+        let m = Manifest::parse(doc(1, "a.png").as_bytes()).unwrap();
+        assert_eq!(Manifest::parse(m.to_json().as_bytes()).unwrap(), m);
+    }
+
+    #[test]
+    fn rejects_bad_headers_and_names() {
+        assert_eq!(
+            Manifest::parse(doc(2, "a.png").as_bytes()),
+            Err(ManifestError::Version(2))
+        );
+        assert_eq!(
+            Manifest::parse(doc(0, "a.png").as_bytes()),
+            Err(ManifestError::Version(0))
+        );
+        assert!(matches!(
+            Manifest::parse(doc(1, "../x.png").as_bytes()),
+            Err(ManifestError::FileName { index: 0, .. })
+        ));
+        let other = doc(1, "a.png").replace("cpsl-layerset", "mpi");
+        assert!(matches!(Manifest::parse(other.as_bytes()), Err(ManifestError::Format(_))));
+        let typo = doc(1, "a.png").replace("\"depth\"", "\"dpeth\"");
+        let e = Manifest::parse(typo.as_bytes()).unwrap_err().to_string();
+        assert!(e.contains("dpeth"), "{e}");
+        assert!(Manifest::parse(b"{not json").is_err());
+    }
+}

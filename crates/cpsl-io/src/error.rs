@@ -1,0 +1,93 @@
+//! Errors of file reading and writing. Every variant names the path involved.
+
+use cpsl_core::{CoreError, ManifestError};
+use std::path::PathBuf;
+use thiserror::Error;
+
+/// A failure to read or write CPSL files.
+#[derive(Debug, Error)]
+pub enum IoError {
+    /// The operating system refused an operation.
+    #[error("{path}: {source}")]
+    Io {
+        /// Path involved.
+        path: PathBuf,
+        /// Underlying error.
+        #[source]
+        source: std::io::Error,
+    },
+    /// The manifest is malformed.
+    #[error("{path}: {source}")]
+    Manifest {
+        /// Manifest path.
+        path: PathBuf,
+        /// What is wrong.
+        #[source]
+        source: ManifestError,
+    },
+    /// A file is larger than the limits allow.
+    #[error("{path}: file is {size} bytes, above the limit of {max}")]
+    FileTooLarge {
+        /// File path.
+        path: PathBuf,
+        /// Its size.
+        size: u64,
+        /// The limit.
+        max: u64,
+    },
+    /// An image could not be decoded or encoded.
+    #[error("{path}: {message}")]
+    Image {
+        /// Image path.
+        path: PathBuf,
+        /// Decoder message.
+        message: String,
+    },
+    /// A layer image's size differs from the camera in the manifest.
+    #[error("{path}: image is {width}x{height} but the manifest camera is {expected_width}x{expected_height}")]
+    ImageSize {
+        /// Image path.
+        path: PathBuf,
+        /// Width found.
+        width: u32,
+        /// Height found.
+        height: u32,
+        /// Camera width.
+        expected_width: u32,
+        /// Camera height.
+        expected_height: u32,
+    },
+    /// The content breaks a layer-set invariant (depth order, limits, ...).
+    #[error("{path}: {source}")]
+    Invalid {
+        /// The file the invariant belongs to (usually the manifest).
+        path: PathBuf,
+        /// The broken invariant.
+        #[source]
+        source: CoreError,
+    },
+    /// The write target exists and is not a layer set, so it is not replaced.
+    #[error("{path}: exists and is not a CPSL layer set (no manifest.json); refusing to replace it")]
+    TargetExists {
+        /// Target path.
+        path: PathBuf,
+    },
+    /// A PFM file is malformed.
+    #[error("{path}: PFM {reason}")]
+    Pfm {
+        /// File path.
+        path: PathBuf,
+        /// What is wrong.
+        reason: String,
+    },
+}
+
+impl IoError {
+    /// Wraps an `std::io::Error` with its path.
+    pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
+        Self::Io {
+            path: path.into(),
+            source,
+        }
+    }
+}

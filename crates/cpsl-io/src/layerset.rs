@@ -1,0 +1,204 @@
+//! The layer-set folder: `manifest.json` plus one straight-alpha RGBA PNG per layer
+//! (see [`cpsl_core::manifest`] for the schema), plus optional side files written by later
+//! stages (configs, edge-depth caches).
+//!
+//! Reading validates everything before returning and names the file and field of the first
+//! problem. Writing is atomic: files go to a temporary sibling directory that is renamed into
+//! place, so an interrupted write never leaves a half-written layer set.
+
+use crate::atomic::StagedDir;
+use crate::error::IoError;
+use crate::images;
+use cpsl_core::{Layer, LayerEntry, LayerSet, Limits, Manifest, PremulImage, FORMAT_NAME, FORMAT_VERSION};
+use std::path::Path;
+
+/// Name of the manifest inside a layer-set folder.
+pub const MANIFEST_FILE: &str = "manifest.json";
+
+/// Reads and validates a layer-set folder.
+pub fn read_layer_set(dir: &Path, limits: &Limits) -> Result<LayerSet, IoError> {
+    let mpath = dir.join(MANIFEST_FILE);
+    let meta = std::fs::metadata(&mpath).map_err(|e| IoError::io(&mpath, e))?;
+    if meta.len() > limits.max_manifest_bytes {
+        return Err(IoError::FileTooLarge {
+            path: mpath,
+            size: meta.len(),
+            max: limits.max_manifest_bytes,
+        });
+    }
+    let bytes = std::fs::read(&mpath).map_err(|e| IoError::io(&mpath, e))?;
+    let manifest = Manifest::parse(&bytes).map_err(|source| IoError::Manifest {
+        path: mpath.clone(),
+        source,
+    })?;
+    let cam = manifest.camera;
+    let invalid = |source| IoError::Invalid {
+        path: mpath.clone(),
+        source,
+    };
+    // Camera, limits, layer count and depths are checked before any image is decoded.
+    cam.validate().map_err(invalid)?;
+    limits
+        .check_size("camera", cam.width, cam.height)
+        .map_err(invalid)?;
+    let placeholder: Vec<Layer> = manifest
+        .layers
+        .iter()
+        .map(|e| Layer {
+            image: PremulImage::new(1, 1),
+            depth: e.depth,
+            meta: e.meta.clone(),
+        })
+        .collect();
+    let tiny = cpsl_core::Camera {
+        width: 1,
+        height: 1,
+        ..cam
+    };
+    LayerSet::new(tiny, placeholder, limits).map_err(invalid)?;
+
+    let mut layers = Vec::with_capacity(manifest.layers.len());
+    for entry in &manifest.layers {
+        let path = dir.join(&entry.file);
+        let (w, h) = images::dimensions(&path, limits)?;
+        if (w, h) != (cam.width, cam.height) {
+            return Err(IoError::ImageSize {
+                path,
+                width: w,
+                height: h,
+                expected_width: cam.width,
+                expected_height: cam.height,
+            });
+        }
+        let rgba = images::read_rgba8(&path, limits)?;
+        let image = PremulImage::from_straight(rgba.width, rgba.height, &rgba.data)
+            .map_err(|source| IoError::Invalid {
+                path: path.clone(),
+                source,
+            })?;
+        layers.push(Layer {
+            image,
+            depth: entry.depth,
+            meta: entry.meta.clone(),
+        });
+    }
+    LayerSet::new(cam, layers, limits).map_err(invalid)
+}
+
+/// The manifest describing `set` with the standard file names `layer_NN.png`.
+pub fn manifest_for(set: &LayerSet) -> Manifest {
+    Manifest {
+        format: FORMAT_NAME.into(),
+        version: FORMAT_VERSION,
+        camera: *set.camera(),
+        layers: set
+            .layers()
+            .iter()
+            .enumerate()
+            .map(|(i, l)| LayerEntry {
+                file: format!("layer_{i:02}.png"),
+                depth: l.depth,
+                meta: l.meta.clone(),
+            })
+            .collect(),
+    }
+}
+
+fn is_layer_set_dir(p: &Path) -> bool {
+    p.is_dir()
+        && (p.join(MANIFEST_FILE).is_file()
+            || std::fs::read_dir(p).map(|mut d| d.next().is_none()).unwrap_or(false))
+}
+
+/// Writes `set` (and `extras`, side files given as name and bytes) to the folder `dir`,
+/// atomically. An existing layer set (or empty folder) at `dir` is replaced; anything else
+/// there is left alone and reported as [`IoError::TargetExists`].
+pub fn write_layer_set(dir: &Path, set: &LayerSet, extras: &[(&str, &[u8])]) -> Result<(), IoError> {
+    write_inner(dir, set, extras, None)
+}
+
+fn write_inner(
+    dir: &Path,
+    set: &LayerSet,
+    extras: &[(&str, &[u8])],
+    fail_after: Option<usize>,
+) -> Result<(), IoError> {
+    for (name, _) in extras {
+        if let Some(reason) = cpsl_core::manifest::unsafe_file_name(name) {
+            return Err(IoError::Image {
+                path: dir.join(name),
+                message: format!("side file name {reason}"),
+            });
+        }
+    }
+    let stage = StagedDir::new(dir, is_layer_set_dir)?;
+    let manifest = manifest_for(set);
+    let (w, h) = (set.camera().width, set.camera().height);
+    for (written, (entry, layer)) in manifest.layers.iter().zip(set.layers()).enumerate() {
+        if fail_after == Some(written) {
+            return Err(IoError::io(stage.path(), std::io::Error::other("injected failure")));
+        }
+        let png = images::encode_png(w, h, 4, &layer.image.to_straight()).map_err(|message| {
+            IoError::Image {
+                path: dir.join(&entry.file),
+                message,
+            }
+        })?;
+        stage.write_file(&entry.file, &png)?;
+    }
+    for (name, bytes) in extras {
+        stage.write_file(name, bytes)?;
+    }
+    // The manifest goes last: a folder with a manifest is complete.
+    stage.write_file(MANIFEST_FILE, manifest.to_json().as_bytes())?;
+    stage.commit()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use cpsl_core::Camera;
+
+    fn set() -> LayerSet {
+        let cam = Camera::from_fov(5, 4, 60.0);
+        let mut a = PremulImage::new(5, 4);
+        a.set_pixel(1, 1, [100, 50, 25, 128]);
+        let b = PremulImage::from_rgb(5, 4, &[7u8; 60]).unwrap();
+        LayerSet::new(cam, vec![Layer::new(a, 1.0), Layer::new(b, 3.0)], &Limits::default()).unwrap()
+    }
+
+    #[test]
+    fn roundtrip_is_exact() {
+        let d = tempfile::tempdir().unwrap();
+        let p = d.path().join("ls");
+        write_layer_set(&p, &set(), &[("extra.bin", b"xyz")]).unwrap();
+        assert_eq!(read_layer_set(&p, &Limits::default()).unwrap(), set());
+        assert_eq!(std::fs::read(p.join("extra.bin")).unwrap(), b"xyz");
+        // Rewriting over an existing layer set replaces it.
+        write_layer_set(&p, &set(), &[]).unwrap();
+        assert!(!p.join("extra.bin").exists());
+    }
+
+    #[test]
+    fn interrupted_write_leaves_nothing() {
+        let d = tempfile::tempdir().unwrap();
+        let p = d.path().join("ls");
+        assert!(write_inner(&p, &set(), &[], Some(1)).is_err());
+        assert!(!p.exists());
+        assert_eq!(std::fs::read_dir(d.path()).unwrap().count(), 0, "temporary files left");
+        // An interrupted rewrite keeps the previous complete layer set.
+        write_layer_set(&p, &set(), &[]).unwrap();
+        assert!(write_inner(&p, &set(), &[], Some(1)).is_err());
+        assert_eq!(read_layer_set(&p, &Limits::default()).unwrap(), set());
+        assert_eq!(std::fs::read_dir(d.path()).unwrap().count(), 1);
+    }
+
+    #[test]
+    fn refuses_to_replace_other_folders() {
+        let d = tempfile::tempdir().unwrap();
+        std::fs::write(d.path().join("precious.txt"), "x").unwrap();
+        let e = write_layer_set(d.path(), &set(), &[]).unwrap_err();
+        assert!(matches!(e, IoError::TargetExists { .. }));
+        assert!(d.path().join("precious.txt").exists());
+    }
+}

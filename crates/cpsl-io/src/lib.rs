@@ -1,0 +1,15 @@
+//! CPSL files on disk.
+//!
+//! * [`layerset`]: the layer-set folder (`manifest.json` + one RGBA PNG per layer + optional
+//!   side files), read with full validation under [`cpsl_core::Limits`] and written atomically.
+//! * [`images`]: PNG/JPEG reading with size limits checked before decoding, PNG writing.
+//! * [`pfm`]: Portable Float Map depth files.
+
+pub mod atomic;
+pub mod error;
+pub mod images;
+pub mod layerset;
+pub mod pfm;
+
+pub use error::IoError;
+pub use layerset::{read_layer_set, write_layer_set, MANIFEST_FILE};

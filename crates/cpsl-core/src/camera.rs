@@ -142,7 +142,10 @@ mod tests {
         let mut c = Camera::from_fov(64, 48, 60.0);
         assert!(c.validate().is_ok());
         c.fx = f64::NAN;
-        assert!(matches!(c.validate(), Err(CoreError::Camera { field: "fx", .. })));
+        assert!(matches!(
+            c.validate(),
+            Err(CoreError::Camera { field: "fx", .. })
+        ));
         c.fx = 10.0;
         c.width = 0;
         assert!(c.validate().is_err());

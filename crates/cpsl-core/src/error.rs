@@ -28,7 +28,9 @@ pub enum CoreError {
         max: usize,
     },
     /// An image is larger than the configured limits.
-    #[error("{what} is {width}x{height}, above the limit of {max_side} px per side / {max_pixels} px")]
+    #[error(
+        "{what} is {width}x{height}, above the limit of {max_side} px per side / {max_pixels} px"
+    )]
     TooLarge {
         /// What was measured.
         what: String,
@@ -52,7 +54,9 @@ pub enum CoreError {
         height: u32,
     },
     /// A layer's size differs from the camera's.
-    #[error("layer {index}: size {width}x{height} differs from the camera's {cam_width}x{cam_height}")]
+    #[error(
+        "layer {index}: size {width}x{height} differs from the camera's {cam_width}x{cam_height}"
+    )]
     SizeMismatch {
         /// Layer index (0 = nearest).
         index: usize,

@@ -52,7 +52,9 @@ impl Homography {
             .scale(gap)
             .add(&Mat3::outer(pose.translation, n));
         // Divide by depth so that H ~ identity-scaled for small motions (w ~ 1).
-        Some(Self((src.k() * m * pose.rotation * dst.k_inv()).scale(1.0 / depth)))
+        Some(Self(
+            (src.k() * m * pose.rotation * dst.k_inv()).scale(1.0 / depth),
+        ))
     }
 
     /// Applies the homography to pixel `(x, y)`; `None` when the homogeneous `w` is not

@@ -131,7 +131,12 @@ impl PremulImage {
     /// The pixel at `(x, y)` (premultiplied RGBA).
     pub fn pixel(&self, x: u32, y: u32) -> [u8; 4] {
         let i = (y as usize * self.width as usize + x as usize) * 4;
-        [self.data[i], self.data[i + 1], self.data[i + 2], self.data[i + 3]]
+        [
+            self.data[i],
+            self.data[i + 1],
+            self.data[i + 2],
+            self.data[i + 3],
+        ]
     }
     /// Sets the pixel at `(x, y)` (premultiplied RGBA).
     pub fn set_pixel(&mut self, x: u32, y: u32, p: [u8; 4]) {

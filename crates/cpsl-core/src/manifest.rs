@@ -181,7 +181,10 @@ mod tests {
             Err(ManifestError::FileName { index: 0, .. })
         ));
         let other = doc(1, "a.png").replace("cpsl-layerset", "mpi");
-        assert!(matches!(Manifest::parse(other.as_bytes()), Err(ManifestError::Format(_))));
+        assert!(matches!(
+            Manifest::parse(other.as_bytes()),
+            Err(ManifestError::Format(_))
+        ));
         let typo = doc(1, "a.png").replace("\"depth\"", "\"dpeth\"");
         let e = Manifest::parse(typo.as_bytes()).unwrap_err().to_string();
         assert!(e.contains("dpeth"), "{e}");

@@ -132,9 +132,21 @@ impl Mat3 {
         let inv_d = 1.0 / d;
         let c = |a: usize, b: usize, e: usize, f: usize| m[a][b] * m[e][f] - m[a][f] * m[e][b];
         Some(Self([
-            [c(1, 1, 2, 2) * inv_d, -c(0, 1, 2, 2) * inv_d, c(0, 1, 1, 2) * inv_d],
-            [-c(1, 0, 2, 2) * inv_d, c(0, 0, 2, 2) * inv_d, -c(0, 0, 1, 2) * inv_d],
-            [c(1, 0, 2, 1) * inv_d, -c(0, 0, 2, 1) * inv_d, c(0, 0, 1, 1) * inv_d],
+            [
+                c(1, 1, 2, 2) * inv_d,
+                -c(0, 1, 2, 2) * inv_d,
+                c(0, 1, 1, 2) * inv_d,
+            ],
+            [
+                -c(1, 0, 2, 2) * inv_d,
+                c(0, 0, 2, 2) * inv_d,
+                -c(0, 0, 1, 2) * inv_d,
+            ],
+            [
+                c(1, 0, 2, 1) * inv_d,
+                -c(0, 0, 2, 1) * inv_d,
+                c(0, 0, 1, 1) * inv_d,
+            ],
         ]))
     }
     /// Scales every entry.

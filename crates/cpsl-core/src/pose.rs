@@ -47,7 +47,9 @@ impl Pose {
 
     /// A pose from a translation and Euler angles in degrees (see the module docs).
     pub fn from_euler_deg(t: Vec3, rx: f64, ry: f64, rz: f64) -> Self {
-        let r = Mat3::rot_y(ry.to_radians()) * Mat3::rot_x(rx.to_radians()) * Mat3::rot_z(rz.to_radians());
+        let r = Mat3::rot_y(ry.to_radians())
+            * Mat3::rot_x(rx.to_radians())
+            * Mat3::rot_z(rz.to_radians());
         Self {
             rotation: r,
             translation: t,
@@ -67,7 +69,12 @@ impl Pose {
                 v.len()
             ));
         }
-        Ok(Self::from_euler_deg(Vec3::new(v[0], v[1], v[2]), v[3], v[4], v[5]))
+        Ok(Self::from_euler_deg(
+            Vec3::new(v[0], v[1], v[2]),
+            v[3],
+            v[4],
+            v[5],
+        ))
     }
 
     /// Euler angles `(rx, ry, rz)` in degrees such that `from_euler_deg` gives this rotation

@@ -67,7 +67,9 @@ pub enum IoError {
         source: CoreError,
     },
     /// The write target exists and is not a layer set, so it is not replaced.
-    #[error("{path}: exists and is not a CPSL layer set (no manifest.json); refusing to replace it")]
+    #[error(
+        "{path}: exists and is not a CPSL layer set (no manifest.json); refusing to replace it"
+    )]
     TargetExists {
         /// Target path.
         path: PathBuf,

@@ -2,7 +2,7 @@
 
 use crate::error::IoError;
 use cpsl_core::Limits;
-use image::{ImageReader, ImageEncoder};
+use image::{ImageEncoder, ImageReader};
 use std::fs;
 use std::io::BufReader;
 use std::path::Path;
@@ -18,10 +18,7 @@ pub struct Image8 {
     pub data: Vec<u8>,
 }
 
-fn open_reader(
-    path: &Path,
-    limits: &Limits,
-) -> Result<ImageReader<BufReader<fs::File>>, IoError> {
+fn open_reader(path: &Path, limits: &Limits) -> Result<ImageReader<BufReader<fs::File>>, IoError> {
     let meta = fs::metadata(path).map_err(|e| IoError::io(path, e))?;
     if meta.len() > limits.max_file_bytes {
         return Err(IoError::FileTooLarge {

@@ -9,7 +9,9 @@
 use crate::atomic::StagedDir;
 use crate::error::IoError;
 use crate::images;
-use cpsl_core::{Layer, LayerEntry, LayerSet, Limits, Manifest, PremulImage, FORMAT_NAME, FORMAT_VERSION};
+use cpsl_core::{
+    Layer, LayerEntry, LayerSet, Limits, Manifest, PremulImage, FORMAT_NAME, FORMAT_VERSION,
+};
 use std::path::Path;
 
 /// Name of the manifest inside a layer-set folder.
@@ -71,10 +73,12 @@ pub fn read_layer_set(dir: &Path, limits: &Limits) -> Result<LayerSet, IoError> 
             });
         }
         let rgba = images::read_rgba8(&path, limits)?;
-        let image = PremulImage::from_straight(rgba.width, rgba.height, &rgba.data)
-            .map_err(|source| IoError::Invalid {
-                path: path.clone(),
-                source,
+        let image =
+            PremulImage::from_straight(rgba.width, rgba.height, &rgba.data).map_err(|source| {
+                IoError::Invalid {
+                    path: path.clone(),
+                    source,
+                }
             })?;
         layers.push(Layer {
             image,
@@ -107,13 +111,19 @@ pub fn manifest_for(set: &LayerSet) -> Manifest {
 fn is_layer_set_dir(p: &Path) -> bool {
     p.is_dir()
         && (p.join(MANIFEST_FILE).is_file()
-            || std::fs::read_dir(p).map(|mut d| d.next().is_none()).unwrap_or(false))
+            || std::fs::read_dir(p)
+                .map(|mut d| d.next().is_none())
+                .unwrap_or(false))
 }
 
 /// Writes `set` (and `extras`, side files given as name and bytes) to the folder `dir`,
 /// atomically. An existing layer set (or empty folder) at `dir` is replaced; anything else
 /// there is left alone and reported as [`IoError::TargetExists`].
-pub fn write_layer_set(dir: &Path, set: &LayerSet, extras: &[(&str, &[u8])]) -> Result<(), IoError> {
+pub fn write_layer_set(
+    dir: &Path,
+    set: &LayerSet,
+    extras: &[(&str, &[u8])],
+) -> Result<(), IoError> {
     write_inner(dir, set, extras, None)
 }
 
@@ -136,7 +146,10 @@ fn write_inner(
     let (w, h) = (set.camera().width, set.camera().height);
     for (written, (entry, layer)) in manifest.layers.iter().zip(set.layers()).enumerate() {
         if fail_after == Some(written) {
-            return Err(IoError::io(stage.path(), std::io::Error::other("injected failure")));
+            return Err(IoError::io(
+                stage.path(),
+                std::io::Error::other("injected failure"),
+            ));
         }
         let png = images::encode_png(w, h, 4, &layer.image.to_straight()).map_err(|message| {
             IoError::Image {
@@ -164,7 +177,12 @@ mod tests {
         let mut a = PremulImage::new(5, 4);
         a.set_pixel(1, 1, [100, 50, 25, 128]);
         let b = PremulImage::from_rgb(5, 4, &[7u8; 60]).unwrap();
-        LayerSet::new(cam, vec![Layer::new(a, 1.0), Layer::new(b, 3.0)], &Limits::default()).unwrap()
+        LayerSet::new(
+            cam,
+            vec![Layer::new(a, 1.0), Layer::new(b, 3.0)],
+            &Limits::default(),
+        )
+        .unwrap()
     }
 
     #[test]
@@ -185,7 +203,11 @@ mod tests {
         let p = d.path().join("ls");
         assert!(write_inner(&p, &set(), &[], Some(1)).is_err());
         assert!(!p.exists());
-        assert_eq!(std::fs::read_dir(d.path()).unwrap().count(), 0, "temporary files left");
+        assert_eq!(
+            std::fs::read_dir(d.path()).unwrap().count(),
+            0,
+            "temporary files left"
+        );
         // An interrupted rewrite keeps the previous complete layer set.
         write_layer_set(&p, &set(), &[]).unwrap();
         assert!(write_inner(&p, &set(), &[], Some(1)).is_err());

@@ -138,7 +138,9 @@ mod tests {
             data: vec![0.0; 4],
         };
         let bytes = encode_pfm(&img);
-        assert!(parse_pfm(&bytes[..bytes.len() - 1], &l).unwrap_err().contains("truncated"));
+        assert!(parse_pfm(&bytes[..bytes.len() - 1], &l)
+            .unwrap_err()
+            .contains("truncated"));
         assert!(parse_pfm(b"P6\n1 1\n255\n", &l).is_err());
         assert!(parse_pfm(b"Pf\n99999999 99999999\n-1\n", &l).is_err());
         assert!(parse_pfm(b"Pf\n", &l).is_err());

@@ -1,0 +1,123 @@
+//! Layers converted once into the renderer's working form.
+
+use cpsl_core::{Camera, LayerSet};
+
+/// Side of the square source blocks whose occupancy is summarised.
+pub(crate) const BLOCK: usize = 16;
+
+/// One layer ready for sampling.
+pub(crate) struct PreparedLayer {
+    /// Reference depth.
+    pub depth: f64,
+    /// Premultiplied RGBA texels as little-endian `u32` (R in the low byte), with a one-texel
+    /// transparent border: texel `(x, y)` lives at `(y + 1) * pitch + x + 1`.
+    pub texels: Vec<u32>,
+    /// Row pitch of `texels` (`width + 2`).
+    pub pitch: usize,
+    /// Block grid width.
+    pub bw: usize,
+    /// 2D inclusive prefix sums over blocks, `(bh + 1) x (bw + 1)`: blocks with any alpha > 0.
+    pub nonempty: Vec<u32>,
+    /// Same for blocks with any alpha < 255.
+    pub translucent: Vec<u32>,
+}
+
+impl PreparedLayer {
+    fn block_sum(table: &[u32], bw: usize, bx0: usize, by0: usize, bx1: usize, by1: usize) -> u32 {
+        // Inclusive block range [bx0, bx1] x [by0, by1].
+        let s = bw + 1;
+        table[(by1 + 1) * s + bx1 + 1] + table[by0 * s + bx0]
+            - table[by0 * s + bx1 + 1]
+            - table[(by1 + 1) * s + bx0]
+    }
+
+    /// Number of non-empty and translucent blocks intersecting the pixel range
+    /// `[x0, x1] x [y0, y1]` (inclusive, clipped by the caller to the layer).
+    pub fn counts(&self, x0: usize, y0: usize, x1: usize, y1: usize) -> (u32, u32) {
+        let (bx0, by0, bx1, by1) = (x0 / BLOCK, y0 / BLOCK, x1 / BLOCK, y1 / BLOCK);
+        (
+            Self::block_sum(&self.nonempty, self.bw, bx0, by0, bx1, by1),
+            Self::block_sum(&self.translucent, self.bw, bx0, by0, bx1, by1),
+        )
+    }
+}
+
+/// A layer set converted into the renderer's working form. Build it once per layer set (or
+/// video frame) and render it from as many poses as needed.
+pub struct PreparedLayers {
+    pub(crate) camera: Camera,
+    pub(crate) layers: Vec<PreparedLayer>,
+}
+
+fn prefix_sums(flags: &[bool], bw: usize, bh: usize) -> Vec<u32> {
+    let s = bw + 1;
+    let mut t = vec![0u32; (bh + 1) * s];
+    for by in 0..bh {
+        for bx in 0..bw {
+            t[(by + 1) * s + bx + 1] =
+                flags[by * bw + bx] as u32 + t[by * s + bx + 1] + t[(by + 1) * s + bx]
+                    - t[by * s + bx];
+        }
+    }
+    t
+}
+
+impl PreparedLayers {
+    /// Prepares a layer set for rendering.
+    pub fn new(set: &LayerSet) -> Self {
+        let cam = *set.camera();
+        let (w, h) = (cam.width as usize, cam.height as usize);
+        let pitch = w + 2;
+        let (bw, bh) = (w.div_ceil(BLOCK), h.div_ceil(BLOCK));
+        let layers = set
+            .layers()
+            .iter()
+            .map(|layer| {
+                let bytes = layer.image.as_bytes();
+                let mut texels = vec![0u32; pitch * (h + 2)];
+                let mut any = vec![false; bw * bh];
+                let mut translucent = vec![false; bw * bh];
+                for y in 0..h {
+                    let row = &mut texels[(y + 1) * pitch + 1..(y + 1) * pitch + 1 + w];
+                    for (x, (t, p)) in row
+                        .iter_mut()
+                        .zip(bytes[y * w * 4..].chunks_exact(4))
+                        .enumerate()
+                    {
+                        *t = u32::from_le_bytes([p[0], p[1], p[2], p[3]]);
+                        let b = (y / BLOCK) * bw + x / BLOCK;
+                        any[b] |= p[3] != 0;
+                        translucent[b] |= p[3] != 255;
+                    }
+                }
+                PreparedLayer {
+                    depth: layer.depth,
+                    texels,
+                    pitch,
+                    bw,
+                    nonempty: prefix_sums(&any, bw, bh),
+                    translucent: prefix_sums(&translucent, bw, bh),
+                }
+            })
+            .collect();
+        Self {
+            camera: cam,
+            layers,
+        }
+    }
+
+    /// The reference camera of the prepared layers.
+    pub fn camera(&self) -> &Camera {
+        &self.camera
+    }
+
+    /// Number of layers.
+    pub fn len(&self) -> usize {
+        self.layers.len()
+    }
+
+    /// True when there are no layers (never for a prepared [`LayerSet`]).
+    pub fn is_empty(&self) -> bool {
+        self.layers.is_empty()
+    }
+}

@@ -1,0 +1,352 @@
+//! Tiled warp-and-composite kernel.
+
+use crate::prepared::{PreparedLayer, PreparedLayers};
+use cpsl_core::{Camera, Homography, Pose, PremulImage};
+use rayon::prelude::*;
+
+/// Output tile width in pixels.
+pub const TILE_W: usize = 64;
+/// Output tile height in pixels (rows rendered by one parallel task).
+pub const TILE_H: usize = 16;
+const TILE: usize = TILE_W * TILE_H;
+
+/// `1 - a / 255` for every 8-bit alpha, computed exactly as the closed form does.
+const ONE_MINUS: [f32; 256] = {
+    let mut t = [0.0f32; 256];
+    let mut i = 0;
+    while i < 256 {
+        t[i] = 1.0 - i as f32 / 255.0;
+        i += 1;
+    }
+    t
+};
+
+/// Fixed-point offset that keeps positions >= -2 px positive before truncation.
+const OFFSET: i32 = 512;
+
+/// Counters describing how much work a render did (for tests and profiling).
+#[derive(Debug, Default, Clone, Copy, PartialEq, Eq)]
+pub struct RenderStats {
+    /// (tile, layer) pairs that were rasterised.
+    pub drawn: u64,
+    /// (tile, layer) pairs skipped because the footprint was empty or outside the layer.
+    pub skipped: u64,
+    /// Tiles whose layer loop ended early behind a fully opaque footprint.
+    pub opaque_stops: u64,
+}
+
+impl std::ops::Add for RenderStats {
+    type Output = Self;
+    fn add(self, o: Self) -> Self {
+        Self {
+            drawn: self.drawn + o.drawn,
+            skipped: self.skipped + o.skipped,
+            opaque_stops: self.opaque_stops + o.opaque_stops,
+        }
+    }
+}
+
+#[derive(Clone, Copy)]
+struct Warp {
+    h: [[f64; 3]; 3],
+}
+
+enum Class {
+    Skip,
+    Draw { check_w: bool, opaque: bool },
+}
+
+impl Warp {
+    fn classify(
+        &self,
+        layer: &PreparedLayer,
+        x0: usize,
+        y0: usize,
+        tw: usize,
+        th: usize,
+        sw: usize,
+        sh: usize,
+    ) -> Class {
+        let h = &self.h;
+        let (xa, xb, ya, yb) = (
+            x0 as f64,
+            (x0 + tw - 1) as f64,
+            y0 as f64,
+            (y0 + th - 1) as f64,
+        );
+        let mut bad = 0;
+        let (mut minx, mut maxx, mut miny, mut maxy) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+        for (x, y) in [(xa, ya), (xb, ya), (xa, yb), (xb, yb)] {
+            let w = h[2][0] * x + h[2][1] * y + h[2][2];
+            if w <= 0.0 {
+                bad += 1;
+                continue;
+            }
+            let sx = (h[0][0] * x + h[0][1] * y + h[0][2]) / w;
+            let sy = (h[1][0] * x + h[1][1] * y + h[1][2]) / w;
+            minx = minx.min(sx);
+            maxx = maxx.max(sx);
+            miny = miny.min(sy);
+            maxy = maxy.max(sy);
+        }
+        match bad {
+            4 => return Class::Skip,
+            1..=3 => {
+                return Class::Draw {
+                    check_w: true,
+                    opaque: false,
+                }
+            }
+            _ => {}
+        }
+        // Bilinear taps of the footprint, with a margin for rounding to 1/256 px.
+        const M: f64 = 0.01;
+        if !(minx.is_finite() && maxx.is_finite() && miny.is_finite() && maxy.is_finite()) {
+            return Class::Draw {
+                check_w: true,
+                opaque: false,
+            };
+        }
+        let ix0 = (minx - M).floor();
+        let ix1 = (maxx + M).floor() + 1.0;
+        let iy0 = (miny - M).floor();
+        let iy1 = (maxy + M).floor() + 1.0;
+        let (swf, shf) = (sw as f64, sh as f64);
+        if ix1 < 0.0 || iy1 < 0.0 || ix0 > swf - 1.0 || iy0 > shf - 1.0 {
+            return Class::Skip;
+        }
+        let cx0 = ix0.max(0.0) as usize;
+        let cy0 = iy0.max(0.0) as usize;
+        let cx1 = ix1.min(swf - 1.0) as usize;
+        let cy1 = iy1.min(shf - 1.0) as usize;
+        let (nonempty, translucent) = layer.counts(cx0, cy0, cx1, cy1);
+        if nonempty == 0 {
+            return Class::Skip;
+        }
+        let inside = ix0 >= 0.0 && iy0 >= 0.0 && ix1 <= swf - 1.0 && iy1 <= shf - 1.0;
+        Class::Draw {
+            check_w: false,
+            opaque: inside && translucent == 0,
+        }
+    }
+}
+
+const LANES: u64 = 0x00FF_00FF_00FF_00FF;
+const ROUND: u64 = 0x0080_0080_0080_0080;
+
+/// Spreads RGBA8 (R in the low byte) into four 16-bit lanes ordered R, B, G, A.
+#[inline(always)]
+fn spread(p: u32) -> u64 {
+    let p = p as u64;
+    (p | (p << 24)) & LANES
+}
+
+/// Bilinear filter of four premultiplied texels with 8-bit weights, all channels at once.
+#[inline(always)]
+fn bilerp(p00: u32, p01: u32, p10: u32, p11: u32, fx: u64, fy: u64) -> u64 {
+    let top = ((spread(p00) * (256 - fx) + spread(p01) * fx + ROUND) >> 8) & LANES;
+    let bot = ((spread(p10) * (256 - fx) + spread(p11) * fx + ROUND) >> 8) & LANES;
+    ((top * (256 - fy) + bot * fy + ROUND) >> 8) & LANES
+}
+
+/// Warps one output row segment of one layer and composites it under what is already there.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn draw_row<const CHECK_W: bool>(
+    layer: &PreparedLayer,
+    sw: u32,
+    sh: u32,
+    start: [f32; 3],
+    inc: [f32; 3],
+    acc: &mut [[f32; 4]],
+    trans: &mut [f32],
+) {
+    let texels = &layer.texels[..];
+    let pitch = layer.pitch;
+    let [mut a, mut b, mut w] = start;
+    for (o, t) in acc.iter_mut().zip(trans.iter_mut()) {
+        let tv = *t;
+        if tv > 0.0 && (!CHECK_W || w > 0.0) {
+            let inv = 1.0 / w;
+            let xi = (a * inv * 256.0 + (OFFSET as f32 + 0.5)) as i32 - OFFSET;
+            let yi = (b * inv * 256.0 + (OFFSET as f32 + 0.5)) as i32 - OFFSET;
+            let (x0, y0) = (xi >> 8, yi >> 8);
+            // x0 in [-1, w-1] and y0 in [-1, h-1]: all four taps inside the padded texture.
+            if ((x0 + 1) as u32) <= sw && ((y0 + 1) as u32) <= sh {
+                let i = (y0 + 1) as usize * pitch + (x0 + 1) as usize;
+                let r0 = &texels[i..i + 2];
+                let r1 = &texels[i + pitch..i + pitch + 2];
+                let (p00, p01, p10, p11) = (r0[0], r0[1], r1[0], r1[1]);
+                if (p00 | p01 | p10 | p11) != 0 {
+                    let v = bilerp(p00, p01, p10, p11, (xi & 255) as u64, (yi & 255) as u64);
+                    let al = (v >> 48) as usize;
+                    if al != 0 {
+                        o[0] += tv * (v & 0xFFFF) as f32;
+                        o[1] += tv * ((v >> 32) & 0xFFFF) as f32;
+                        o[2] += tv * ((v >> 16) & 0xFFFF) as f32;
+                        o[3] += tv * al as f32;
+                        *t = tv * ONE_MINUS[al];
+                    }
+                }
+            }
+        }
+        a += inc[0];
+        b += inc[1];
+        w += inc[2];
+    }
+}
+
+impl PreparedLayers {
+    fn warps(&self, pose: &Pose, target: &Camera) -> Vec<Option<Warp>> {
+        self.layers
+            .iter()
+            .map(|l| {
+                Homography::plane_inverse(&self.camera, target, pose, l.depth)
+                    .filter(|h| h.0.is_finite())
+                    .map(|h| Warp { h: h.0 .0 })
+            })
+            .collect()
+    }
+
+    /// Renders the band of rows `[y0, y0 + th)` tile by tile; `emit` receives each finished
+    /// tile's accumulators (premultiplied RGBA on a 0..255 scale, row pitch [`TILE_W`]).
+    fn render_band(
+        &self,
+        warps: &[Option<Warp>],
+        width: usize,
+        y0: usize,
+        th: usize,
+        mut emit: impl FnMut(usize, usize, &[[f32; 4]]),
+    ) -> RenderStats {
+        let (sw, sh) = (self.camera.width as usize, self.camera.height as usize);
+        let mut stats = RenderStats::default();
+        let mut acc = vec![[0f32; 4]; TILE];
+        let mut trans = vec![1f32; TILE];
+        for x0 in (0..width).step_by(TILE_W) {
+            let tw = TILE_W.min(width - x0);
+            acc.fill([0.0; 4]);
+            trans.fill(1.0);
+            for (layer, warp) in self.layers.iter().zip(warps) {
+                let Some(warp) = warp else { continue };
+                let (check_w, opaque) = match warp.classify(layer, x0, y0, tw, th, sw, sh) {
+                    Class::Skip => {
+                        stats.skipped += 1;
+                        continue;
+                    }
+                    Class::Draw { check_w, opaque } => (check_w, opaque),
+                };
+                stats.drawn += 1;
+                let h = &warp.h;
+                let inc = [h[0][0] as f32, h[1][0] as f32, h[2][0] as f32];
+                for r in 0..th {
+                    let (x, y) = (x0 as f64, (y0 + r) as f64);
+                    let start = [
+                        (h[0][0] * x + h[0][1] * y + h[0][2]) as f32,
+                        (h[1][0] * x + h[1][1] * y + h[1][2]) as f32,
+                        (h[2][0] * x + h[2][1] * y + h[2][2]) as f32,
+                    ];
+                    let row = r * TILE_W..r * TILE_W + tw;
+                    let (a, t) = (&mut acc[row.clone()], &mut trans[row]);
+                    if check_w {
+                        draw_row::<true>(layer, sw as u32, sh as u32, start, inc, a, t);
+                    } else {
+                        draw_row::<false>(layer, sw as u32, sh as u32, start, inc, a, t);
+                    }
+                }
+                if opaque {
+                    stats.opaque_stops += 1;
+                    break;
+                }
+            }
+            emit(x0, tw, &acc);
+        }
+        stats
+    }
+
+    /// Renders the view seen by a camera `target` at `pose` into `out` (premultiplied RGBA;
+    /// uncovered pixels are transparent). `out` must have the target camera's size.
+    pub fn render_into(&self, pose: &Pose, target: &Camera, out: &mut PremulImage) -> RenderStats {
+        assert_eq!(
+            (out.width(), out.height()),
+            (target.width, target.height),
+            "output image must match the target camera"
+        );
+        let warps = self.warps(pose, target);
+        let width = target.width as usize;
+        out.as_bytes_mut()
+            .par_chunks_mut(width * 4 * TILE_H)
+            .enumerate()
+            .map(|(band, bytes)| {
+                let th = bytes.len() / (width * 4);
+                self.render_band(&warps, width, band * TILE_H, th, |x0, tw, acc| {
+                    for r in 0..th {
+                        let dst = &mut bytes[(r * width + x0) * 4..(r * width + x0 + tw) * 4];
+                        for (d, s) in dst
+                            .chunks_exact_mut(4)
+                            .zip(&acc[r * TILE_W..r * TILE_W + tw])
+                        {
+                            let a = (s[3] + 0.5) as u8;
+                            d[0] = ((s[0] + 0.5) as u8).min(a);
+                            d[1] = ((s[1] + 0.5) as u8).min(a);
+                            d[2] = ((s[2] + 0.5) as u8).min(a);
+                            d[3] = a;
+                        }
+                    }
+                })
+            })
+            .reduce(RenderStats::default, |a, b| a + b)
+    }
+
+    /// Renders the view at `pose` with the reference camera into a new image.
+    pub fn render(&self, pose: &Pose) -> PremulImage {
+        let cam = self.camera;
+        let mut out = PremulImage::new(cam.width, cam.height);
+        self.render_into(pose, &cam, &mut out);
+        out
+    }
+
+    /// Renders into `f32` premultiplied RGBA in `[0, 1]` without 8-bit output rounding (for
+    /// tests and metrics).
+    pub fn render_f32(&self, pose: &Pose, target: &Camera) -> Vec<[f32; 4]> {
+        let warps = self.warps(pose, target);
+        let width = target.width as usize;
+        let mut out = vec![[0f32; 4]; width * target.height as usize];
+        out.par_chunks_mut(width * TILE_H)
+            .enumerate()
+            .for_each(|(band, px)| {
+                let th = px.len() / width;
+                self.render_band(&warps, width, band * TILE_H, th, |x0, tw, acc| {
+                    for r in 0..th {
+                        for (d, s) in px[r * width + x0..r * width + x0 + tw]
+                            .iter_mut()
+                            .zip(&acc[r * TILE_W..r * TILE_W + tw])
+                        {
+                            *d = s.map(|v| v / 255.0);
+                        }
+                    }
+                });
+            });
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bilerp_exact_at_integer_positions_and_midpoint() {
+        let p = u32::from_le_bytes([10, 20, 30, 40]);
+        let q = u32::from_le_bytes([30, 40, 50, 60]);
+        let v = bilerp(p, q, q, q, 0, 0);
+        assert_eq!(
+            [v & 0xFFFF, (v >> 32) & 0xFFFF, (v >> 16) & 0xFFFF, v >> 48],
+            [10, 20, 30, 40]
+        );
+        let m = bilerp(p, q, p, q, 128, 0);
+        assert_eq!([m & 0xFFFF, m >> 48], [20, 50]);
+        let full = u32::MAX;
+        let f = bilerp(full, full, full, full, 77, 200);
+        assert_eq!(f >> 48, 255, "no lane overflow at maximum values");
+    }
+}

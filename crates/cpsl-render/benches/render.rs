@@ -1,5 +1,6 @@
 //! Criterion benchmarks of the CPU renderer kernels. The end-to-end figures in BENCHMARKS.md
 //! come from `cpsl bench render`; these track the kernel per change.
+#![allow(missing_docs)] // criterion_group! generates undocumented items
 
 use cpsl_core::{Pose, PremulImage, Vec3};
 use cpsl_render::PreparedLayers;

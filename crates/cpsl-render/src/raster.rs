@@ -57,16 +57,10 @@ enum Class {
 }
 
 impl Warp {
-    fn classify(
-        &self,
-        layer: &PreparedLayer,
-        x0: usize,
-        y0: usize,
-        tw: usize,
-        th: usize,
-        sw: usize,
-        sh: usize,
-    ) -> Class {
+    /// Decides how the output tile `[x0, x0 + tw) x [y0, y0 + th)` meets `layer`, whose size
+    /// is `sw x sh`.
+    fn classify(&self, layer: &PreparedLayer, tile: [usize; 4], sw: usize, sh: usize) -> Class {
+        let [x0, y0, tw, th] = tile;
         let h = &self.h;
         let (xa, xb, ya, yb) = (
             x0 as f64,
@@ -107,10 +101,13 @@ impl Warp {
                 opaque: false,
             };
         }
-        let ix0 = (minx - M).floor();
-        let ix1 = (maxx + M).floor() + 1.0;
-        let iy0 = (miny - M).floor();
-        let iy1 = (maxy + M).floor() + 1.0;
+        // Far-off footprints (beyond 2^40 px) are clamped before the integer floor.
+        const FAR: f64 = (1u64 << 40) as f64;
+        let fl = |v: f64| floor(v.clamp(-FAR, FAR));
+        let ix0 = fl(minx - M);
+        let ix1 = fl(maxx + M) + 1.0;
+        let iy0 = fl(miny - M);
+        let iy1 = fl(maxy + M) + 1.0;
         let (swf, shf) = (sw as f64, sh as f64);
         if ix1 < 0.0 || iy1 < 0.0 || ix0 > swf - 1.0 || iy0 > shf - 1.0 {
             return Class::Skip;
@@ -149,50 +146,192 @@ fn bilerp(p00: u32, p01: u32, p10: u32, p11: u32, fx: u64, fy: u64) -> u64 {
     ((top * (256 - fy) + bot * fy + ROUND) >> 8) & LANES
 }
 
-/// Warps one output row segment of one layer and composites it under what is already there.
+/// Adds a filtered sample `v` (lanes R, B, G, A) under transmittance `tv`. Accumulators
+/// keep the same lane order; the output stage reorders to RGBA.
+#[inline(always)]
+fn composite(o: &mut [f32; 4], t: &mut f32, tv: f32, v: u64) {
+    let al = (v >> 48) as usize;
+    if al != 0 {
+        let f = [
+            v as u16 as f32,
+            (v >> 16) as u16 as f32,
+            (v >> 32) as u16 as f32,
+            al as u16 as f32,
+        ];
+        for c in 0..4 {
+            o[c] += tv * f[c];
+        }
+        *t = tv * ONE_MINUS[al];
+    }
+}
+
+/// Samples and composites the texture at `(xi, yi)` in 1/256 px fixed point. `texels` is a
+/// padded texture of row pitch `pitch` = width + 2; `sw`, `sh` are the unpadded size.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn sample_fixed(
+    texels: &[u32],
+    pitch: usize,
+    sw: u64,
+    sh: u64,
+    xi: i64,
+    yi: i64,
+    o: &mut [f32; 4],
+    t: &mut f32,
+) {
+    let (x0, y0) = (xi >> 8, yi >> 8);
+    // x0 in [-1, w-1] and y0 in [-1, h-1]: all four taps inside the padded texture. Values
+    // below -1 wrap to huge unsigned numbers and fail too.
+    if ((x0 + 1) as u64) <= sw && ((y0 + 1) as u64) <= sh {
+        let i = (y0 + 1) as usize * pitch + (x0 + 1) as usize;
+        if let Some(q) = texels.get(i..i + pitch + 2) {
+            let (p00, p01, p10, p11) = (q[0], q[1], q[pitch], q[pitch + 1]);
+            if (p00 | p01 | p10 | p11) != 0 {
+                let v = bilerp(p00, p01, p10, p11, (xi & 255) as u64, (yi & 255) as u64);
+                let tv = *t;
+                composite(o, t, tv, v);
+            }
+        }
+    }
+}
+
+/// Largest deviation, in px, tolerated between the exact projective mapping and its linear
+/// interpolation along a row.
+const MAX_LINEAR_ERROR: f64 = 1.0 / 512.0;
+
+/// Positions in 1/65536 px (16.16 fixed point) stepped linearly along a row segment.
+#[allow(clippy::too_many_arguments)]
+#[inline(always)]
+fn draw_span_linear(
+    texels: &[u32],
+    pitch: usize,
+    sw: u64,
+    sh: u64,
+    start: [i64; 2],
+    step: [i64; 2],
+    acc: &mut [[f32; 4]],
+    trans: &mut [f32],
+) {
+    // Pre-add half a 1/256 step so that a shift rounds to nearest.
+    let (mut x, mut y) = (start[0] + 128, start[1] + 128);
+    for (o, t) in acc.iter_mut().zip(trans.iter_mut()) {
+        if *t > 0.0 {
+            sample_fixed(texels, pitch, sw, sh, x >> 8, y >> 8, o, t);
+        }
+        x += step[0];
+        y += step[1];
+    }
+}
+
+/// Warps one output row segment of one layer with a division per pixel (strong perspective
+/// or a plane that crosses the viewer's horizon) and composites it under what is there.
 #[allow(clippy::too_many_arguments)]
 #[inline(always)]
 fn draw_row<const CHECK_W: bool>(
-    layer: &PreparedLayer,
-    sw: u32,
-    sh: u32,
+    texels: &[u32],
+    pitch: usize,
+    sw: u64,
+    sh: u64,
     start: [f32; 3],
     inc: [f32; 3],
     acc: &mut [[f32; 4]],
     trans: &mut [f32],
 ) {
-    let texels = &layer.texels[..];
-    let pitch = layer.pitch;
     let [mut a, mut b, mut w] = start;
     for (o, t) in acc.iter_mut().zip(trans.iter_mut()) {
-        let tv = *t;
-        if tv > 0.0 && (!CHECK_W || w > 0.0) {
+        if *t > 0.0 && (!CHECK_W || w > 0.0) {
             let inv = 1.0 / w;
-            let xi = (a * inv * 256.0 + (OFFSET as f32 + 0.5)) as i32 - OFFSET;
-            let yi = (b * inv * 256.0 + (OFFSET as f32 + 0.5)) as i32 - OFFSET;
-            let (x0, y0) = (xi >> 8, yi >> 8);
-            // x0 in [-1, w-1] and y0 in [-1, h-1]: all four taps inside the padded texture.
-            if ((x0 + 1) as u32) <= sw && ((y0 + 1) as u32) <= sh {
-                let i = (y0 + 1) as usize * pitch + (x0 + 1) as usize;
-                let r0 = &texels[i..i + 2];
-                let r1 = &texels[i + pitch..i + pitch + 2];
-                let (p00, p01, p10, p11) = (r0[0], r0[1], r1[0], r1[1]);
-                if (p00 | p01 | p10 | p11) != 0 {
-                    let v = bilerp(p00, p01, p10, p11, (xi & 255) as u64, (yi & 255) as u64);
-                    let al = (v >> 48) as usize;
-                    if al != 0 {
-                        o[0] += tv * (v & 0xFFFF) as f32;
-                        o[1] += tv * ((v >> 32) & 0xFFFF) as f32;
-                        o[2] += tv * ((v >> 16) & 0xFFFF) as f32;
-                        o[3] += tv * al as f32;
-                        *t = tv * ONE_MINUS[al];
-                    }
-                }
-            }
+            let xi = (a * inv * 256.0 + (OFFSET as f32 + 0.5)) as i64 - OFFSET as i64;
+            let yi = (b * inv * 256.0 + (OFFSET as f32 + 0.5)) as i64 - OFFSET as i64;
+            sample_fixed(texels, pitch, sw, sh, xi, yi, o, t);
         }
         a += inc[0];
         b += inc[1];
         w += inc[2];
+    }
+}
+
+/// Source position `(sx, sy)` and `w` of output pixel `(x, y)`.
+#[inline(always)]
+fn map(h: &[[f64; 3]; 3], x: f64, y: f64) -> (f64, f64, f64) {
+    let w = h[2][0] * x + h[2][1] * y + h[2][2];
+    (
+        (h[0][0] * x + h[0][1] * y + h[0][2]) / w,
+        (h[1][0] * x + h[1][1] * y + h[1][2]) / w,
+        w,
+    )
+}
+
+/// Deviation, in px, between the projective mapping and its chord at the middle of the row
+/// segment from `(x, y)` spanning `n` pixels; `None` when the plane is not in front of the
+/// viewer at both ends. For a 1-D projective map this deviation peaks near the middle and
+/// scales with the square of the segment length.
+#[inline]
+fn chord_error(h: &[[f64; 3]; 3], x: f64, y: f64, n: usize) -> Option<f64> {
+    let xe = x + (n.max(2) - 1) as f64;
+    let ((sx0, sy0, w0), (sx1, sy1, w1)) = (map(h, x, y), map(h, xe, y));
+    if !(w0 > 0.0 && w1 > 0.0) {
+        return None;
+    }
+    if h[2][0] == 0.0 {
+        return Some(0.0);
+    }
+    let (sxm, sym, _) = map(h, (x + xe) * 0.5, y);
+    let err = (sxm - (sx0 + sx1) * 0.5)
+        .abs()
+        .max((sym - (sy0 + sy1) * 0.5).abs());
+    err.is_finite().then_some(err)
+}
+
+/// Start and step, in 16.16 fixed point, of the source position along the row segment from
+/// `(x, y)` spanning `n` pixels (exact at both ends, linear in between).
+#[inline]
+fn linear_span(h: &[[f64; 3]; 3], x: f64, y: f64, n: usize) -> Option<([i64; 2], [i64; 2])> {
+    let span = (n.max(2) - 1) as f64;
+    let ((sx0, sy0, _), (sx1, sy1, _)) = (map(h, x, y), map(h, x + span, y));
+    let fx = |v: f64| v * 65536.0;
+    let (a, b) = (fx(sx0), fx(sy0));
+    let (da, db) = (fx((sx1 - sx0) / span), fx((sy1 - sy0) / span));
+    let lim = (1u64 << 40) as f64;
+    [a, b, da, db]
+        .iter()
+        .all(|v| v.abs() < lim)
+        .then(|| ([round(a), round(b)], [round(da), round(db)]))
+}
+
+/// Rounds to the nearest integer (ties away from zero) with a truncating conversion: `f64::round`
+/// is a library call without SSE4.1.
+#[inline(always)]
+fn round(v: f64) -> i64 {
+    (v + 0.5f64.copysign(v)) as i64
+}
+
+/// Largest integer not above `v`, for `|v| < 2^62`.
+#[inline(always)]
+fn floor(v: f64) -> f64 {
+    let t = v as i64 as f64;
+    if t > v {
+        t - 1.0
+    } else {
+        t
+    }
+}
+
+/// Length of the sub-spans into which a row segment of `n` pixels with chord error `err` is
+/// cut so that linear interpolation stays within [`MAX_LINEAR_ERROR`]; `None` when even
+/// 4-pixel sub-spans would be too coarse.
+#[inline]
+fn sub_span_len(err: f64, n: usize) -> Option<usize> {
+    let mut len = n;
+    loop {
+        let scaled = err * (len as f64 / n as f64).powi(2);
+        if scaled < MAX_LINEAR_ERROR {
+            return Some(len.max(1));
+        }
+        if len <= 4 {
+            return None;
+        }
+        len = len.div_ceil(2);
     }
 }
 
@@ -228,7 +367,7 @@ impl PreparedLayers {
             trans.fill(1.0);
             for (layer, warp) in self.layers.iter().zip(warps) {
                 let Some(warp) = warp else { continue };
-                let (check_w, opaque) = match warp.classify(layer, x0, y0, tw, th, sw, sh) {
+                let (check_w, opaque) = match warp.classify(layer, [x0, y0, tw, th], sw, sh) {
                     Class::Skip => {
                         stats.skipped += 1;
                         continue;
@@ -236,6 +375,8 @@ impl PreparedLayers {
                     Class::Draw { check_w, opaque } => (check_w, opaque),
                 };
                 stats.drawn += 1;
+                let (tex, pitch) = (&layer.texels[..], layer.pitch);
+                let (sw64, sh64) = (sw as u64, sh as u64);
                 let h = &warp.h;
                 let inc = [h[0][0] as f32, h[1][0] as f32, h[2][0] as f32];
                 for r in 0..th {
@@ -247,10 +388,29 @@ impl PreparedLayers {
                     ];
                     let row = r * TILE_W..r * TILE_W + tw;
                     let (a, t) = (&mut acc[row.clone()], &mut trans[row]);
+                    if !check_w {
+                        if let Some(len) =
+                            chord_error(h, x, y, tw).and_then(|e| sub_span_len(e, tw))
+                        {
+                            let mut done = true;
+                            for s0 in (0..tw).step_by(len) {
+                                let n = len.min(tw - s0);
+                                let Some((p, d)) = linear_span(h, x + s0 as f64, y, n) else {
+                                    done = false;
+                                    break;
+                                };
+                                let (sa, st) = (&mut a[s0..s0 + n], &mut t[s0..s0 + n]);
+                                draw_span_linear(tex, pitch, sw64, sh64, p, d, sa, st);
+                            }
+                            if done {
+                                continue;
+                            }
+                        }
+                    }
                     if check_w {
-                        draw_row::<true>(layer, sw as u32, sh as u32, start, inc, a, t);
+                        draw_row::<true>(tex, pitch, sw64, sh64, start, inc, a, t);
                     } else {
-                        draw_row::<false>(layer, sw as u32, sh as u32, start, inc, a, t);
+                        draw_row::<false>(tex, pitch, sw64, sh64, start, inc, a, t);
                     }
                 }
                 if opaque {
@@ -285,10 +445,11 @@ impl PreparedLayers {
                             .chunks_exact_mut(4)
                             .zip(&acc[r * TILE_W..r * TILE_W + tw])
                         {
+                            // Accumulator lanes are R, B, G, A.
                             let a = (s[3] + 0.5) as u8;
                             d[0] = ((s[0] + 0.5) as u8).min(a);
-                            d[1] = ((s[1] + 0.5) as u8).min(a);
-                            d[2] = ((s[2] + 0.5) as u8).min(a);
+                            d[1] = ((s[2] + 0.5) as u8).min(a);
+                            d[2] = ((s[1] + 0.5) as u8).min(a);
                             d[3] = a;
                         }
                     }
@@ -321,7 +482,8 @@ impl PreparedLayers {
                             .iter_mut()
                             .zip(&acc[r * TILE_W..r * TILE_W + tw])
                         {
-                            *d = s.map(|v| v / 255.0);
+                            // Accumulator lanes are R, B, G, A.
+                            *d = [s[0], s[2], s[1], s[3]].map(|v| v / 255.0);
                         }
                     }
                 });

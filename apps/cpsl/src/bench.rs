@@ -1,0 +1,308 @@
+//! `cpsl bench`: end-to-end benchmarks whose figures go into BENCHMARKS.md.
+
+use anyhow::{Context, Result};
+use clap::{Args, Subcommand, ValueEnum};
+use cpsl_core::{Homography, LayerSet, Pose, PremulImage};
+use cpsl_render::PreparedLayers;
+use cpsl_synth::layers::{synthetic_layer_set, Coverage};
+use serde::Serialize;
+use std::path::PathBuf;
+use std::time::Instant;
+
+/// Benchmarks.
+#[derive(Subcommand)]
+pub enum BenchCommand {
+    /// Median time per frame of the CPU renderer on synthetic full-frame layers.
+    Render(BenchRenderArgs),
+}
+
+/// Which layer content to benchmark.
+#[derive(Clone, Copy, ValueEnum, PartialEq, Eq)]
+pub enum CoverageArg {
+    /// Front layers hold feathered shapes over about a fifth of the frame; opaque back layer.
+    Typical,
+    /// Every layer semi-transparent everywhere: nothing can be skipped (worst case).
+    Dense,
+    /// Both, one after the other.
+    Both,
+}
+
+/// Arguments of `cpsl bench render`.
+#[derive(Args)]
+pub struct BenchRenderArgs {
+    /// Frame width.
+    #[arg(long, default_value_t = 1920)]
+    pub width: u32,
+    /// Frame height.
+    #[arg(long, default_value_t = 1080)]
+    pub height: u32,
+    /// Number of full-frame layers K.
+    #[arg(long, default_value_t = 6, value_parser = clap::value_parser!(u32).range(1..=64))]
+    pub layers: u32,
+    /// Timed frames per case (after 3 warm-up frames).
+    #[arg(long, default_value_t = 60)]
+    pub frames: u32,
+    /// Layer content.
+    #[arg(long, value_enum, default_value_t = CoverageArg::Both)]
+    pub coverage: CoverageArg,
+    /// Viewer pose `tx,ty,tz,rx,ry,rz` (default includes rotation, so the warp is projective).
+    #[arg(long, allow_hyphen_values = true, default_value = "0.05,-0.02,0.03,0.4,-0.8,0.2", value_parser = Pose::parse)]
+    pub pose: Pose,
+    /// Also time the same render done with OpenCV (cv2.warpPerspective per layer + numpy
+    /// compositing) by running scripts/bench_opencv.py with this Python interpreter.
+    #[arg(long)]
+    pub opencv: Option<PathBuf>,
+    /// Print JSON instead of a table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Serialize)]
+struct Timing {
+    median_ms: f64,
+    p90_ms: f64,
+    min_ms: f64,
+    mean_ms: f64,
+}
+
+fn timing(mut ms: Vec<f64>) -> Timing {
+    ms.sort_by(f64::total_cmp);
+    let n = ms.len();
+    Timing {
+        median_ms: if n % 2 == 1 {
+            ms[n / 2]
+        } else {
+            (ms[n / 2 - 1] + ms[n / 2]) / 2.0
+        },
+        p90_ms: ms[((n as f64 * 0.9) as usize).min(n - 1)],
+        min_ms: ms[0],
+        mean_ms: ms.iter().sum::<f64>() / n as f64,
+    }
+}
+
+#[derive(Serialize)]
+struct OpenCvResult {
+    timing: Timing,
+    /// OpenCV median / cpsl median.
+    ratio: f64,
+    /// PSNR of the OpenCV render against cpsl's (both over black), showing they compute the
+    /// same image.
+    psnr_vs_cpsl_db: f64,
+    version: String,
+}
+
+#[derive(Serialize)]
+struct Case {
+    coverage: &'static str,
+    mean_layer_coverage: f64,
+    cpsl: Timing,
+    fps: f64,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    opencv: Option<OpenCvResult>,
+}
+
+#[derive(Serialize)]
+struct Report {
+    command: String,
+    date: String,
+    cpu: String,
+    threads: usize,
+    width: u32,
+    height: u32,
+    layers: u32,
+    pose: String,
+    frames: u32,
+    cases: Vec<Case>,
+}
+
+/// `YYYY-MM-DD` (UTC) from the system clock.
+fn today() -> String {
+    let secs = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_secs())
+        .unwrap_or(0);
+    // Civil-from-days (Howard Hinnant).
+    let z = (secs / 86_400) as i64 + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    let y = yoe + era * 400 + (m <= 2) as i64;
+    format!("{y:04}-{m:02}-{d:02}")
+}
+
+fn cpu_name() -> String {
+    std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("model name"))
+                .and_then(|l| l.split(':').nth(1))
+                .map(|v| v.trim().to_string())
+        })
+        .unwrap_or_else(|| "unknown".into())
+}
+
+fn time_cpsl(set: &LayerSet, pose: &Pose, frames: u32) -> (Timing, PremulImage) {
+    let prepared = PreparedLayers::new(set);
+    let cam = *set.camera();
+    let mut out = PremulImage::new(cam.width, cam.height);
+    for _ in 0..3 {
+        prepared.render_into(pose, &cam, &mut out);
+    }
+    let ms = (0..frames)
+        .map(|_| {
+            let t = Instant::now();
+            prepared.render_into(pose, &cam, &mut out);
+            t.elapsed().as_secs_f64() * 1e3
+        })
+        .collect();
+    (timing(ms), out)
+}
+
+fn time_opencv(
+    python: &PathBuf,
+    set: &LayerSet,
+    pose: &Pose,
+    frames: u32,
+    ours: &PremulImage,
+) -> Result<OpenCvResult> {
+    let dir = tempfile_dir()?;
+    let ls = dir.join("layers");
+    cpsl_io::write_layer_set(&ls, set, &[])?;
+    let cam = set.camera();
+    let homs: Vec<Option<[[f64; 3]; 3]>> = set
+        .layers()
+        .iter()
+        .map(|l| Homography::plane_inverse(cam, cam, pose, l.depth).map(|h| h.0 .0))
+        .collect();
+    std::fs::write(dir.join("homographies.json"), serde_json::to_vec(&homs)?)?;
+    let script = std::env::var_os("CPSL_OPENCV_SCRIPT")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from("scripts/bench_opencv.py"));
+    let png = dir.join("opencv.png");
+    let out = std::process::Command::new(python)
+        .arg(&script)
+        .arg("--layers")
+        .arg(&ls)
+        .arg("--homographies")
+        .arg(dir.join("homographies.json"))
+        .arg("--frames")
+        .arg(frames.to_string())
+        .arg("--out")
+        .arg(&png)
+        .output()
+        .with_context(|| format!("running {} {}", python.display(), script.display()))?;
+    anyhow::ensure!(
+        out.status.success(),
+        "OpenCV benchmark failed: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    #[derive(serde::Deserialize)]
+    struct Py {
+        times_ms: Vec<f64>,
+        version: String,
+    }
+    let py: Py = serde_json::from_slice(&out.stdout).context("parsing OpenCV benchmark output")?;
+    let theirs = cpsl_io::images::read_rgb8(&png, &cpsl_core::Limits::default())?;
+    let t = timing(py.times_ms);
+    let _ = std::fs::remove_dir_all(&dir);
+    Ok(OpenCvResult {
+        ratio: 0.0,
+        psnr_vs_cpsl_db: cpsl_eval::metrics::psnr(&theirs.data, &ours.over_background([0, 0, 0])),
+        timing: t,
+        version: py.version,
+    })
+}
+
+fn tempfile_dir() -> Result<PathBuf> {
+    let d = std::env::temp_dir().join(format!("cpsl-bench-{}", std::process::id()));
+    std::fs::create_dir_all(&d)?;
+    Ok(d)
+}
+
+/// Runs a benchmark command.
+pub fn run(cmd: BenchCommand) -> Result<()> {
+    let BenchCommand::Render(a) = cmd;
+    anyhow::ensure!(a.frames >= 1, "--frames must be at least 1");
+    let coverages: Vec<(&'static str, Coverage)> = match a.coverage {
+        CoverageArg::Typical => vec![("typical", Coverage::Typical)],
+        CoverageArg::Dense => vec![("dense", Coverage::Dense)],
+        CoverageArg::Both => vec![("typical", Coverage::Typical), ("dense", Coverage::Dense)],
+    };
+    let mut cases = Vec::new();
+    for (name, coverage) in coverages {
+        let set = synthetic_layer_set(a.width, a.height, a.layers as usize, coverage, 7);
+        let mean_cov =
+            set.layers().iter().map(|l| l.image.coverage()).sum::<f64>() / set.len() as f64;
+        let (cpsl, img) = time_cpsl(&set, &a.pose, a.frames);
+        let opencv = match &a.opencv {
+            Some(py) => {
+                let mut r = time_opencv(py, &set, &a.pose, a.frames, &img)?;
+                r.ratio = r.timing.median_ms / cpsl.median_ms;
+                Some(r)
+            }
+            None => None,
+        };
+        cases.push(Case {
+            coverage: name,
+            mean_layer_coverage: mean_cov,
+            fps: 1e3 / cpsl.median_ms,
+            cpsl,
+            opencv,
+        });
+    }
+    let (rx, ry, rz) = a.pose.euler_deg();
+    let t = a.pose.translation;
+    let report = Report {
+        command: std::env::args().collect::<Vec<_>>().join(" "),
+        date: today(),
+        cpu: cpu_name(),
+        threads: rayon::current_num_threads(),
+        width: a.width,
+        height: a.height,
+        layers: a.layers,
+        pose: format!("{},{},{},{rx:.3},{ry:.3},{rz:.3}", t.x(), t.y(), t.z()),
+        frames: a.frames,
+        cases,
+    };
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+        return Ok(());
+    }
+    println!(
+        "cpsl bench render: {}x{}, K={}, pose {}, {} frames, {} threads, {} ({})",
+        report.width,
+        report.height,
+        report.layers,
+        report.pose,
+        report.frames,
+        report.threads,
+        report.cpu,
+        report.date
+    );
+    for c in &report.cases {
+        println!(
+            "  {:<8} coverage {:>5.1}%  cpsl median {:>7.2} ms (p90 {:>7.2}, {:>6.1} fps)",
+            c.coverage,
+            c.mean_layer_coverage * 100.0,
+            c.cpsl.median_ms,
+            c.cpsl.p90_ms,
+            c.fps
+        );
+        if let Some(o) = &c.opencv {
+            println!(
+                "  {:<8} opencv {} median {:>7.2} ms  -> cpsl is {:.1}x faster (images agree at {:.1} dB PSNR)",
+                "",
+                o.version,
+                o.timing.median_ms,
+                o.ratio,
+                o.psnr_vs_cpsl_db
+            );
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,3 @@
+//! Evaluation of CPSL renders.
+
+pub mod metrics;

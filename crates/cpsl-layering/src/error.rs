@@ -1,0 +1,38 @@
+//! Errors of layer generation.
+
+use thiserror::Error;
+
+/// Why layers could not be built.
+#[derive(Debug, Error, Clone, PartialEq)]
+pub enum LayeringError {
+    /// Colour and depth buffers do not match the camera.
+    #[error("{what}: {found} values, {expected} expected for a {width}x{height} camera")]
+    Size {
+        /// Which input.
+        what: &'static str,
+        /// Values found.
+        found: usize,
+        /// Values expected.
+        expected: usize,
+        /// Camera width.
+        width: u32,
+        /// Camera height.
+        height: u32,
+    },
+    /// The depth map has no finite positive value.
+    #[error("depth map has no finite positive value")]
+    NoValidDepth,
+    /// A configuration value is out of range.
+    #[error("{field} must be in {range}, found {found}")]
+    Config {
+        /// Field name.
+        field: &'static str,
+        /// Accepted range.
+        range: &'static str,
+        /// Value found.
+        found: String,
+    },
+    /// The result broke a layer-set invariant (a bug, reported rather than panicking).
+    #[error("layer set invalid: {0}")]
+    Invalid(#[from] cpsl_core::CoreError),
+}

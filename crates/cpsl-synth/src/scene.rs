@@ -281,7 +281,7 @@ impl Scene {
     pub fn default_views() -> Vec<(String, Pose)> {
         let mut v = Vec::new();
         for i in 0..7 {
-            let tx = -0.3 + 0.1 * i as f64;
+            let tx = (i as f64 - 3.0) * 0.1;
             v.push((
                 format!("tx{tx:+.2}"),
                 Pose::from_translation(Vec3::new(tx, 0.0, 0.0)),

@@ -1,0 +1,201 @@
+//! The `cpsl` binary end to end on a small synthetic scene, and its error handling.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn cpsl(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_cpsl"))
+        .args(args)
+        .output()
+        .expect("cpsl runs")
+}
+
+fn ok(args: &[&str]) -> String {
+    let o = cpsl(args);
+    assert!(
+        o.status.success(),
+        "cpsl {args:?} failed: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    String::from_utf8_lossy(&o.stdout).into_owned()
+}
+
+fn fails(args: &[&str], fragment: &str) {
+    let o = cpsl(args);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "cpsl {args:?} should fail");
+    assert!(
+        err.contains(fragment),
+        "cpsl {args:?}: {err:?} lacks {fragment:?}"
+    );
+}
+
+fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+#[test]
+fn synth_slice_render_pose_and_sweep() {
+    let d = tempfile::tempdir().unwrap();
+    let scene = d.path().join("scene");
+    let layers = d.path().join("layers");
+    ok(&[
+        "synth",
+        "-o",
+        s(&scene),
+        "--width",
+        "96",
+        "--height",
+        "72",
+        "--supersample",
+        "1",
+    ]);
+    for f in [
+        "input.png",
+        "depth.pfm",
+        "depth.png",
+        "objects.png",
+        "camera.json",
+        "views.json",
+        "views/tx+0.10.png",
+    ] {
+        assert!(scene.join(f).exists(), "synth wrote {f}");
+    }
+    let out = ok(&[
+        "slice",
+        s(&scene.join("input.png")),
+        "--depth",
+        s(&scene.join("depth.pfm")),
+        "--camera",
+        s(&scene.join("camera.json")),
+        "-o",
+        s(&layers),
+        "--layers",
+        "4",
+    ]);
+    assert!(out.contains("wrote 4 layers"), "{out}");
+    assert!(layers.join("config.json").exists());
+
+    let png = d.path().join("view.png");
+    ok(&[
+        "render",
+        s(&layers),
+        "--pose",
+        "0.1,0,0,0,2,0",
+        "-o",
+        s(&png),
+    ]);
+    let img = cpsl_io::images::read_rgb8(&png, &Default::default()).unwrap();
+    assert_eq!((img.width, img.height), (96, 72));
+
+    // Identity render reproduces the input exactly.
+    let id = d.path().join("id.png");
+    ok(&["render", s(&layers), "--pose", "0,0,0,0,0,0", "-o", s(&id)]);
+    let input = cpsl_io::images::read_rgb8(&scene.join("input.png"), &Default::default()).unwrap();
+    assert_eq!(
+        cpsl_io::images::read_rgb8(&id, &Default::default()).unwrap(),
+        input
+    );
+
+    let sweep = d.path().join("sweep");
+    ok(&[
+        "render",
+        s(&layers),
+        "--sweep",
+        "tx:-0.1:0.1:3",
+        "-o",
+        s(&sweep),
+    ]);
+    for f in ["frame_000.png", "frame_002.png", "sheet.png"] {
+        assert!(sweep.join(f).exists(), "sweep wrote {f}");
+    }
+}
+
+#[test]
+fn clear_errors_and_nothing_written() {
+    let d = tempfile::tempdir().unwrap();
+    let missing = d.path().join("nope");
+    fails(
+        &[
+            "render",
+            s(&missing),
+            "--pose",
+            "0,0,0,0,0,0",
+            "-o",
+            "x.png",
+        ],
+        "manifest.json",
+    );
+    fails(
+        &["render", s(&missing), "--pose", "1,2,3", "-o", "x.png"],
+        "expected 6 finite numbers",
+    );
+    fails(
+        &["render", s(&missing), "--sweep", "qx:0:1:3", "-o", "x"],
+        "axis must be",
+    );
+
+    // Depth of the wrong size: error naming both sizes, no layer set written.
+    let scene = d.path().join("scene");
+    ok(&[
+        "synth",
+        "-o",
+        s(&scene),
+        "--width",
+        "32",
+        "--height",
+        "24",
+        "--supersample",
+        "1",
+    ]);
+    let other = d.path().join("other");
+    ok(&[
+        "synth",
+        "-o",
+        s(&other),
+        "--width",
+        "40",
+        "--height",
+        "24",
+        "--supersample",
+        "1",
+    ]);
+    let out = d.path().join("layers");
+    fails(
+        &[
+            "slice",
+            s(&scene.join("input.png")),
+            "--depth",
+            s(&other.join("depth.pfm")),
+            "-o",
+            s(&out),
+        ],
+        "depth is 40x24 but the image is 32x24",
+    );
+    assert!(!out.exists());
+    fails(
+        &[
+            "slice",
+            s(&scene.join("depth.png")),
+            "--depth",
+            s(&scene.join("input.png")),
+            "-o",
+            s(&out),
+        ],
+        "PFM",
+    );
+    assert!(!out.exists());
+    fails(
+        &[
+            "slice",
+            s(&scene.join("input.png")),
+            "--depth",
+            s(&scene.join("depth.pfm")),
+            "-o",
+            s(&out),
+            "--layers",
+            "0",
+        ],
+        "0",
+    );
+}

@@ -45,6 +45,9 @@ pub struct BenchRenderArgs {
     /// Layer content.
     #[arg(long, value_enum, default_value_t = CoverageArg::Both)]
     pub coverage: CoverageArg,
+    /// Time this layer-set folder instead of synthetic layers (size and K come from it).
+    #[arg(long, conflicts_with_all = ["width", "height", "layers", "coverage"])]
+    pub layerset: Option<PathBuf>,
     /// Viewer pose `tx,ty,tz,rx,ry,rz` (default includes rotation, so the warp is projective).
     #[arg(long, allow_hyphen_values = true, default_value = "0.05,-0.02,0.03,0.4,-0.8,0.2", value_parser = Pose::parse)]
     pub pose: Pose,
@@ -55,6 +58,9 @@ pub struct BenchRenderArgs {
     /// Print JSON instead of a table.
     #[arg(long)]
     pub json: bool,
+    /// Also write the JSON report to this file.
+    #[arg(long)]
+    pub save: Option<PathBuf>,
 }
 
 #[derive(Serialize)]
@@ -228,14 +234,26 @@ fn tempfile_dir() -> Result<PathBuf> {
 pub fn run(cmd: BenchCommand) -> Result<()> {
     let BenchCommand::Render(a) = cmd;
     anyhow::ensure!(a.frames >= 1, "--frames must be at least 1");
-    let coverages: Vec<(&'static str, Coverage)> = match a.coverage {
-        CoverageArg::Typical => vec![("typical", Coverage::Typical)],
-        CoverageArg::Dense => vec![("dense", Coverage::Dense)],
-        CoverageArg::Both => vec![("typical", Coverage::Typical), ("dense", Coverage::Dense)],
+    let sets: Vec<(&'static str, LayerSet)> = match (&a.layerset, a.coverage) {
+        (Some(dir), _) => vec![("layerset", crate::util::load_layer_set(dir)?)],
+        (None, c) => {
+            let make = |cov| synthetic_layer_set(a.width, a.height, a.layers as usize, cov, 7);
+            let mut v = Vec::new();
+            if c != CoverageArg::Dense {
+                v.push(("typical", make(Coverage::Typical)));
+            }
+            if c != CoverageArg::Typical {
+                v.push(("dense", make(Coverage::Dense)));
+            }
+            v
+        }
+    };
+    let (width, height, layers) = {
+        let s = &sets[0].1;
+        (s.camera().width, s.camera().height, s.len() as u32)
     };
     let mut cases = Vec::new();
-    for (name, coverage) in coverages {
-        let set = synthetic_layer_set(a.width, a.height, a.layers as usize, coverage, 7);
+    for (name, set) in sets {
         let mean_cov =
             set.layers().iter().map(|l| l.image.coverage()).sum::<f64>() / set.len() as f64;
         let (cpsl, img) = time_cpsl(&set, &a.pose, a.frames);
@@ -262,13 +280,16 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
         date: today(),
         cpu: cpu_name(),
         threads: rayon::current_num_threads(),
-        width: a.width,
-        height: a.height,
-        layers: a.layers,
+        width,
+        height,
+        layers,
         pose: format!("{},{},{},{rx:.3},{ry:.3},{rz:.3}", t.x(), t.y(), t.z()),
         frames: a.frames,
         cases,
     };
+    if let Some(path) = &a.save {
+        crate::util::write_json(path, &report)?;
+    }
     if a.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
         return Ok(());

@@ -109,6 +109,15 @@ fn synth_slice_render_pose_and_sweep() {
     for f in ["frame_000.png", "frame_002.png", "sheet.png"] {
         assert!(sweep.join(f).exists(), "sweep wrote {f}");
     }
+    let have_ffmpeg = Command::new("ffmpeg")
+        .arg("-version")
+        .output()
+        .is_ok_and(|o| o.status.success());
+    assert_eq!(
+        sweep.join("sweep.mp4").exists(),
+        have_ffmpeg,
+        "sweep.mp4 written exactly when FFmpeg is present"
+    );
 }
 
 #[test]

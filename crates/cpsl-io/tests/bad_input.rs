@@ -9,7 +9,7 @@ fn valid(dir: &Path) -> PathBuf {
     let cam = Camera::from_fov(8, 6, 60.0);
     let layers = (0..3)
         .map(|i| {
-            let img = PremulImage::from_rgb(8, 6, &vec![40 * i as u8; 8 * 6 * 3]).unwrap();
+            let img = PremulImage::from_rgb(8, 6, &[40 * i as u8; 8 * 6 * 3]).unwrap();
             Layer::new(img, 1.0 + i as f64)
         })
         .collect();

@@ -20,6 +20,8 @@ pub(crate) struct PreparedLayer {
     pub nonempty: Vec<u32>,
     /// Same for blocks with any alpha < 255.
     pub translucent: Vec<u32>,
+    /// Per source row: first and one-past-last column with alpha > 0 (`[0, 0]` when empty).
+    pub row_extent: Vec<[u32; 2]>,
 }
 
 impl PreparedLayer {
@@ -29,6 +31,14 @@ impl PreparedLayer {
         table[(by1 + 1) * s + bx1 + 1] + table[by0 * s + bx0]
             - table[by0 * s + bx1 + 1]
             - table[(by1 + 1) * s + bx0]
+    }
+
+    /// True when no texel with alpha > 0 lies in columns `[x0, x1]` of any row in `[y0, y1]`
+    /// (inclusive ranges, already clipped to the layer).
+    pub fn rows_empty(&self, x0: u32, x1: u32, y0: usize, y1: usize) -> bool {
+        self.row_extent[y0..=y1]
+            .iter()
+            .all(|&[a, b]| a >= b || x1 < a || x0 >= b)
     }
 
     /// Number of non-empty and translucent blocks intersecting the pixel range
@@ -77,6 +87,7 @@ impl PreparedLayers {
                 let mut texels = vec![0u32; pitch * (h + 2)];
                 let mut any = vec![false; bw * bh];
                 let mut translucent = vec![false; bw * bh];
+                let mut row_extent = vec![[0u32; 2]; h];
                 for y in 0..h {
                     let row = &mut texels[(y + 1) * pitch + 1..(y + 1) * pitch + 1 + w];
                     for (x, (t, p)) in row
@@ -88,6 +99,14 @@ impl PreparedLayers {
                         let b = (y / BLOCK) * bw + x / BLOCK;
                         any[b] |= p[3] != 0;
                         translucent[b] |= p[3] != 255;
+                        if p[3] != 0 {
+                            let e = &mut row_extent[y];
+                            if e[0] >= e[1] {
+                                *e = [x as u32, x as u32 + 1];
+                            } else {
+                                e[1] = x as u32 + 1;
+                            }
+                        }
                     }
                 }
                 PreparedLayer {
@@ -97,6 +116,7 @@ impl PreparedLayers {
                     bw,
                     nonempty: prefix_sums(&any, bw, bh),
                     translucent: prefix_sums(&translucent, bw, bh),
+                    row_extent,
                 }
             })
             .collect();

@@ -149,9 +149,11 @@ fn bilerp(p00: u32, p01: u32, p10: u32, p11: u32, fx: u64, fy: u64) -> u64 {
 /// Adds a filtered sample `v` (lanes R, B, G, A) under transmittance `tv`. Accumulators
 /// keep the same lane order; the output stage reorders to RGBA.
 #[inline(always)]
-fn composite(o: &mut [f32; 4], t: &mut f32, tv: f32, v: u64) {
+fn composite(o: &mut [f32; 4], t: &mut f32, tv: f32, v: u64, opaqued: &mut u32) {
     let al = (v >> 48) as usize;
     if al != 0 {
+        // Transmittance reaches exactly zero behind a fully opaque sample.
+        *opaqued += (al == 255) as u32;
         let f = [
             v as u16 as f32,
             (v >> 16) as u16 as f32,
@@ -165,32 +167,80 @@ fn composite(o: &mut [f32; 4], t: &mut f32, tv: f32, v: u64) {
     }
 }
 
-/// Samples and composites the texture at `(xi, yi)` in 1/256 px fixed point. `texels` is a
-/// padded texture of row pitch `pitch` = width + 2; `sw`, `sh` are the unpadded size.
-#[allow(clippy::too_many_arguments)]
-#[inline(always)]
-fn sample_fixed(
-    texels: &[u32],
+/// A layer texture as the kernels see it.
+#[derive(Clone, Copy)]
+struct Tex<'a> {
+    /// Padded texels, row pitch `pitch` = width + 2 (see [`PreparedLayer`]).
+    texels: &'a [u32],
     pitch: usize,
+    /// Unpadded width and height.
     sw: u64,
     sh: u64,
-    xi: i64,
-    yi: i64,
-    o: &mut [f32; 4],
-    t: &mut f32,
-) {
-    let (x0, y0) = (xi >> 8, yi >> 8);
-    // x0 in [-1, w-1] and y0 in [-1, h-1]: all four taps inside the padded texture. Values
-    // below -1 wrap to huge unsigned numbers and fail too.
-    if ((x0 + 1) as u64) <= sw && ((y0 + 1) as u64) <= sh {
-        let i = (y0 + 1) as usize * pitch + (x0 + 1) as usize;
-        if let Some(q) = texels.get(i..i + pitch + 2) {
-            let (p00, p01, p10, p11) = (q[0], q[1], q[pitch], q[pitch + 1]);
-            if (p00 | p01 | p10 | p11) != 0 {
-                let v = bilerp(p00, p01, p10, p11, (xi & 255) as u64, (yi & 255) as u64);
-                let tv = *t;
-                composite(o, t, tv, v);
+}
+
+/// One output row segment being composited: accumulators, transmittances and the count of
+/// pixels that became opaque.
+struct Span<'a> {
+    acc: &'a mut [[f32; 4]],
+    trans: &'a mut [f32],
+    opaqued: u32,
+}
+
+impl Tex<'_> {
+    /// Samples and composites the texture at `(xi, yi)`, in 1/256 px fixed point.
+    #[inline(always)]
+    fn sample(&self, xi: i64, yi: i64, o: &mut [f32; 4], t: &mut f32, opaqued: &mut u32) {
+        let (x0, y0) = (xi >> 8, yi >> 8);
+        // x0 in [-1, w-1] and y0 in [-1, h-1]: all four taps inside the padded texture.
+        // Values below -1 wrap to huge unsigned numbers and fail too.
+        if ((x0 + 1) as u64) <= self.sw && ((y0 + 1) as u64) <= self.sh {
+            let pitch = self.pitch;
+            let i = (y0 + 1) as usize * pitch + (x0 + 1) as usize;
+            if let Some(q) = self.texels.get(i..i + pitch + 2) {
+                let (p00, p01, p10, p11) = (q[0], q[1], q[pitch], q[pitch + 1]);
+                if (p00 | p01 | p10 | p11) != 0 {
+                    let v = bilerp(p00, p01, p10, p11, (xi & 255) as u64, (yi & 255) as u64);
+                    let tv = *t;
+                    composite(o, t, tv, v, opaqued);
+                }
             }
+        }
+    }
+
+    /// Linear stepping: positions in 16.16 fixed point from `start` by `step` per pixel.
+    #[inline(always)]
+    fn draw_linear(&self, start: [i64; 2], step: [i64; 2], span: &mut Span<'_>) {
+        // Pre-add half a 1/256 step so that a shift rounds to nearest.
+        let (mut x, mut y) = (start[0] + 128, start[1] + 128);
+        for (o, t) in span.acc.iter_mut().zip(span.trans.iter_mut()) {
+            if *t > 0.0 {
+                self.sample(x >> 8, y >> 8, o, t, &mut span.opaqued);
+            }
+            x += step[0];
+            y += step[1];
+        }
+    }
+
+    /// Projective stepping with a division per pixel (strong perspective, or a plane that
+    /// crosses the viewer's horizon when `CHECK_W`).
+    #[inline(always)]
+    fn draw_projective<const CHECK_W: bool>(
+        &self,
+        start: [f32; 3],
+        inc: [f32; 3],
+        span: &mut Span<'_>,
+    ) {
+        let [mut a, mut b, mut w] = start;
+        for (o, t) in span.acc.iter_mut().zip(span.trans.iter_mut()) {
+            if *t > 0.0 && (!CHECK_W || w > 0.0) {
+                let inv = 1.0 / w;
+                let xi = (a * inv * 256.0 + (OFFSET as f32 + 0.5)) as i64 - OFFSET as i64;
+                let yi = (b * inv * 256.0 + (OFFSET as f32 + 0.5)) as i64 - OFFSET as i64;
+                self.sample(xi, yi, o, t, &mut span.opaqued);
+            }
+            a += inc[0];
+            b += inc[1];
+            w += inc[2];
         }
     }
 }
@@ -198,58 +248,6 @@ fn sample_fixed(
 /// Largest deviation, in px, tolerated between the exact projective mapping and its linear
 /// interpolation along a row.
 const MAX_LINEAR_ERROR: f64 = 1.0 / 512.0;
-
-/// Positions in 1/65536 px (16.16 fixed point) stepped linearly along a row segment.
-#[allow(clippy::too_many_arguments)]
-#[inline(always)]
-fn draw_span_linear(
-    texels: &[u32],
-    pitch: usize,
-    sw: u64,
-    sh: u64,
-    start: [i64; 2],
-    step: [i64; 2],
-    acc: &mut [[f32; 4]],
-    trans: &mut [f32],
-) {
-    // Pre-add half a 1/256 step so that a shift rounds to nearest.
-    let (mut x, mut y) = (start[0] + 128, start[1] + 128);
-    for (o, t) in acc.iter_mut().zip(trans.iter_mut()) {
-        if *t > 0.0 {
-            sample_fixed(texels, pitch, sw, sh, x >> 8, y >> 8, o, t);
-        }
-        x += step[0];
-        y += step[1];
-    }
-}
-
-/// Warps one output row segment of one layer with a division per pixel (strong perspective
-/// or a plane that crosses the viewer's horizon) and composites it under what is there.
-#[allow(clippy::too_many_arguments)]
-#[inline(always)]
-fn draw_row<const CHECK_W: bool>(
-    texels: &[u32],
-    pitch: usize,
-    sw: u64,
-    sh: u64,
-    start: [f32; 3],
-    inc: [f32; 3],
-    acc: &mut [[f32; 4]],
-    trans: &mut [f32],
-) {
-    let [mut a, mut b, mut w] = start;
-    for (o, t) in acc.iter_mut().zip(trans.iter_mut()) {
-        if *t > 0.0 && (!CHECK_W || w > 0.0) {
-            let inv = 1.0 / w;
-            let xi = (a * inv * 256.0 + (OFFSET as f32 + 0.5)) as i64 - OFFSET as i64;
-            let yi = (b * inv * 256.0 + (OFFSET as f32 + 0.5)) as i64 - OFFSET as i64;
-            sample_fixed(texels, pitch, sw, sh, xi, yi, o, t);
-        }
-        a += inc[0];
-        b += inc[1];
-        w += inc[2];
-    }
-}
 
 /// Source position `(sx, sy)` and `w` of output pixel `(x, y)`.
 #[inline(always)]
@@ -335,6 +333,95 @@ fn sub_span_len(err: f64, n: usize) -> Option<usize> {
     }
 }
 
+/// Warps row `y` of the output tile starting at column `x0` (the span's width) from one layer
+/// and composites it under what is already there.
+fn draw_layer_row(
+    tex: &Tex<'_>,
+    layer: &PreparedLayer,
+    h: &[[f64; 3]; 3],
+    x0: usize,
+    y: usize,
+    check_w: bool,
+    span: &mut Span<'_>,
+) {
+    let n = span.acc.len();
+    let (x, yf) = (x0 as f64, y as f64);
+    let mut s0 = 0;
+    if !check_w {
+        if let Some(len) = chord_error(h, x, yf, n).and_then(|e| sub_span_len(e, n)) {
+            while s0 < n {
+                let m = len.min(n - s0);
+                let Some((p, d)) = linear_span(h, x + s0 as f64, yf, m) else {
+                    break; // far-off coordinates: the projective path draws the rest
+                };
+                let mut sub = Span {
+                    acc: &mut span.acc[s0..s0 + m],
+                    trans: &mut span.trans[s0..s0 + m],
+                    opaqued: 0,
+                };
+                if !span_misses_layer(layer, tex, p, d, m) {
+                    tex.draw_linear(p, d, &mut sub);
+                }
+                span.opaqued += sub.opaqued;
+                s0 += m;
+            }
+            if s0 == n {
+                return;
+            }
+        }
+    }
+    let xs = x + s0 as f64;
+    let start = [
+        (h[0][0] * xs + h[0][1] * yf + h[0][2]) as f32,
+        (h[1][0] * xs + h[1][1] * yf + h[1][2]) as f32,
+        (h[2][0] * xs + h[2][1] * yf + h[2][2]) as f32,
+    ];
+    let inc = [h[0][0] as f32, h[1][0] as f32, h[2][0] as f32];
+    let mut rest = Span {
+        acc: &mut span.acc[s0..],
+        trans: &mut span.trans[s0..],
+        opaqued: 0,
+    };
+    if check_w {
+        tex.draw_projective::<true>(start, inc, &mut rest);
+    } else {
+        tex.draw_projective::<false>(start, inc, &mut rest);
+    }
+    span.opaqued += rest.opaqued;
+}
+
+/// True when the bilinear taps of a linear span (16.16 start `p`, step `d`, `m` pixels) meet
+/// only empty source rows, so the span can be skipped without reading texels.
+#[inline]
+fn span_misses_layer(
+    layer: &PreparedLayer,
+    tex: &Tex<'_>,
+    p: [i64; 2],
+    d: [i64; 2],
+    m: usize,
+) -> bool {
+    let end = [p[0] + d[0] * (m as i64 - 1), p[1] + d[1] * (m as i64 - 1)];
+    // Whole pixels, widened by one for rounding and one for the second bilinear tap.
+    let lo = |a: i64, b: i64| (a.min(b) >> 16) - 1;
+    let hi = |a: i64, b: i64| (a.max(b) >> 16) + 2;
+    let (x0, x1) = (lo(p[0], end[0]), hi(p[0], end[0]));
+    let (y0, y1) = (lo(p[1], end[1]), hi(p[1], end[1]));
+    let (sw, sh) = (tex.sw as i64, tex.sh as i64);
+    if x1 < 0 || y1 < 0 || x0 >= sw || y0 >= sh {
+        return true;
+    }
+    // Steep spans cross many rows: not worth checking.
+    if y1 - y0 > 8 {
+        return false;
+    }
+    layer.rows_empty(
+        x0.max(0) as u32,
+        x1.min(sw - 1) as u32,
+        y0.max(0) as usize,
+        y1.min(sh - 1) as usize,
+    )
+}
+
 impl PreparedLayers {
     fn warps(&self, pose: &Pose, target: &Camera) -> Vec<Option<Warp>> {
         self.layers
@@ -365,6 +452,8 @@ impl PreparedLayers {
             let tw = TILE_W.min(width - x0);
             acc.fill([0.0; 4]);
             trans.fill(1.0);
+            // Pixels per tile row whose transmittance is still above zero.
+            let mut alive = [tw as u32; TILE_H];
             for (layer, warp) in self.layers.iter().zip(warps) {
                 let Some(warp) = warp else { continue };
                 let (check_w, opaque) = match warp.classify(layer, [x0, y0, tw, th], sw, sh) {
@@ -375,45 +464,26 @@ impl PreparedLayers {
                     Class::Draw { check_w, opaque } => (check_w, opaque),
                 };
                 stats.drawn += 1;
-                let (tex, pitch) = (&layer.texels[..], layer.pitch);
-                let (sw64, sh64) = (sw as u64, sh as u64);
-                let h = &warp.h;
-                let inc = [h[0][0] as f32, h[1][0] as f32, h[2][0] as f32];
-                for r in 0..th {
-                    let (x, y) = (x0 as f64, (y0 + r) as f64);
-                    let start = [
-                        (h[0][0] * x + h[0][1] * y + h[0][2]) as f32,
-                        (h[1][0] * x + h[1][1] * y + h[1][2]) as f32,
-                        (h[2][0] * x + h[2][1] * y + h[2][2]) as f32,
-                    ];
+                let tex = Tex {
+                    texels: &layer.texels,
+                    pitch: layer.pitch,
+                    sw: sw as u64,
+                    sh: sh as u64,
+                };
+                for (r, alive_r) in alive[..th].iter_mut().enumerate() {
+                    if *alive_r == 0 {
+                        continue;
+                    }
                     let row = r * TILE_W..r * TILE_W + tw;
-                    let (a, t) = (&mut acc[row.clone()], &mut trans[row]);
-                    if !check_w {
-                        if let Some(len) =
-                            chord_error(h, x, y, tw).and_then(|e| sub_span_len(e, tw))
-                        {
-                            let mut done = true;
-                            for s0 in (0..tw).step_by(len) {
-                                let n = len.min(tw - s0);
-                                let Some((p, d)) = linear_span(h, x + s0 as f64, y, n) else {
-                                    done = false;
-                                    break;
-                                };
-                                let (sa, st) = (&mut a[s0..s0 + n], &mut t[s0..s0 + n]);
-                                draw_span_linear(tex, pitch, sw64, sh64, p, d, sa, st);
-                            }
-                            if done {
-                                continue;
-                            }
-                        }
-                    }
-                    if check_w {
-                        draw_row::<true>(tex, pitch, sw64, sh64, start, inc, a, t);
-                    } else {
-                        draw_row::<false>(tex, pitch, sw64, sh64, start, inc, a, t);
-                    }
+                    let mut span = Span {
+                        acc: &mut acc[row.clone()],
+                        trans: &mut trans[row],
+                        opaqued: 0,
+                    };
+                    draw_layer_row(&tex, layer, &warp.h, x0, y0 + r, check_w, &mut span);
+                    *alive_r -= span.opaqued;
                 }
-                if opaque {
+                if opaque || alive[..th].iter().all(|&n| n == 0) {
                     stats.opaque_stops += 1;
                     break;
                 }

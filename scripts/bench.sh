@@ -1,6 +1,8 @@
 #!/usr/bin/env bash
-# End-to-end renderer benchmark, side by side with OpenCV, as recorded in BENCHMARKS.md.
-# Installs opencv-python-headless + numpy into .venv-bench (PyPI) on first use.
+# End-to-end renderer benchmark, side by side with OpenCV in the same run, as recorded in
+# BENCHMARKS.md. Installs opencv-python-headless + numpy into .venv-bench (PyPI) on first use.
+# Cases per size: synthetic "typical" and "dense" layers, and a real layer set (the built-in
+# scene depth-sliced into 6 layers). JSON reports go to out/bench/.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 if [ ! -x .venv-bench/bin/python ]; then
@@ -8,9 +10,15 @@ if [ ! -x .venv-bench/bin/python ]; then
   .venv-bench/bin/pip install --quiet opencv-python-headless numpy
 fi
 cargo build --release -p cpsl
+cpsl=./target/release/cpsl
 mkdir -p out/bench
 for size in "1920 1080" "1280 720"; do
   set -- $size
-  ./target/release/cpsl bench render --width "$1" --height "$2" --layers 6 --frames "${FRAMES:-60}" \
+  $cpsl bench render --width "$1" --height "$2" --layers 6 --frames "${FRAMES:-60}" \
     --opencv .venv-bench/bin/python --save "out/bench/render_${1}x${2}.json"
+  $cpsl synth -o "out/bench/scene_${1}x${2}" --width "$1" --height "$2" --supersample 1 >/dev/null
+  $cpsl slice "out/bench/scene_${1}x${2}/input.png" --depth "out/bench/scene_${1}x${2}/depth.pfm" \
+    --camera "out/bench/scene_${1}x${2}/camera.json" -o "out/bench/layers_${1}x${2}" --layers 6 >/dev/null
+  $cpsl bench render --layerset "out/bench/layers_${1}x${2}" --frames "${FRAMES:-60}" \
+    --opencv .venv-bench/bin/python --save "out/bench/render_sliced_${1}x${2}.json"
 done

@@ -33,7 +33,8 @@ pub struct DemoArgs {
 struct Score {
     view: String,
     pose: String,
-    psnr_db: f64,
+    /// PSNR against the ray-cast ground truth; `null` when the render is identical.
+    psnr_db: Option<f64>,
 }
 
 /// Runs `cpsl demo`.
@@ -108,16 +109,23 @@ pub fn run(a: DemoArgs) -> Result<()> {
         scores.push(Score {
             view: entry.name.clone(),
             pose: entry.pose.clone(),
-            psnr_db: psnr(&img.over_background([0, 0, 0]), truth),
+            psnr_db: Some(psnr(&img.over_background([0, 0, 0]), truth)).filter(|p| p.is_finite()),
         });
     }
-    let mean = scores.iter().map(|s| s.psnr_db).sum::<f64>() / scores.len() as f64;
+    // The identity view is reproduced exactly (infinite PSNR); average the novel views.
+    let novel: Vec<f64> = scores.iter().filter_map(|s| s.psnr_db).collect();
+    let mean = novel.iter().sum::<f64>() / novel.len().max(1) as f64;
     println!(
-        "novel views vs ray-cast ground truth: mean PSNR {mean:.2} dB over {} views",
-        scores.len()
+        "novel views vs ray-cast ground truth: mean PSNR {mean:.2} dB over {} novel views \
+         ({} view(s) reproduced exactly)",
+        novel.len(),
+        scores.len() - novel.len()
     );
     for s in &scores {
-        println!("  {:<12} {:>6.2} dB", s.view, s.psnr_db);
+        match s.psnr_db {
+            Some(p) => println!("  {:<12} {p:>6.2} dB", s.view),
+            None => println!("  {:<12}  exact", s.view),
+        }
     }
     util::write_json(&a.output.join("scores.json"), &scores)?;
     Ok(())

@@ -68,7 +68,9 @@ pub struct SynthOutput {
 fn pose_string(p: &Pose) -> String {
     let (rx, ry, rz) = p.euler_deg();
     let t = p.translation;
-    format!("{},{},{},{},{},{}", t.x(), t.y(), t.z(), rx, ry, rz)
+    // Adding 0.0 turns -0.0 into 0.0; values are rounded to 1e-9 to drop float noise.
+    let v = [t.x(), t.y(), t.z(), rx, ry, rz].map(|v| ((v * 1e9).round() / 1e9) + 0.0);
+    format!("{},{},{},{},{},{}", v[0], v[1], v[2], v[3], v[4], v[5])
 }
 
 /// Renders the default scene and its ground-truth views and writes them to `dir`.

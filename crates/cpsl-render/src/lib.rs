@@ -19,6 +19,8 @@
 
 mod prepared;
 mod raster;
+#[cfg(target_arch = "x86_64")]
+mod simd;
 
 pub use prepared::PreparedLayers;
 pub use raster::{RenderStats, TILE_H, TILE_W};

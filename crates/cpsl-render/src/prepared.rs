@@ -57,6 +57,19 @@ impl PreparedLayer {
 pub struct PreparedLayers {
     pub(crate) camera: Camera,
     pub(crate) layers: Vec<PreparedLayer>,
+    /// Use the AVX2 kernel where the CPU has it.
+    pub(crate) simd: bool,
+}
+
+fn simd_available() -> bool {
+    #[cfg(target_arch = "x86_64")]
+    {
+        crate::simd::available()
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    {
+        false
+    }
 }
 
 fn prefix_sums(flags: &[bool], bw: usize, bh: usize) -> Vec<u32> {
@@ -123,7 +136,20 @@ impl PreparedLayers {
         Self {
             camera: cam,
             layers,
+            simd: simd_available(),
         }
+    }
+
+    /// Enables or disables the SIMD kernel (on by default where the CPU supports it). Results
+    /// are bit-identical either way; this exists for tests and benchmarks.
+    pub fn with_simd(mut self, on: bool) -> Self {
+        self.simd = on && simd_available();
+        self
+    }
+
+    /// Whether renders use the SIMD kernel.
+    pub fn simd(&self) -> bool {
+        self.simd
     }
 
     /// The reference camera of the prepared layers.

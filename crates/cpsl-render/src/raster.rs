@@ -176,6 +176,8 @@ struct Tex<'a> {
     /// Unpadded width and height.
     sw: u64,
     sh: u64,
+    /// Use the AVX2 kernel for linear spans.
+    simd: bool,
 }
 
 /// One output row segment being composited: accumulators, transmittances and the count of
@@ -212,7 +214,32 @@ impl Tex<'_> {
     fn draw_linear(&self, start: [i64; 2], step: [i64; 2], span: &mut Span<'_>) {
         // Pre-add half a 1/256 step so that a shift rounds to nearest.
         let (mut x, mut y) = (start[0] + 128, start[1] + 128);
-        for (o, t) in span.acc.iter_mut().zip(span.trans.iter_mut()) {
+        let mut done = 0;
+        #[cfg(target_arch = "x86_64")]
+        if self.simd && span.trans.len() >= 8 {
+            let last = span.trans.len() as i64 - 1;
+            let fits = |v: i64| v.abs() < (1 << 30);
+            let ends = [x, y, x + step[0] * last, y + step[1] * last];
+            if ends.iter().all(|&v| fits(v)) && fits(step[0] * 8) && fits(step[1] * 8) {
+                done = crate::simd::draw_linear(
+                    self.texels,
+                    self.pitch,
+                    self.sw as u32,
+                    self.sh as u32,
+                    [x as i32, y as i32],
+                    [step[0] as i32, step[1] as i32],
+                    span.acc,
+                    span.trans,
+                    &mut span.opaqued,
+                );
+                x += step[0] * done as i64;
+                y += step[1] * done as i64;
+            }
+        }
+        for (o, t) in span.acc[done..]
+            .iter_mut()
+            .zip(span.trans[done..].iter_mut())
+        {
             if *t > 0.0 {
                 self.sample(x >> 8, y >> 8, o, t, &mut span.opaqued);
             }
@@ -253,20 +280,21 @@ const MAX_LINEAR_ERROR: f64 = 1.0 / 512.0;
 #[inline(always)]
 fn map(h: &[[f64; 3]; 3], x: f64, y: f64) -> (f64, f64, f64) {
     let w = h[2][0] * x + h[2][1] * y + h[2][2];
+    let inv = 1.0 / w;
     (
-        (h[0][0] * x + h[0][1] * y + h[0][2]) / w,
-        (h[1][0] * x + h[1][1] * y + h[1][2]) / w,
+        (h[0][0] * x + h[0][1] * y + h[0][2]) * inv,
+        (h[1][0] * x + h[1][1] * y + h[1][2]) * inv,
         w,
     )
 }
 
 /// Deviation, in px, between the projective mapping and its chord at the middle of the row
-/// segment from `(x, y)` spanning `n` pixels; `None` when the plane is not in front of the
-/// viewer at both ends. For a 1-D projective map this deviation peaks near the middle and
-/// scales with the square of the segment length.
+/// interval `[x, x + n]`; `None` when the plane is not in front of the viewer at both ends.
+/// For a 1-D projective map this deviation peaks near the middle and scales with the square
+/// of the interval length.
 #[inline]
 fn chord_error(h: &[[f64; 3]; 3], x: f64, y: f64, n: usize) -> Option<f64> {
-    let xe = x + (n.max(2) - 1) as f64;
+    let xe = x + n as f64;
     let ((sx0, sy0, w0), (sx1, sy1, w1)) = (map(h, x, y), map(h, xe, y));
     if !(w0 > 0.0 && w1 > 0.0) {
         return None;
@@ -281,20 +309,18 @@ fn chord_error(h: &[[f64; 3]; 3], x: f64, y: f64, n: usize) -> Option<f64> {
     err.is_finite().then_some(err)
 }
 
-/// Start and step, in 16.16 fixed point, of the source position along the row segment from
-/// `(x, y)` spanning `n` pixels (exact at both ends, linear in between).
+/// Start and step, in 16.16 fixed point, of `m` pixels from source position `a` towards `b`
+/// (the exact positions of the span's first pixel and of the pixel just after it).
 #[inline]
-fn linear_span(h: &[[f64; 3]; 3], x: f64, y: f64, n: usize) -> Option<([i64; 2], [i64; 2])> {
-    let span = (n.max(2) - 1) as f64;
-    let ((sx0, sy0, _), (sx1, sy1, _)) = (map(h, x, y), map(h, x + span, y));
+fn linear_span(a: (f64, f64), b: (f64, f64), m: usize) -> Option<([i64; 2], [i64; 2])> {
     let fx = |v: f64| v * 65536.0;
-    let (a, b) = (fx(sx0), fx(sy0));
-    let (da, db) = (fx((sx1 - sx0) / span), fx((sy1 - sy0) / span));
+    let (x, y) = (fx(a.0), fx(a.1));
+    let (dx, dy) = (fx((b.0 - a.0) / m as f64), fx((b.1 - a.1) / m as f64));
     let lim = (1u64 << 40) as f64;
-    [a, b, da, db]
+    [x, y, dx, dy]
         .iter()
         .all(|v| v.abs() < lim)
-        .then(|| ([round(a), round(b)], [round(da), round(db)]))
+        .then(|| ([round(x), round(y)], [round(dx), round(dy)]))
 }
 
 /// Rounds to the nearest integer (ties away from zero) with a truncating conversion: `f64::round`
@@ -349,9 +375,16 @@ fn draw_layer_row(
     let mut s0 = 0;
     if !check_w {
         if let Some(len) = chord_error(h, x, yf, n).and_then(|e| sub_span_len(e, n)) {
+            // Exact positions at sub-span boundaries, each computed once.
+            let at = |i: usize| {
+                let (sx, sy, _) = map(h, x + i as f64, yf);
+                (sx, sy)
+            };
+            let mut from = at(0);
             while s0 < n {
                 let m = len.min(n - s0);
-                let Some((p, d)) = linear_span(h, x + s0 as f64, yf, m) else {
+                let to = at(s0 + m);
+                let Some((p, d)) = linear_span(from, to, m) else {
                     break; // far-off coordinates: the projective path draws the rest
                 };
                 let mut sub = Span {
@@ -364,6 +397,7 @@ fn draw_layer_row(
                 }
                 span.opaqued += sub.opaqued;
                 s0 += m;
+                from = to;
             }
             if s0 == n {
                 return;
@@ -469,6 +503,7 @@ impl PreparedLayers {
                     pitch: layer.pitch,
                     sw: sw as u64,
                     sh: sh as u64,
+                    simd: self.simd,
                 };
                 for (r, alive_r) in alive[..th].iter_mut().enumerate() {
                     if *alive_r == 0 {

@@ -130,6 +130,36 @@ proptest! {
     }
 }
 
+proptest! {
+    #![proptest_config(ProptestConfig::with_cases(24))]
+
+    /// The SIMD kernel (where the CPU has one) and the scalar kernel produce identical bits.
+    #[test]
+    fn simd_and_scalar_kernels_agree_exactly(
+        seed in any::<u64>(), k in 1usize..5, w in 1u32..150, h in 1u32..40,
+        tx in -0.3f64..0.3, ty in -0.3f64..0.3, tz in -0.5f64..0.9,
+        rx in -8.0f64..8.0, ry in -8.0f64..8.0, rz in -8.0f64..8.0,
+    ) {
+        let set = random_set(w, h, k, seed);
+        let pose = Pose::from_euler_deg(Vec3::new(tx, ty, tz), rx, ry, rz);
+        let cam = *set.camera();
+        let simd = PreparedLayers::new(&set).with_simd(true).render_f32(&pose, &cam);
+        let scalar = PreparedLayers::new(&set).with_simd(false).render_f32(&pose, &cam);
+        for (a, b) in simd.iter().zip(&scalar) {
+            prop_assert_eq!(a.map(f32::to_bits), b.map(f32::to_bits));
+        }
+    }
+}
+
+#[test]
+fn simd_kernel_is_used_where_available() {
+    let set = random_set(16, 8, 1, 1);
+    let p = PreparedLayers::new(&set);
+    #[cfg(target_arch = "x86_64")]
+    assert_eq!(p.simd(), std::arch::is_x86_feature_detected!("avx2"));
+    assert!(!p.with_simd(false).simd());
+}
+
 #[test]
 fn typical_content_matches_naive_and_skips_work() {
     let set = synthetic_layer_set(320, 200, 6, Coverage::Typical, 3);

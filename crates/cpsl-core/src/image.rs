@@ -34,6 +34,26 @@ pub fn unpremultiply(p: u8, a: u8) -> u8 {
     }
 }
 
+/// Checks that a buffer holds `width * height * channels` values.
+fn check_len(
+    what: &str,
+    width: u32,
+    height: u32,
+    channels: usize,
+    found: usize,
+) -> Result<(), CoreError> {
+    let expected = width as usize * height as usize * channels;
+    if found == expected {
+        Ok(())
+    } else {
+        Err(CoreError::BufferLength {
+            what: what.into(),
+            expected,
+            found,
+        })
+    }
+}
+
 impl PremulImage {
     /// A fully transparent image.
     pub fn new(width: u32, height: u32) -> Self {
@@ -46,14 +66,7 @@ impl PremulImage {
 
     /// Wraps premultiplied RGBA bytes, checking the length and the premultiplied invariant.
     pub fn from_premul(width: u32, height: u32, data: Vec<u8>) -> Result<Self, CoreError> {
-        let expected = width as usize * height as usize * 4;
-        if data.len() != expected {
-            return Err(CoreError::BufferLength {
-                what: "premultiplied image".into(),
-                expected,
-                found: data.len(),
-            });
-        }
+        check_len("premultiplied image", width, height, 4, data.len())?;
         let img = Self {
             width,
             height,
@@ -65,14 +78,7 @@ impl PremulImage {
 
     /// Converts straight-alpha RGBA bytes to a premultiplied image.
     pub fn from_straight(width: u32, height: u32, rgba: &[u8]) -> Result<Self, CoreError> {
-        let expected = width as usize * height as usize * 4;
-        if rgba.len() != expected {
-            return Err(CoreError::BufferLength {
-                what: "straight RGBA image".into(),
-                expected,
-                found: rgba.len(),
-            });
-        }
+        check_len("straight RGBA image", width, height, 4, rgba.len())?;
         let mut data = rgba.to_vec();
         for px in data.chunks_exact_mut(4) {
             let a = px[3];
@@ -89,15 +95,8 @@ impl PremulImage {
 
     /// An opaque image from RGB bytes.
     pub fn from_rgb(width: u32, height: u32, rgb: &[u8]) -> Result<Self, CoreError> {
-        let expected = width as usize * height as usize * 3;
-        if rgb.len() != expected {
-            return Err(CoreError::BufferLength {
-                what: "RGB image".into(),
-                expected,
-                found: rgb.len(),
-            });
-        }
-        let mut data = Vec::with_capacity(expected / 3 * 4);
+        check_len("RGB image", width, height, 3, rgb.len())?;
+        let mut data = Vec::with_capacity(rgb.len() / 3 * 4);
         for px in rgb.chunks_exact(3) {
             data.extend_from_slice(&[px[0], px[1], px[2], 255]);
         }

@@ -26,4 +26,4 @@ mod raster;
 mod simd;
 
 pub use prepared::PreparedLayers;
-pub use raster::{RenderStats, TILE_H, TILE_W};
+pub use raster::RenderStats;

@@ -6,7 +6,7 @@ use anyhow::{Context, Result};
 use clap::Args;
 use cpsl_core::{Camera, Limits, Pose, Progress, ProgressEvent};
 use cpsl_io::images::write_png;
-use cpsl_io::pfm::{read_pfm, write_pfm, FloatImage};
+use cpsl_io::pfm::{write_pfm, FloatImage};
 use cpsl_layering::{slice_by_depth, SliceConfig};
 use cpsl_synth::Scene;
 use serde::Serialize;
@@ -187,9 +187,13 @@ pub fn run_synth(a: SynthArgs) -> Result<()> {
 pub struct SliceArgs {
     /// Input image (PNG or JPEG).
     pub image: PathBuf,
-    /// Depth map (PFM, z-depth in scene units) of the same size.
+    /// Depth map of the same size: z-depth as PFM (scene units), 16-bit greyscale PNG or
+    /// NumPy .npy (float32/float64 in scene units, uint16 scaled by --depth-scale).
     #[arg(long)]
     pub depth: PathBuf,
+    /// Scene units per integer step of 16-bit PNG / uint16 .npy depth (0.001: mm to m).
+    #[arg(long, default_value_t = 0.001)]
+    pub depth_scale: f32,
     /// Output layer-set folder.
     #[arg(short, long)]
     pub output: PathBuf,
@@ -226,7 +230,15 @@ pub fn run_slice(a: SliceArgs) -> Result<()> {
     let limits = Limits::default();
     let img = cpsl_io::images::read_rgb8(&a.image, &limits)
         .with_context(|| format!("reading image {}", a.image.display()))?;
-    let depth = read_pfm(&a.depth, &limits)
+    anyhow::ensure!(
+        a.depth_scale.is_finite() && a.depth_scale > 0.0,
+        "--depth-scale must be finite and > 0, found {}",
+        a.depth_scale
+    );
+    let units = cpsl_io::depth::DepthUnits {
+        scale: a.depth_scale,
+    };
+    let depth = cpsl_io::depth::read_depth(&a.depth, units, &limits)
         .with_context(|| format!("reading depth {}", a.depth.display()))?;
     anyhow::ensure!(
         (depth.width, depth.height) == (img.width, img.height),
@@ -256,6 +268,20 @@ pub fn run_slice(a: SliceArgs) -> Result<()> {
         }
         None => Camera::from_fov(img.width, img.height, a.fov),
     };
+    let invalid = depth
+        .data
+        .iter()
+        .filter(|z| !(z.is_finite() && **z > 0.0))
+        .count();
+    if invalid > 0 {
+        Bars::default().event(ProgressEvent::Warning {
+            message: format!(
+                "{}: {invalid} of {} pixels have no valid depth (NaN, infinite, zero or negative); they go to the back layer",
+                a.depth.display(),
+                depth.data.len()
+            ),
+        });
+    }
     let config = SliceConfig {
         layers: a.layers as usize,
         ..SliceConfig::default()

@@ -191,9 +191,51 @@ fn clear_errors_and_nothing_written() {
             "-o",
             s(&out),
         ],
-        "PFM",
+        "expected a 16-bit greyscale PNG, found Rgb8",
     );
     assert!(!out.exists());
+    fails(
+        &[
+            "slice",
+            s(&scene.join("input.png")),
+            "--depth",
+            s(&scene.join("camera.json")),
+            "-o",
+            s(&out),
+        ],
+        "unknown depth format '.json'",
+    );
+    assert!(!out.exists());
+    // A uint16 .npy depth in millimetres works through --depth-scale.
+    let pfm = cpsl_io::pfm::read_pfm(&scene.join("depth.pfm"), &Default::default()).unwrap();
+    let mut npy = b"\x93NUMPY\x01\x00".to_vec();
+    let mut header = format!(
+        "{{'descr': '<u2', 'fortran_order': False, 'shape': ({}, {}), }}",
+        pfm.height, pfm.width
+    );
+    while (10 + header.len() + 1) % 64 != 0 {
+        header.push(' ');
+    }
+    header.push('\n');
+    npy.extend_from_slice(&(header.len() as u16).to_le_bytes());
+    npy.extend_from_slice(header.as_bytes());
+    for z in &pfm.data {
+        npy.extend_from_slice(&((z * 1000.0).round() as u16).to_le_bytes());
+    }
+    let npy_path = d.path().join("depth_mm.npy");
+    std::fs::write(&npy_path, npy).unwrap();
+    let layers = d.path().join("from_npy");
+    let msg = ok(&[
+        "slice",
+        s(&scene.join("input.png")),
+        "--depth",
+        s(&npy_path),
+        "-o",
+        s(&layers),
+        "--depth-scale",
+        "0.001",
+    ]);
+    assert!(msg.contains("depths 2.500"), "{msg}");
     fails(
         &[
             "slice",

@@ -166,6 +166,19 @@ mod tests {
         assert_eq!(Manifest::parse(m.to_json().as_bytes()).unwrap(), m);
     }
 
+    proptest::proptest! {
+        /// Arbitrary bytes and single-byte corruptions of a valid manifest never panic.
+        #[test]
+        fn never_panics(bytes in proptest::collection::vec(proptest::prelude::any::<u8>(), 0..512),
+                        pos in 0usize..400, val in proptest::prelude::any::<u8>()) {
+            let _ = Manifest::parse(&bytes);
+            let mut doc = doc(1, "a.png").into_bytes();
+            let i = pos % doc.len();
+            doc[i] = val;
+            let _ = Manifest::parse(&doc);
+        }
+    }
+
     #[test]
     fn rejects_bad_headers_and_names() {
         assert_eq!(

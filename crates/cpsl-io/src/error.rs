@@ -74,6 +74,14 @@ pub enum IoError {
         /// Target path.
         path: PathBuf,
     },
+    /// A depth file is malformed or of an unsupported kind.
+    #[error("{path}: depth: {reason}")]
+    Depth {
+        /// File path.
+        path: PathBuf,
+        /// What is wrong.
+        reason: String,
+    },
     /// A PFM file is malformed.
     #[error("{path}: PFM {reason}")]
     Pfm {

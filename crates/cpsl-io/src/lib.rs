@@ -3,9 +3,11 @@
 //! * [`layerset`]: the layer-set folder (`manifest.json` + one RGBA PNG per layer + optional
 //!   side files), read with full validation under [`cpsl_core::Limits`] and written atomically.
 //! * [`images`]: PNG/JPEG reading with size limits checked before decoding, PNG writing.
-//! * [`pfm`]: Portable Float Map depth files.
+//! * [`pfm`]: Portable Float Map files.
+//! * [`depth`]: depth maps from PFM, 16-bit PNG or NumPy `.npy`.
 
 pub mod atomic;
+pub mod depth;
 pub mod error;
 pub mod images;
 pub mod layerset;

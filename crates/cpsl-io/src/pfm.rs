@@ -130,6 +130,31 @@ mod tests {
     }
 
     #[test]
+    fn arbitrary_bytes_never_panic() {
+        // Deterministic pseudo-random inputs, plus every truncation of a valid file.
+        let valid = encode_pfm(&FloatImage {
+            width: 3,
+            height: 2,
+            data: vec![1.5; 6],
+        });
+        for cut in 0..valid.len() {
+            let _ = parse_pfm(&valid[..cut], &Limits::default());
+        }
+        let mut s = 0x9E37_79B9_7F4A_7C15u64;
+        for n in 0..2000usize {
+            let mut bytes = valid.clone();
+            for _ in 0..(n % 5) + 1 {
+                s ^= s << 13;
+                s ^= s >> 7;
+                s ^= s << 17;
+                let i = (s as usize) % bytes.len();
+                bytes[i] = (s >> 32) as u8;
+            }
+            let _ = parse_pfm(&bytes, &Limits::default());
+        }
+    }
+
+    #[test]
     fn rejects_truncated_and_bad_headers() {
         let l = Limits::default();
         let img = FloatImage {

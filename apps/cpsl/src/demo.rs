@@ -65,6 +65,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
     let set = slice_to(
         &synth.rgb,
         &synth.depth,
+        "ray-cast ground truth",
         synth.scene.camera,
         &config,
         &layer_dir,

@@ -189,8 +189,16 @@ pub struct SliceArgs {
     pub image: PathBuf,
     /// Depth map of the same size: z-depth as PFM (scene units), 16-bit greyscale PNG or
     /// NumPy .npy (float32/float64 in scene units, uint16 scaled by --depth-scale).
+    #[arg(long, conflicts_with = "depth_model")]
+    pub depth: Option<PathBuf>,
+    /// Estimate depth with a monocular depth model instead: `fastdepth` (the default when no
+    /// --depth is given; fetched by scripts/setup-models.sh) or any .onnx file described by
+    /// `<model>.json` (or --model-desc).
     #[arg(long)]
-    pub depth: PathBuf,
+    pub depth_model: Option<String>,
+    /// Description of the --depth-model (input size, normalisation, output kind).
+    #[arg(long, requires = "depth_model")]
+    pub model_desc: Option<PathBuf>,
     /// Scene units per integer step of 16-bit PNG / uint16 .npy depth (0.001: mm to m).
     #[arg(long, default_value_t = 0.001)]
     pub depth_scale: f32,
@@ -208,18 +216,23 @@ pub struct SliceArgs {
     pub fov: f64,
 }
 
-/// Slices an image + depth and writes the layer set with its config.
+/// Slices an image + depth and writes the layer set with its resolved config (stage, depth
+/// source, camera, slicing parameters) as `config.json`.
 pub fn slice_to(
     rgb: &[u8],
     depth: &[f32],
+    depth_source: &str,
     cam: Camera,
     config: &SliceConfig,
     out: &Path,
 ) -> Result<cpsl_core::LayerSet> {
     let set = slice_by_depth(rgb, depth, cam, config)?;
-    let cfg = serde_json::to_vec_pretty(
-        &serde_json::json!({ "stage": "depth-slice", "config": config }),
-    )?;
+    let cfg = serde_json::to_vec_pretty(&serde_json::json!({
+        "stage": "depth-slice",
+        "depth": depth_source,
+        "camera": cam,
+        "config": config,
+    }))?;
     cpsl_io::write_layer_set(out, &set, &[("config.json", &cfg)])
         .with_context(|| format!("writing layer set {}", out.display()))?;
     Ok(set)
@@ -230,20 +243,44 @@ pub fn run_slice(a: SliceArgs) -> Result<()> {
     let limits = Limits::default();
     let img = cpsl_io::images::read_rgb8(&a.image, &limits)
         .with_context(|| format!("reading image {}", a.image.display()))?;
-    anyhow::ensure!(
-        a.depth_scale.is_finite() && a.depth_scale > 0.0,
-        "--depth-scale must be finite and > 0, found {}",
-        a.depth_scale
-    );
-    let units = cpsl_io::depth::DepthUnits {
-        scale: a.depth_scale,
+    let (depth, depth_source) = match (&a.depth, &a.depth_model) {
+        (Some(path), _) => {
+            anyhow::ensure!(
+                a.depth_scale.is_finite() && a.depth_scale > 0.0,
+                "--depth-scale must be finite and > 0, found {}",
+                a.depth_scale
+            );
+            let units = cpsl_io::depth::DepthUnits {
+                scale: a.depth_scale,
+            };
+            let d = cpsl_io::depth::read_depth(path, units, &limits)
+                .with_context(|| format!("reading depth {}", path.display()))?;
+            (d, path.display().to_string())
+        }
+        (None, model) => {
+            let path = match model.as_deref().unwrap_or("fastdepth") {
+                "fastdepth" => cpsl_models::runtime::cache_dir().join("models/fastdepth_7.onnx"),
+                other => PathBuf::from(other),
+            };
+            let desc = a
+                .model_desc
+                .as_deref()
+                .map(cpsl_models::DepthModelDesc::load)
+                .transpose()?;
+            let mut m = cpsl_models::OnnxDepth::open(&path, desc)
+                .with_context(|| format!("loading depth model {}", path.display()))?;
+            let e = m.estimate(&img.data, img.width, img.height)?;
+            let d = FloatImage {
+                width: e.width,
+                height: e.height,
+                data: e.depth,
+            };
+            (d, format!("model {}", path.display()))
+        }
     };
-    let depth = cpsl_io::depth::read_depth(&a.depth, units, &limits)
-        .with_context(|| format!("reading depth {}", a.depth.display()))?;
     anyhow::ensure!(
         (depth.width, depth.height) == (img.width, img.height),
-        "{}: depth is {}x{} but the image is {}x{}",
-        a.depth.display(),
+        "{depth_source}: depth is {}x{} but the image is {}x{}",
         depth.width,
         depth.height,
         img.width,
@@ -276,8 +313,7 @@ pub fn run_slice(a: SliceArgs) -> Result<()> {
     if invalid > 0 {
         Bars::default().event(ProgressEvent::Warning {
             message: format!(
-                "{}: {invalid} of {} pixels have no valid depth (NaN, infinite, zero or negative); they go to the back layer",
-                a.depth.display(),
+                "{depth_source}: {invalid} of {} pixels have no valid depth (NaN, infinite, zero or negative); they go to the back layer",
                 depth.data.len()
             ),
         });
@@ -286,7 +322,14 @@ pub fn run_slice(a: SliceArgs) -> Result<()> {
         layers: a.layers as usize,
         ..SliceConfig::default()
     };
-    let set = slice_to(&img.data, &depth.data, cam, &config, &a.output)?;
+    let set = slice_to(
+        &img.data,
+        &depth.data,
+        &depth_source,
+        cam,
+        &config,
+        &a.output,
+    )?;
     let depths: Vec<String> = set
         .layers()
         .iter()

@@ -250,3 +250,71 @@ fn clear_errors_and_nothing_written() {
         "0",
     );
 }
+
+#[test]
+fn slice_with_a_depth_model() {
+    let cache = std::env::var_os("CPSL_CACHE")
+        .map(std::path::PathBuf::from)
+        .unwrap_or_else(|| {
+            std::path::PathBuf::from(std::env::var_os("HOME").unwrap()).join(".cache/cpsl")
+        });
+    if !cache.join("models/fastdepth_7.onnx").is_file()
+        || !cache.join("onnxruntime/libonnxruntime.so.1.31.1").is_file()
+    {
+        assert!(
+            std::env::var_os("CPSL_REQUIRE_MODELS").is_none(),
+            "models missing in {}: run scripts/setup-models.sh",
+            cache.display()
+        );
+        eprintln!("skipped slice_with_a_depth_model: run scripts/setup-models.sh");
+        return;
+    }
+    let d = tempfile::tempdir().unwrap();
+    let scene = d.path().join("scene");
+    ok(&[
+        "synth",
+        "-o",
+        s(&scene),
+        "--width",
+        "64",
+        "--height",
+        "48",
+        "--supersample",
+        "1",
+    ]);
+    let layers = d.path().join("layers");
+    let out = ok(&[
+        "slice",
+        s(&scene.join("input.png")),
+        "--depth-model",
+        "fastdepth",
+        "-o",
+        s(&layers),
+        "--layers",
+        "3",
+    ]);
+    assert!(out.contains("wrote 3 layers"), "{out}");
+    let cfg = std::fs::read_to_string(layers.join("config.json")).unwrap();
+    assert!(cfg.contains("fastdepth_7.onnx"), "{cfg}");
+    // A file that is not ONNX, with a valid description: clear error, nothing written.
+    let bogus = d.path().join("bogus.onnx");
+    std::fs::write(&bogus, b"not a model").unwrap();
+    std::fs::copy(
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../models/fastdepth.json"),
+        d.path().join("bogus.json"),
+    )
+    .unwrap();
+    let none = d.path().join("none");
+    fails(
+        &[
+            "slice",
+            s(&scene.join("input.png")),
+            "--depth-model",
+            s(&bogus),
+            "-o",
+            s(&none),
+        ],
+        "not a usable ONNX model",
+    );
+    assert!(!none.exists());
+}

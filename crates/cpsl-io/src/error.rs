@@ -8,22 +8,20 @@ use thiserror::Error;
 #[derive(Debug, Error)]
 pub enum IoError {
     /// The operating system refused an operation.
-    #[error("{path}: {source}")]
+    #[error("{path}: {cause}")]
     Io {
         /// Path involved.
         path: PathBuf,
-        /// Underlying error.
-        #[source]
-        source: std::io::Error,
+        /// Underlying error (part of the message, not a separate source).
+        cause: std::io::Error,
     },
     /// The manifest is malformed.
-    #[error("{path}: {source}")]
+    #[error("{path}: {cause}")]
     Manifest {
         /// Manifest path.
         path: PathBuf,
         /// What is wrong.
-        #[source]
-        source: ManifestError,
+        cause: ManifestError,
     },
     /// A file is larger than the limits allow.
     #[error("{path}: file is {size} bytes, above the limit of {max}")]
@@ -58,13 +56,12 @@ pub enum IoError {
         expected_height: u32,
     },
     /// The content breaks a layer-set invariant (depth order, limits, ...).
-    #[error("{path}: {source}")]
+    #[error("{path}: {cause}")]
     Invalid {
         /// The file the invariant belongs to (usually the manifest).
         path: PathBuf,
         /// The broken invariant.
-        #[source]
-        source: CoreError,
+        cause: CoreError,
     },
     /// The write target exists and is not a layer set, so it is not replaced.
     #[error(
@@ -94,10 +91,10 @@ pub enum IoError {
 
 impl IoError {
     /// Wraps an `std::io::Error` with its path.
-    pub fn io(path: impl Into<PathBuf>, source: std::io::Error) -> Self {
+    pub fn io(path: impl Into<PathBuf>, cause: std::io::Error) -> Self {
         Self::Io {
             path: path.into(),
-            source,
+            cause,
         }
     }
 }

@@ -55,7 +55,7 @@ fn checked_decode(path: &Path, limits: &Limits) -> Result<image::DynamicImage, I
         .check_size(&path.display().to_string(), w, h)
         .map_err(|e| IoError::Invalid {
             path: path.into(),
-            source: e,
+            cause: e,
         })?;
     open_reader(path, limits)?
         .decode()

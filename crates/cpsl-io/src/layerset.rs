@@ -29,14 +29,14 @@ pub fn read_layer_set(dir: &Path, limits: &Limits) -> Result<LayerSet, IoError> 
         });
     }
     let bytes = std::fs::read(&mpath).map_err(|e| IoError::io(&mpath, e))?;
-    let manifest = Manifest::parse(&bytes).map_err(|source| IoError::Manifest {
+    let manifest = Manifest::parse(&bytes).map_err(|cause| IoError::Manifest {
         path: mpath.clone(),
-        source,
+        cause,
     })?;
     let cam = manifest.camera;
-    let invalid = |source| IoError::Invalid {
+    let invalid = |cause| IoError::Invalid {
         path: mpath.clone(),
-        source,
+        cause,
     };
     // Camera, limits, layer count and depths are checked before any image is decoded.
     cam.validate().map_err(invalid)?;
@@ -74,10 +74,10 @@ pub fn read_layer_set(dir: &Path, limits: &Limits) -> Result<LayerSet, IoError> 
         }
         let rgba = images::read_rgba8(&path, limits)?;
         let image =
-            PremulImage::from_straight(rgba.width, rgba.height, &rgba.data).map_err(|source| {
+            PremulImage::from_straight(rgba.width, rgba.height, &rgba.data).map_err(|cause| {
                 IoError::Invalid {
                     path: path.clone(),
-                    source,
+                    cause,
                 }
             })?;
         layers.push(Layer {

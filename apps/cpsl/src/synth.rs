@@ -238,6 +238,27 @@ pub fn slice_to(
     Ok(set)
 }
 
+/// Runs a monocular depth model on an RGB image: `model` is `fastdepth` (the cached default)
+/// or an .onnx path, described by `desc` or `<model>.json`. Returns the depth and a
+/// description of its source.
+pub fn estimate_depth(
+    model: &str,
+    desc: Option<&Path>,
+    rgb: &[u8],
+    width: u32,
+    height: u32,
+) -> Result<(Vec<f32>, String)> {
+    let path = match model {
+        "fastdepth" => cpsl_models::runtime::cache_dir().join("models/fastdepth_7.onnx"),
+        other => PathBuf::from(other),
+    };
+    let desc = desc.map(cpsl_models::DepthModelDesc::load).transpose()?;
+    let mut m = cpsl_models::OnnxDepth::open(&path, desc)
+        .with_context(|| format!("loading depth model {}", path.display()))?;
+    let e = m.estimate(rgb, width, height)?;
+    Ok((e.depth, format!("model {}", path.display())))
+}
+
 /// Runs `cpsl slice`.
 pub fn run_slice(a: SliceArgs) -> Result<()> {
     let limits = Limits::default();
@@ -258,24 +279,20 @@ pub fn run_slice(a: SliceArgs) -> Result<()> {
             (d, path.display().to_string())
         }
         (None, model) => {
-            let path = match model.as_deref().unwrap_or("fastdepth") {
-                "fastdepth" => cpsl_models::runtime::cache_dir().join("models/fastdepth_7.onnx"),
-                other => PathBuf::from(other),
-            };
-            let desc = a
-                .model_desc
-                .as_deref()
-                .map(cpsl_models::DepthModelDesc::load)
-                .transpose()?;
-            let mut m = cpsl_models::OnnxDepth::open(&path, desc)
-                .with_context(|| format!("loading depth model {}", path.display()))?;
-            let e = m.estimate(&img.data, img.width, img.height)?;
+            let model = model.as_deref().unwrap_or("fastdepth");
+            let (data, source) = estimate_depth(
+                model,
+                a.model_desc.as_deref(),
+                &img.data,
+                img.width,
+                img.height,
+            )?;
             let d = FloatImage {
-                width: e.width,
-                height: e.height,
-                data: e.depth,
+                width: img.width,
+                height: img.height,
+                data,
             };
-            (d, format!("model {}", path.display()))
+            (d, source)
         }
     };
     anyhow::ensure!(

@@ -2,7 +2,7 @@
 
 use crate::progress::Bars;
 use crate::render::{render_sweep, Sweep};
-use crate::synth::{estimate_depth, slice_to, synthesise, SynthArgs};
+use crate::synth::{depth_list, estimate_depth, slice_to, synthesise, SynthArgs};
 use crate::util::{self, Output};
 use anyhow::Result;
 use clap::Args;
@@ -106,15 +106,10 @@ pub fn run(a: DemoArgs) -> Result<()> {
         &config,
         &layer_dir,
     )?;
-    let depths: Vec<String> = set
-        .layers()
-        .iter()
-        .map(|l| format!("{:.2}", l.depth))
-        .collect();
     println!(
         "2/3 sliced into {} layers at depths [{}] in {} (depth: {source})",
         set.len(),
-        depths.join(", "),
+        depth_list(&set),
         layer_dir.display()
     );
 

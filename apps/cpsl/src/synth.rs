@@ -238,6 +238,16 @@ pub fn slice_to(
     Ok(set)
 }
 
+/// The layer depths of `set`, comma separated, to three decimals.
+pub fn depth_list(set: &cpsl_core::LayerSet) -> String {
+    let d: Vec<String> = set
+        .layers()
+        .iter()
+        .map(|l| format!("{:.3}", l.depth))
+        .collect();
+    d.join(", ")
+}
+
 /// Runs a monocular depth model on an RGB image: `model` is `fastdepth` (the cached default)
 /// or an .onnx path, described by `desc` or `<model>.json`. Returns the depth and a
 /// description of its source.
@@ -347,16 +357,11 @@ pub fn run_slice(a: SliceArgs) -> Result<()> {
         &config,
         &a.output,
     )?;
-    let depths: Vec<String> = set
-        .layers()
-        .iter()
-        .map(|l| format!("{:.3}", l.depth))
-        .collect();
     println!(
         "wrote {} layers to {} (depths {})",
         set.len(),
         a.output.display(),
-        depths.join(", ")
+        depth_list(&set)
     );
     Ok(())
 }

@@ -4,7 +4,7 @@ use crate::progress::Bars;
 use crate::render::{render_sweep, Sweep};
 use crate::synth::{depth_list, estimate_depth, slice_to, synthesise, SynthArgs};
 use crate::util::{self, Output};
-use anyhow::Result;
+use anyhow::{Context, Result};
 use clap::Args;
 use cpsl_eval::metrics::psnr;
 use cpsl_layering::SliceConfig;
@@ -42,20 +42,6 @@ struct Score {
     psnr_db: Option<f64>,
 }
 
-/// Median of the finite positive values (NaN when there are none).
-fn median(v: &[f32]) -> f32 {
-    let mut d: Vec<f32> = v
-        .iter()
-        .copied()
-        .filter(|z| z.is_finite() && *z > 0.0)
-        .collect();
-    if d.is_empty() {
-        return f32::NAN;
-    }
-    let m = d.len() / 2;
-    *d.select_nth_unstable_by(m, f32::total_cmp).1
-}
-
 /// Runs `cpsl demo`.
 pub fn run(a: DemoArgs) -> Result<()> {
     let bars = Bars::default();
@@ -86,12 +72,8 @@ pub fn run(a: DemoArgs) -> Result<()> {
         Some(model) => {
             let cam = synth.scene.camera;
             let (est, source) = estimate_depth(model, None, &synth.rgb, cam.width, cam.height)?;
-            let s = median(&synth.depth) / median(&est);
-            anyhow::ensure!(
-                s.is_finite() && s > 0.0,
-                "{source}: no valid depth to align"
-            );
-            let aligned = est.iter().map(|z| z * s).collect();
+            let (aligned, s) = cpsl_eval::datasets::align_median(&est, &synth.depth)
+                .with_context(|| format!("{source}: no valid depth to align"))?;
             (
                 aligned,
                 format!("{source}, median-scaled by {s:.3} to the ground truth"),

@@ -3,6 +3,7 @@
 
 mod bench;
 mod demo;
+mod eval;
 mod progress;
 mod render;
 mod synth;
@@ -28,6 +29,8 @@ enum Command {
     Slice(synth::SliceArgs),
     /// The main job end to end on the built-in scene: synthesise, layer, render a sweep, score.
     Demo(demo::DemoArgs),
+    /// Layer real reference views, render their target views and score them (PSNR, SSIM).
+    Eval(eval::EvalArgs),
     /// Benchmarks.
     #[command(subcommand)]
     Bench(bench::BenchCommand),
@@ -56,6 +59,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Synth(a) => synth::run_synth(a),
         Command::Slice(a) => synth::run_slice(a),
         Command::Demo(a) => demo::run(a),
+        Command::Eval(a) => eval::run(a),
         Command::Bench(b) => bench::run(b),
     }
 }

@@ -318,3 +318,42 @@ fn slice_with_a_depth_model() {
     );
     assert!(!none.exists());
 }
+
+#[test]
+fn eval_on_real_data_and_its_errors() {
+    let data = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data");
+    let d = tempfile::tempdir().unwrap();
+    fails(
+        &["eval", "all", "--data", s(&d.path().join("none"))],
+        "data folder not found",
+    );
+    if !data.is_dir() {
+        eprintln!(
+            "skipped the rest of eval_on_real_data_and_its_errors: {} not found",
+            data.display()
+        );
+        return;
+    }
+    fails(
+        &["eval", "kitti/06", "--data", s(&data)],
+        "unknown dataset 'kitti/06'",
+    );
+    let json = d.path().join("report.json");
+    let out = ok(&[
+        "eval",
+        "middlebury2003/Teddy",
+        "--data",
+        s(&data),
+        "--json",
+        s(&json),
+    ]);
+    assert!(
+        out.contains("depth-slice") && out.contains("single-plane"),
+        "{out}"
+    );
+    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    let first = &report[0];
+    assert_eq!(first["dataset"], "middlebury2003/Teddy");
+    assert!(first["mean_psnr"].as_f64().unwrap() > 15.0, "{first}");
+    assert_eq!(first["views"].as_array().unwrap().len(), 1);
+}

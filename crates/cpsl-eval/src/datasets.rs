@@ -1,0 +1,314 @@
+//! The real multi-view datasets in `../shared/data`, each loaded as a reference view with
+//! ground-truth z-depth and target views with their poses and cameras, in the conventions of
+//! `cpsl-core` (`X_ref = R X_view + t`, integer pixel centres). Geometry follows the data's
+//! README (checked there by warping one view onto another):
+//!
+//! * **HCI 4D light field** (`hci/backgammon`): 9x9 parallel cameras 512x512,
+//!   `f = focal_mm / sensor_mm * 512`, baseline `b`, focus distance `F`; view (row, col) is
+//!   translated by `((col-4) b, (row-4) b, 0)` with its principal point shifted by
+//!   `f b (col-4) / F` (and rows likewise), so the focus plane has zero disparity; depth
+//!   `Z = 1 / (d / (f b) + 1 / F)` from the centre view's disparity `d`. Targets: the 80
+//!   non-centre views.
+//! * **Middlebury 2005** (`middlebury2005/{Art,Books,Dolls}`, third size): view5 is 160 mm to
+//!   the right of view1, `f = 3740 / 3` px, depth `Z = 3740 * 0.16 / (value + dmin)` m from
+//!   `disp1.png` (0 = unknown); the observed shift is `value / 3` px, so view5's principal
+//!   point sits `dmin / 3` px to the right.
+//! * **Middlebury 2003** (`middlebury2003/{Teddy,Cones}`, quarter size): im6 is to the right
+//!   of im2, disparity `value / 4` px, no calibration: a camera with `f = 450` px and a
+//!   0.1-unit baseline reproduces the disparities (`Z = 450 * 0.1 * 4 / value`).
+
+use cpsl_core::{Camera, Limits, Pose, Vec3};
+use cpsl_io::IoError;
+use std::path::{Path, PathBuf};
+use thiserror::Error;
+
+/// Why a dataset could not be loaded.
+#[derive(Debug, Error)]
+pub enum DatasetError {
+    /// A file could not be read or decoded.
+    #[error(transparent)]
+    Io(#[from] IoError),
+    /// A file has unexpected content.
+    #[error("{path}: {reason}")]
+    Format {
+        /// File.
+        path: PathBuf,
+        /// What is wrong.
+        reason: String,
+    },
+    /// The name is not a known dataset.
+    #[error("unknown dataset '{0}': expected one of {names}", names = NAMES.join(", "))]
+    Unknown(String),
+}
+
+/// Names of the datasets this module loads.
+pub const NAMES: [&str; 6] = [
+    "hci/backgammon",
+    "middlebury2005/Art",
+    "middlebury2005/Books",
+    "middlebury2005/Dolls",
+    "middlebury2003/Teddy",
+    "middlebury2003/Cones",
+];
+
+/// A real view to reproduce.
+#[derive(Debug, Clone)]
+pub struct Target {
+    /// View name (file stem).
+    pub name: String,
+    /// Viewer pose relative to the reference camera.
+    pub pose: Pose,
+    /// The target view's camera (may differ from the reference in its principal point).
+    pub camera: Camera,
+    /// Ground-truth RGB.
+    pub rgb: Vec<u8>,
+}
+
+/// A reference view with ground-truth depth and target views.
+#[derive(Debug, Clone)]
+pub struct Dataset {
+    /// Dataset name (one of [`NAMES`]).
+    pub name: String,
+    /// Reference camera.
+    pub camera: Camera,
+    /// Reference RGB.
+    pub rgb: Vec<u8>,
+    /// Ground-truth z-depth of the reference view (NaN where unknown).
+    pub depth: Vec<f32>,
+    /// Views to reproduce.
+    pub targets: Vec<Target>,
+}
+
+fn rgb(path: &Path) -> Result<(u32, u32, Vec<u8>), DatasetError> {
+    let img = cpsl_io::images::read_rgb8(path, &Limits::default())?;
+    Ok((img.width, img.height, img.data))
+}
+
+/// 8-bit greyscale values of a disparity PNG.
+fn grey(path: &Path) -> Result<(u32, u32, Vec<u8>), DatasetError> {
+    let (w, h, data) = rgb(path)?;
+    Ok((w, h, data.chunks_exact(3).map(|p| p[0]).collect()))
+}
+
+fn format(path: &Path, reason: impl Into<String>) -> DatasetError {
+    DatasetError::Format {
+        path: path.into(),
+        reason: reason.into(),
+    }
+}
+
+/// Loads dataset `name` from the data root (the folder holding the datasets' folders).
+pub fn load(root: &Path, name: &str) -> Result<Dataset, DatasetError> {
+    match name.split_once('/') {
+        Some(("hci", scene)) if name == "hci/backgammon" => hci(root, scene, name),
+        Some(("middlebury2005", scene)) if NAMES.contains(&name) => {
+            middlebury2005(root, scene, name)
+        }
+        Some(("middlebury2003", scene)) if NAMES.contains(&name) => {
+            middlebury2003(root, scene, name)
+        }
+        _ => Err(DatasetError::Unknown(name.into())),
+    }
+}
+
+fn hci(root: &Path, scene: &str, name: &str) -> Result<Dataset, DatasetError> {
+    let dir = root.join("hci_lightfield_4d").join(scene);
+    let cfg_path = dir.join("parameters.cfg");
+    let cfg = std::fs::read_to_string(&cfg_path).map_err(|e| IoError::io(&cfg_path, e))?;
+    let get = |key: &str| -> Result<f64, DatasetError> {
+        cfg.lines()
+            .filter_map(|l| l.split_once('='))
+            .find(|(k, _)| k.trim() == key)
+            .and_then(|(_, v)| v.trim().parse::<f64>().ok())
+            .ok_or_else(|| format(&cfg_path, format!("missing or bad '{key}'")))
+    };
+    let (w, h, rgb_ref) = rgb(&dir.join("input_Cam040.png"))?;
+    let f = get("focal_length_mm")? / get("sensor_size_mm")? * w as f64;
+    let b = get("baseline_mm")? / 1000.0;
+    let focus = get("focus_distance_m")?;
+    let disp_path = dir.join("gt_disp_lowres.pfm");
+    let disp = cpsl_io::pfm::read_pfm(&disp_path, &Limits::default())?;
+    if (disp.width, disp.height) != (w, h) {
+        return Err(format(
+            &disp_path,
+            format!("{}x{}, the views are {w}x{h}", disp.width, disp.height),
+        ));
+    }
+    let depth = disp
+        .data
+        .iter()
+        .map(|&d| {
+            let z = 1.0 / (d as f64 / (f * b) + 1.0 / focus);
+            if z.is_finite() && z > 0.0 {
+                z as f32
+            } else {
+                f32::NAN
+            }
+        })
+        .collect();
+    let camera = Camera {
+        width: w,
+        height: h,
+        fx: f,
+        fy: f,
+        cx: (w as f64 - 1.0) / 2.0,
+        cy: (h as f64 - 1.0) / 2.0,
+    };
+    let mut targets = Vec::new();
+    for row in 0..9i32 {
+        for col in 0..9i32 {
+            if (row, col) == (4, 4) {
+                continue;
+            }
+            let file = format!("input_Cam{:03}.png", 9 * row + col);
+            let (tw, th, data) = rgb(&dir.join(&file))?;
+            if (tw, th) != (w, h) {
+                return Err(format(
+                    &dir.join(&file),
+                    format!("{tw}x{th}, the centre view is {w}x{h}"),
+                ));
+            }
+            let (dc, dr) = ((col - 4) as f64, (row - 4) as f64);
+            targets.push(Target {
+                name: file.trim_end_matches(".png").into(),
+                pose: Pose::from_translation(Vec3::new(dc * b, dr * b, 0.0)),
+                camera: Camera {
+                    cx: camera.cx + f * b * dc / focus,
+                    cy: camera.cy + f * b * dr / focus,
+                    ..camera
+                },
+                rgb: data,
+            });
+        }
+    }
+    Ok(Dataset {
+        name: name.into(),
+        camera,
+        rgb: rgb_ref,
+        depth,
+        targets,
+    })
+}
+
+/// A rectified pair: reference and target to its right, disparity `value / scale` px.
+#[allow(clippy::too_many_arguments)]
+fn stereo_pair(
+    name: &str,
+    reference: &Path,
+    target: &Path,
+    disparity: &Path,
+    f: f64,
+    baseline: f64,
+    disparity_scale: f64,
+    offset: f64,
+) -> Result<Dataset, DatasetError> {
+    let (w, h, rgb_ref) = rgb(reference)?;
+    let (tw, th, rgb_t) = rgb(target)?;
+    let (dw, dh, disp) = grey(disparity)?;
+    if (tw, th) != (w, h) || (dw, dh) != (w, h) {
+        return Err(format(
+            target,
+            format!("views and disparity differ in size ({w}x{h}, {tw}x{th}, {dw}x{dh})"),
+        ));
+    }
+    // Depth from the full disparity (value + offset) / scale px; the images are shifted by
+    // offset / scale px, which the target's principal point carries.
+    let depth = disp
+        .iter()
+        .map(|&v| {
+            if v == 0 {
+                f32::NAN
+            } else {
+                (f * baseline * disparity_scale / (v as f64 + offset)) as f32
+            }
+        })
+        .collect();
+    let camera = Camera {
+        width: w,
+        height: h,
+        fx: f,
+        fy: f,
+        cx: (w as f64 - 1.0) / 2.0,
+        cy: (h as f64 - 1.0) / 2.0,
+    };
+    let tname = target
+        .file_stem()
+        .unwrap_or_default()
+        .to_string_lossy()
+        .into_owned();
+    Ok(Dataset {
+        name: name.into(),
+        camera,
+        rgb: rgb_ref,
+        depth,
+        targets: vec![Target {
+            name: tname,
+            pose: Pose::from_translation(Vec3::new(baseline, 0.0, 0.0)),
+            camera: Camera {
+                cx: camera.cx + offset / disparity_scale,
+                ..camera
+            },
+            rgb: rgb_t,
+        }],
+    })
+}
+
+fn middlebury2005(root: &Path, scene: &str, name: &str) -> Result<Dataset, DatasetError> {
+    let dir = root
+        .join("middlebury_2005_2003_stereo/2005_ThirdSize")
+        .join(scene);
+    let dmin_path = dir.join("dmin.txt");
+    let dmin: f64 = std::fs::read_to_string(&dmin_path)
+        .map_err(|e| IoError::io(&dmin_path, e))?
+        .trim()
+        .parse()
+        .map_err(|e| format(&dmin_path, format!("not a number: {e}")))?;
+    stereo_pair(
+        name,
+        &dir.join("view1.png"),
+        &dir.join("view5.png"),
+        &dir.join("disp1.png"),
+        3740.0 / 3.0,
+        0.16,
+        3.0,
+        dmin,
+    )
+}
+
+fn middlebury2003(root: &Path, scene: &str, name: &str) -> Result<Dataset, DatasetError> {
+    let dir = root
+        .join("middlebury_2005_2003_stereo/2003_QuarterSize")
+        .join(scene);
+    stereo_pair(
+        name,
+        &dir.join("im2.png"),
+        &dir.join("im6.png"),
+        &dir.join("disp2.png"),
+        450.0,
+        0.1,
+        4.0,
+        0.0,
+    )
+}
+
+/// Scales `estimate` so that its median matches the median of `truth` (monocular depth has no
+/// absolute scale). Returns the scaled depth and the factor, or `None` when either has no
+/// valid value.
+pub fn align_median(estimate: &[f32], truth: &[f32]) -> Option<(Vec<f32>, f32)> {
+    let s = median(truth)? / median(estimate)?;
+    (s.is_finite() && s > 0.0).then(|| (estimate.iter().map(|z| z * s).collect(), s))
+}
+
+/// Median of the finite positive values.
+pub fn median(v: &[f32]) -> Option<f32> {
+    let mut d: Vec<f32> = v
+        .iter()
+        .copied()
+        .filter(|z| z.is_finite() && *z > 0.0)
+        .collect();
+    if d.is_empty() {
+        return None;
+    }
+    let m = d.len() / 2;
+    Some(*d.select_nth_unstable_by(m, f32::total_cmp).1)
+}

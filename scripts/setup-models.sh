@@ -14,6 +14,15 @@ tmp=$(mktemp -d); trap 'rm -rf "$tmp"' EXIT
 
 ok() { [ -f "$1" ] && echo "$2  $1" | sha256sum --check --status; }
 
+# The registry clients (pip for PyPI, npm for the npm registry), from Debian if missing.
+need=()
+python3 -m pip --version >/dev/null 2>&1 || need+=(python3-pip)
+command -v npm >/dev/null 2>&1 || need+=(npm)
+if [ ${#need[@]} -gt 0 ]; then
+  SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO="sudo"
+  $SUDO apt-get update -qq && $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -qq "${need[@]}" >/dev/null
+fi
+
 ort_lib="$cache/onnxruntime/libonnxruntime.so.1.31.1"
 ort_sha=fc44112fbe06d7d689c57e11d3862031f64711007e4ee020f8eed5185fd2c1d3
 if ! ok "$ort_lib" "$ort_sha"; then

@@ -6,24 +6,44 @@ use crate::synth::estimate_depth;
 use anyhow::{Context, Result};
 use clap::{Args, ValueEnum};
 use cpsl_core::{PremulImage, Progress, ProgressEvent};
-use cpsl_eval::datasets::{self, align_median, Dataset};
+use cpsl_eval::baselines::dibr;
+use cpsl_eval::datasets::{self, align_median, Dataset, Target};
 use cpsl_eval::metrics::{psnr_masked, ssim};
-use cpsl_layering::{slice_by_depth, SliceConfig};
+use cpsl_layering::{slice_by_depth, Bins, SliceConfig};
 use cpsl_render::PreparedLayers;
 use serde::Serialize;
 use std::path::PathBuf;
 
-/// Layering methods `cpsl eval` compares.
+/// Methods `cpsl eval` compares.
 #[derive(Clone, Copy, PartialEq, Eq, ValueEnum, Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Method {
-    /// Depth slicing into K layers.
+    /// Depth slicing into K layers (k-means on inverse depth).
     DepthSlice,
+    /// Uniform multiplane image: --mpi-planes planes uniform in inverse depth, hard alpha.
+    Mpi,
     /// One plane at the median depth: the reference image shifted as a whole (no parallax
     /// between objects), the "plain 2D" baseline.
     SinglePlane,
-    /// Both.
+    /// Depth-image-based rendering: per-pixel forward warp with a z-buffer, holes left empty.
+    Dibr,
+    /// DIBR with push-pull hole filling.
+    DibrFill,
+    /// All of the above.
     All,
+}
+
+impl Method {
+    fn name(self) -> &'static str {
+        match self {
+            Method::DepthSlice => "depth-slice",
+            Method::Mpi => "mpi",
+            Method::SinglePlane => "single-plane",
+            Method::Dibr => "dibr",
+            Method::DibrFill => "dibr-fill",
+            Method::All => "all",
+        }
+    }
 }
 
 /// Arguments of `cpsl eval`.
@@ -41,6 +61,9 @@ pub struct EvalArgs {
     /// Number of layers K for depth slicing.
     #[arg(long, default_value_t = 6, value_parser = clap::value_parser!(u32).range(1..=64))]
     pub layers: u32,
+    /// Number of planes of the uniform MPI baseline.
+    #[arg(long, default_value_t = 32, value_parser = clap::value_parser!(u32).range(1..=64))]
+    pub mpi_planes: u32,
     /// Depth source: `gt` (the dataset's ground truth) or a model (`fastdepth` or an .onnx
     /// path), median-scaled to the ground truth.
     #[arg(long, default_value = "gt")]
@@ -74,12 +97,13 @@ struct MethodReport {
     views: Vec<ViewScore>,
 }
 
+/// Scores every target view of `ds` synthesised by `synth` (RGB and covered pixels).
 fn score(
     ds: &Dataset,
-    prepared: &PreparedLayers,
+    synth: impl Fn(&Target) -> (Vec<u8>, Vec<bool>),
     progress: &dyn Progress,
-    stage: &str,
 ) -> Vec<ViewScore> {
+    let stage = "render views";
     progress.event(ProgressEvent::Start {
         stage,
         total: Some(ds.targets.len() as u64),
@@ -89,34 +113,34 @@ fn score(
         .iter()
         .enumerate()
         .map(|(i, t)| {
-            let mut img = PremulImage::new(t.camera.width, t.camera.height);
-            prepared.render_into(&t.pose, &t.camera, &mut img);
-            let covered: Vec<bool> = img
-                .as_bytes()
-                .chunks_exact(4)
-                .map(|p| p[3] == 255)
-                .collect();
-            let rgb = img.over_background([0, 0, 0]);
+            let (rgb, covered) = synth(t);
             progress.event(ProgressEvent::Advance {
                 stage,
                 done: i as u64 + 1,
             });
+            let (w, h) = (t.camera.width as usize, t.camera.height as usize);
             ViewScore {
                 view: t.name.clone(),
                 psnr: psnr_masked(&rgb, &t.rgb, &covered),
-                ssim: ssim(
-                    &rgb,
-                    &t.rgb,
-                    t.camera.width as usize,
-                    t.camera.height as usize,
-                    Some(&covered),
-                ),
+                ssim: ssim(&rgb, &t.rgb, w, h, Some(&covered)),
                 coverage: covered.iter().filter(|&&c| c).count() as f64 / covered.len() as f64,
             }
         })
         .collect();
     progress.event(ProgressEvent::Finish { stage });
     out
+}
+
+/// Renders a target view from prepared layers: RGB over black and the fully covered pixels.
+fn render_layers(prepared: &PreparedLayers, t: &Target) -> (Vec<u8>, Vec<bool>) {
+    let mut img = PremulImage::new(t.camera.width, t.camera.height);
+    prepared.render_into(&t.pose, &t.camera, &mut img);
+    let covered = img
+        .as_bytes()
+        .chunks_exact(4)
+        .map(|p| p[3] == 255)
+        .collect();
+    (img.over_background([0, 0, 0]), covered)
 }
 
 fn mean(v: impl Iterator<Item = f64>) -> f64 {
@@ -153,26 +177,62 @@ pub fn run(a: EvalArgs) -> Result<()> {
                 .with_context(|| format!("{source}: no valid depth to align"))?;
             (aligned, format!("{source}, median-scaled x{s:.3}"))
         };
-        let mut methods = Vec::new();
-        if a.method != Method::SinglePlane {
-            methods.push(("depth-slice", a.layers as usize));
-        }
-        if a.method != Method::DepthSlice {
-            methods.push(("single-plane", 1));
-        }
-        for (method, k) in methods {
-            let config = SliceConfig {
-                layers: k,
-                ..SliceConfig::default()
+        let methods: Vec<Method> = match a.method {
+            Method::All => vec![
+                Method::DepthSlice,
+                Method::Mpi,
+                Method::SinglePlane,
+                Method::Dibr,
+                Method::DibrFill,
+            ],
+            m => vec![m],
+        };
+        for method in methods {
+            let layered = |k: usize, bins: Bins| -> Result<(PreparedLayers, usize)> {
+                let config = SliceConfig {
+                    layers: k,
+                    bins,
+                    ..SliceConfig::default()
+                };
+                let set = slice_by_depth(&ds.rgb, &depth, ds.camera, &config)
+                    .with_context(|| format!("layering {name}"))?;
+                let n = set.len();
+                Ok((PreparedLayers::new(&set), n))
             };
-            let set = slice_by_depth(&ds.rgb, &depth, ds.camera, &config)
-                .with_context(|| format!("layering {name}"))?;
-            let prepared = PreparedLayers::new(&set);
-            let views = score(&ds, &prepared, &bars, "render views");
+            let (views, layers) = match method {
+                Method::DepthSlice | Method::Mpi | Method::SinglePlane => {
+                    let (k, bins) = match method {
+                        Method::DepthSlice => (a.layers as usize, Bins::KMeans),
+                        Method::Mpi => (a.mpi_planes as usize, Bins::UniformInverse),
+                        _ => (1, Bins::KMeans),
+                    };
+                    let (prepared, n) = layered(k, bins)?;
+                    (score(&ds, |t| render_layers(&prepared, t), &bars), n)
+                }
+                Method::Dibr | Method::DibrFill => {
+                    let fill = method == Method::DibrFill;
+                    let views = score(
+                        &ds,
+                        |t| {
+                            let s = dibr(&ds.rgb, &depth, &ds.camera, &t.pose, &t.camera, fill);
+                            // Filled DIBR covers every pixel it filled, i.e. all of them.
+                            let covered = if fill {
+                                vec![true; s.covered.len()]
+                            } else {
+                                s.covered
+                            };
+                            (s.rgb, covered)
+                        },
+                        &bars,
+                    );
+                    (views, 0)
+                }
+                Method::All => unreachable!("expanded above"),
+            };
             let r = MethodReport {
                 dataset: name.into(),
-                method: method.into(),
-                layers: set.len(),
+                method: method.name().into(),
+                layers,
                 depth: depth_name.clone(),
                 mean_psnr: mean(
                     views

@@ -9,4 +9,4 @@ pub mod fill;
 pub mod slice;
 
 pub use error::LayeringError;
-pub use slice::{slice_by_depth, SliceConfig};
+pub use slice::{slice_by_depth, Bins, SliceConfig};

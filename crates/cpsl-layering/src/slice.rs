@@ -17,6 +17,21 @@ pub struct SliceConfig {
     pub layers: usize,
     /// Lloyd iterations of the 1-D k-means.
     pub iterations: usize,
+    /// How slices are placed.
+    #[serde(default)]
+    pub bins: Bins,
+}
+
+/// How depth slices are placed.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Bins {
+    /// k-means on inverse depth; each layer at the median depth of its pixels.
+    #[default]
+    KMeans,
+    /// `K` equal intervals of inverse depth between the nearest and farthest pixel, each layer
+    /// at its interval's centre (a uniform multiplane image; empty intervals are dropped).
+    UniformInverse,
 }
 
 impl Default for SliceConfig {
@@ -24,6 +39,7 @@ impl Default for SliceConfig {
         Self {
             layers: 6,
             iterations: 30,
+            bins: Bins::KMeans,
         }
     }
 }
@@ -109,6 +125,27 @@ fn cluster_disparity(disp: &[f32], k: usize, iterations: usize) -> Vec<f64> {
     centres
 }
 
+/// Centres of `k` equal inverse-depth intervals that contain pixels, nearest first.
+fn uniform_centres(disp: &[f32], k: usize) -> Vec<f64> {
+    let (lo, hi) = disp
+        .iter()
+        .fold((f32::MAX, f32::MIN), |(a, b), &d| (a.min(d), b.max(d)));
+    let (lo, hi) = (lo as f64, hi as f64);
+    if hi - lo <= 0.0 {
+        return vec![lo];
+    }
+    let step = (hi - lo) / k as f64;
+    let mut used = vec![false; k];
+    for &d in disp {
+        used[(((d as f64 - lo) / step) as usize).min(k - 1)] = true;
+    }
+    (0..k)
+        .rev()
+        .filter(|&i| used[i])
+        .map(|i| lo + (i as f64 + 0.5) * step)
+        .collect()
+}
+
 fn nearest(centres: &[f64], v: f64) -> usize {
     let mut best = 0;
     for (j, c) in centres.iter().enumerate() {
@@ -156,7 +193,10 @@ pub fn slice_by_depth(
     if disp.is_empty() {
         return Err(LayeringError::NoValidDepth);
     }
-    let centres = cluster_disparity(&disp, config.layers, config.iterations);
+    let centres = match config.bins {
+        Bins::KMeans => cluster_disparity(&disp, config.layers, config.iterations),
+        Bins::UniformInverse => uniform_centres(&disp, config.layers),
+    };
     let k = centres.len();
     let labels: Vec<usize> = depth
         .iter()
@@ -180,7 +220,7 @@ pub fn slice_by_depth(
         .iter_mut()
         .zip(&centres)
         .map(|(v, &c)| {
-            if v.is_empty() {
+            if v.is_empty() || config.bins == Bins::UniformInverse {
                 1.0 / c
             } else {
                 let m = v.len() / 2;
@@ -265,6 +305,25 @@ mod tests {
         assert_eq!(
             rgb, view.rgb,
             "identity render reproduces the input exactly"
+        );
+    }
+
+    #[test]
+    fn uniform_bins_place_planes_at_interval_centres() {
+        let cam = Camera::from_fov(4, 1, 60.0);
+        // Inverse depths 1.0, 0.5, 0.25 and 0.25: two intervals of width 0.375 over [0.25, 1].
+        let depth = [1.0f32, 2.0, 4.0, 4.0];
+        let cfg = SliceConfig {
+            layers: 2,
+            bins: Bins::UniformInverse,
+            ..SliceConfig::default()
+        };
+        let set = slice_by_depth(&[0; 12], &depth, cam, &cfg).unwrap();
+        let d: Vec<f64> = set.layers().iter().map(|l| l.depth).collect();
+        assert_eq!(d.len(), 2);
+        assert!(
+            (d[0] - 1.0 / 0.8125).abs() < 1e-9 && (d[1] - 1.0 / 0.4375).abs() < 1e-9,
+            "{d:?}"
         );
     }
 

@@ -169,12 +169,14 @@ fn time_cpsl(set: &LayerSet, pose: &Pose, frames: u32) -> (Timing, PremulImage) 
     (timing(ms), out)
 }
 
+/// Times the OpenCV implementation on the same layers and pose. `ours` is cpsl's render and
+/// its timing, for the equality check and the speed ratio.
 fn time_opencv(
     python: &PathBuf,
     set: &LayerSet,
     pose: &Pose,
     frames: u32,
-    ours: &PremulImage,
+    ours: (&PremulImage, &Timing),
 ) -> Result<OpenCvResult> {
     let dir = tempfile_dir()?;
     let ls = dir.join("layers");
@@ -217,8 +219,8 @@ fn time_opencv(
     let t = timing(py.times_ms);
     let _ = std::fs::remove_dir_all(&dir);
     Ok(OpenCvResult {
-        ratio: 0.0,
-        psnr_vs_cpsl_db: cpsl_eval::metrics::psnr(&theirs.data, &ours.over_background([0, 0, 0])),
+        ratio: t.median_ms / ours.1.median_ms,
+        psnr_vs_cpsl_db: cpsl_eval::metrics::psnr(&theirs.data, &ours.0.over_background([0, 0, 0])),
         timing: t,
         version: py.version,
     })
@@ -258,11 +260,7 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
             set.layers().iter().map(|l| l.image.coverage()).sum::<f64>() / set.len() as f64;
         let (cpsl, img) = time_cpsl(&set, &a.pose, a.frames);
         let opencv = match &a.opencv {
-            Some(py) => {
-                let mut r = time_opencv(py, &set, &a.pose, a.frames, &img)?;
-                r.ratio = r.timing.median_ms / cpsl.median_ms;
-                Some(r)
-            }
+            Some(py) => Some(time_opencv(py, &set, &a.pose, a.frames, (&img, &cpsl))?),
             None => None,
         };
         cases.push(Case {

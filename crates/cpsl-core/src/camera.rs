@@ -28,7 +28,15 @@ impl Camera {
     /// A camera with square pixels, a centred principal point and the given horizontal field
     /// of view in degrees.
     pub fn from_fov(width: u32, height: u32, fov_x_deg: f64) -> Self {
-        let f = 0.5 * width as f64 / (0.5 * fov_x_deg.to_radians()).tan();
+        Self::centred(
+            width,
+            height,
+            0.5 * width as f64 / (0.5 * fov_x_deg.to_radians()).tan(),
+        )
+    }
+
+    /// A camera with square pixels of focal length `f` (pixels) and a centred principal point.
+    pub fn centred(width: u32, height: u32, f: f64) -> Self {
         Self {
             width,
             height,

@@ -146,14 +146,7 @@ fn hci(root: &Path, scene: &str, name: &str) -> Result<Dataset, DatasetError> {
             }
         })
         .collect();
-    let camera = Camera {
-        width: w,
-        height: h,
-        fx: f,
-        fy: f,
-        cx: (w as f64 - 1.0) / 2.0,
-        cy: (h as f64 - 1.0) / 2.0,
-    };
+    let camera = Camera::centred(w, h, f);
     let mut targets = Vec::new();
     for row in 0..9i32 {
         for col in 0..9i32 {
@@ -223,14 +216,7 @@ fn stereo_pair(
             }
         })
         .collect();
-    let camera = Camera {
-        width: w,
-        height: h,
-        fx: f,
-        fy: f,
-        cx: (w as f64 - 1.0) / 2.0,
-        cy: (h as f64 - 1.0) / 2.0,
-    };
+    let camera = Camera::centred(w, h, f);
     let tname = target
         .file_stem()
         .unwrap_or_default()

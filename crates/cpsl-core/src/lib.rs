@@ -13,6 +13,8 @@
 //! * Colours are stored premultiplied by alpha, 8 bits per channel.
 
 pub mod camera;
+pub mod depth;
+pub mod edc;
 pub mod error;
 pub mod homography;
 pub mod image;
@@ -24,6 +26,8 @@ pub mod pose;
 pub mod progress;
 
 pub use camera::Camera;
+pub use depth::{DepthSource, DepthSourceError, FixedDepth};
+pub use edc::{Edc, EdcError, EdcSample};
 pub use error::CoreError;
 pub use homography::Homography;
 pub use image::PremulImage;

@@ -22,6 +22,26 @@ pub enum LayeringError {
     /// The depth map has no finite positive value.
     #[error("depth map has no finite positive value")]
     NoValidDepth,
+    /// A depth value is negative, zero or infinite.
+    #[error("depth at pixel ({x}, {y}) is {value}: depth must be finite and > 0 (NaN marks a missing value)")]
+    BadDepth {
+        /// Column.
+        x: usize,
+        /// Row.
+        y: usize,
+        /// The value.
+        value: f32,
+    },
+    /// The depth map has missing (NaN) values and missing depth is not allowed.
+    #[error("depth map has {count} missing (NaN) values, the first at pixel ({x}, {y}); allow missing depth to fill them from their neighbours")]
+    MissingDepth {
+        /// Number of missing values.
+        count: usize,
+        /// Column of the first.
+        x: usize,
+        /// Row of the first.
+        y: usize,
+    },
     /// A configuration value is out of range.
     #[error("{field} must be in {range}, found {found}")]
     Config {

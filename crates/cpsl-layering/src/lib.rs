@@ -1,12 +1,23 @@
 //! Layer generation: one frame (colour + depth) to a depth-ordered [`cpsl_core::LayerSet`].
 //!
-//! * [`slice`]: depth slicing, clustering inverse depth into `K` slices (the baseline and the
-//!   demo's layering).
-//! * [`fill`]: push-pull hole filling, used to extend colour behind nearer layers.
+//! * [`pipeline`]: content-promoted layering (paper §3.2): [`cues`] (depth confidence,
+//!   saliency, instances) -> [`fuse`] (energy of eq. 3 by alpha-expansion over
+//!   [`maxflow`]) -> [`promote`] (instance promotion, background merging to `K`) ->
+//!   [`matte`] (soft alpha, extension behind nearer layers with [`fill`], Edge-Depth Cache).
+//! * [`slice`]: depth slicing, clustering inverse depth into `K` slices (a baseline).
 
+pub mod cues;
 pub mod error;
 pub mod fill;
+pub mod fuse;
+pub mod grid;
+pub mod matte;
+pub mod maxflow;
+pub mod pipeline;
+pub mod promote;
 pub mod slice;
 
+pub use cues::{CueConfig, Cues};
 pub use error::LayeringError;
+pub use pipeline::{layer_cues, layer_frame, Layered, LayeringConfig};
 pub use slice::{slice_by_depth, Bins, SliceConfig};

@@ -48,7 +48,7 @@ impl Default for SliceConfig {
 const BINS: usize = 4096;
 
 /// Disparity cluster centres, nearest (largest disparity) first, empty clusters removed.
-fn cluster_disparity(disp: &[f32], k: usize, iterations: usize) -> Vec<f64> {
+pub(crate) fn cluster_disparity(disp: &[f32], k: usize, iterations: usize) -> Vec<f64> {
     let (lo, hi) = disp
         .iter()
         .fold((f32::MAX, f32::MIN), |(a, b), &d| (a.min(d), b.max(d)));

@@ -1,0 +1,223 @@
+//! Small raster helpers on row-major `f32` maps: blurs, resampling, distance transforms.
+
+/// Box blur of radius `r` (window `2r + 1`, clamped at the borders), separable.
+pub fn box_blur(src: &[f32], w: usize, h: usize, r: usize) -> Vec<f32> {
+    if r == 0 {
+        return src.to_vec();
+    }
+    let pass = |src: &[f32], len: usize, lines: usize, at: &dyn Fn(usize, usize) -> usize| {
+        let mut out = vec![0f32; src.len()];
+        let mut prefix = vec![0f64; len + 1];
+        for line in 0..lines {
+            for i in 0..len {
+                prefix[i + 1] = prefix[i] + src[at(line, i)] as f64;
+            }
+            for i in 0..len {
+                let (a, b) = (i.saturating_sub(r), (i + r + 1).min(len));
+                out[at(line, i)] = ((prefix[b] - prefix[a]) / (b - a) as f64) as f32;
+            }
+        }
+        out
+    };
+    let horizontal = pass(src, w, h, &|y, x| y * w + x);
+    pass(&horizontal, h, w, &|x, y| y * w + x)
+}
+
+/// Area-averaging downscale of a `channels`-interleaved map to `nw x nh`.
+pub fn downsample(src: &[f32], w: usize, h: usize, channels: usize, nw: usize, nh: usize) -> Vec<f32> {
+    let mut out = vec![0f32; nw * nh * channels];
+    let (sx, sy) = (w as f64 / nw as f64, h as f64 / nh as f64);
+    for y in 0..nh {
+        let (y0, y1) = ((y as f64 * sy) as usize, (((y + 1) as f64 * sy).ceil() as usize).min(h));
+        for x in 0..nw {
+            let (x0, x1) =
+                ((x as f64 * sx) as usize, (((x + 1) as f64 * sx).ceil() as usize).min(w));
+            let o = &mut out[(y * nw + x) * channels..(y * nw + x + 1) * channels];
+            for yy in y0..y1 {
+                for xx in x0..x1 {
+                    for (c, v) in o.iter_mut().enumerate() {
+                        *v += src[(yy * w + xx) * channels + c];
+                    }
+                }
+            }
+            let n = ((y1 - y0) * (x1 - x0)) as f32;
+            o.iter_mut().for_each(|v| *v /= n);
+        }
+    }
+    out
+}
+
+/// Maps a pixel centre of a `to`-sized grid into a `from`-sized grid (pixel-centre aligned).
+pub fn source_coord(i: usize, to: usize, from: usize) -> f32 {
+    ((i as f32 + 0.5) * from as f32 / to as f32 - 0.5).clamp(0.0, (from - 1) as f32)
+}
+
+/// Bilinear resize of a single-channel map.
+pub fn resize(src: &[f32], w: usize, h: usize, nw: usize, nh: usize) -> Vec<f32> {
+    let mut out = vec![0f32; nw * nh];
+    for y in 0..nh {
+        let sy = source_coord(y, nh, h);
+        let (y0, fy) = (sy.floor() as usize, sy.fract());
+        let y1 = (y0 + 1).min(h - 1);
+        for x in 0..nw {
+            let sx = source_coord(x, nw, w);
+            let (x0, fx) = (sx.floor() as usize, sx.fract());
+            let x1 = (x0 + 1).min(w - 1);
+            let s = |yy: usize, xx: usize| src[yy * w + xx];
+            out[y * nw + x] = (s(y0, x0) * (1.0 - fx) + s(y0, x1) * fx) * (1.0 - fy)
+                + (s(y1, x0) * (1.0 - fx) + s(y1, x1) * fx) * fy;
+        }
+    }
+    out
+}
+
+/// Euclidean distance from every pixel to the nearest pixel where `inside` is true (0 on
+/// those pixels, infinite when none is), by the exact separable transform of Felzenszwalb
+/// and Huttenlocher.
+pub fn distance(inside: &[bool], w: usize, h: usize) -> Vec<f32> {
+    const INF: f32 = 1e20;
+    let mut g: Vec<f32> = inside.iter().map(|&b| if b { 0.0 } else { INF }).collect();
+    let mut f = vec![0f32; w.max(h)];
+    let mut d = vec![0f32; w.max(h)];
+    let mut v = vec![0usize; w.max(h)];
+    let mut z = vec![0f32; w.max(h) + 1];
+    let mut line = |len: usize, get: &mut dyn FnMut(usize) -> f32, f: &mut [f32], d: &mut [f32]| {
+        for (i, fi) in f.iter_mut().enumerate().take(len) {
+            *fi = get(i);
+        }
+        let mut k = 0;
+        v[0] = 0;
+        z[0] = f32::NEG_INFINITY;
+        z[1] = f32::INFINITY;
+        for q in 1..len {
+            loop {
+                let p = v[k];
+                let s = ((f[q] + (q * q) as f32) - (f[p] + (p * p) as f32)) / (2 * q - 2 * p) as f32;
+                if s <= z[k] && k > 0 {
+                    k -= 1;
+                    continue;
+                }
+                if s <= z[k] {
+                    // k == 0: replace the first parabola.
+                    v[0] = q;
+                    z[0] = f32::NEG_INFINITY;
+                    z[1] = f32::INFINITY;
+                } else {
+                    k += 1;
+                    v[k] = q;
+                    z[k] = s;
+                    z[k + 1] = f32::INFINITY;
+                }
+                break;
+            }
+        }
+        k = 0;
+        for (q, dq) in d.iter_mut().enumerate().take(len) {
+            while z[k + 1] < q as f32 {
+                k += 1;
+            }
+            let p = v[k];
+            *dq = (q as f32 - p as f32).powi(2) + f[p];
+        }
+    };
+    for x in 0..w {
+        line(h, &mut |y| g[y * w + x], &mut f, &mut d);
+        for y in 0..h {
+            g[y * w + x] = d[y];
+        }
+    }
+    for y in 0..h {
+        line(w, &mut |x| g[y * w + x], &mut f, &mut d);
+        for x in 0..w {
+            g[y * w + x] = d[x];
+        }
+    }
+    g.iter().map(|&s| if s >= INF * 0.5 { f32::INFINITY } else { s.sqrt() }).collect()
+}
+
+/// Labels 4-connected components of equal `key` where `joinable` allows; returns the
+/// component id of every pixel and the number of components.
+pub fn components(w: usize, h: usize, joinable: impl Fn(usize, usize) -> bool) -> (Vec<u32>, usize) {
+    let n = w * h;
+    let mut parent: Vec<u32> = (0..n as u32).collect();
+    fn find(parent: &mut [u32], mut i: u32) -> u32 {
+        while parent[i as usize] != i {
+            parent[i as usize] = parent[parent[i as usize] as usize];
+            i = parent[i as usize];
+        }
+        i
+    }
+    for y in 0..h {
+        for x in 0..w {
+            let p = y * w + x;
+            for q in [(x + 1 < w).then(|| p + 1), (y + 1 < h).then(|| p + w)]
+                .into_iter()
+                .flatten()
+            {
+                if joinable(p, q) {
+                    let (a, b) = (find(&mut parent, p as u32), find(&mut parent, q as u32));
+                    if a != b {
+                        parent[a.max(b) as usize] = a.min(b);
+                    }
+                }
+            }
+        }
+    }
+    let mut id = vec![u32::MAX; n];
+    let mut ids = vec![0u32; n];
+    let mut count = 0;
+    for p in 0..n {
+        let r = find(&mut parent, p as u32) as usize;
+        if id[r] == u32::MAX {
+            id[r] = count as u32;
+            count += 1;
+        }
+        ids[p] = id[r];
+    }
+    (ids, count)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn distance_matches_brute_force() {
+        let (w, h) = (13, 9);
+        let inside: Vec<bool> = (0..w * h).map(|i| (i * 7919) % 17 == 3).collect();
+        let d = distance(&inside, w, h);
+        for y in 0..h {
+            for x in 0..w {
+                let mut best = f32::INFINITY;
+                for yy in 0..h {
+                    for xx in 0..w {
+                        if inside[yy * w + xx] {
+                            let e = ((x as f32 - xx as f32).powi(2) + (y as f32 - yy as f32).powi(2)).sqrt();
+                            best = best.min(e);
+                        }
+                    }
+                }
+                assert!((d[y * w + x] - best).abs() < 1e-4, "({x},{y}) {} vs {best}", d[y * w + x]);
+            }
+        }
+        assert!(distance(&[false; 6], 3, 2).iter().all(|v| v.is_infinite()));
+    }
+
+    #[test]
+    fn blur_resample_and_components() {
+        let m = vec![1f32, 2.0, 3.0, 4.0, 5.0, 6.0];
+        let b = box_blur(&m, 3, 2, 1);
+        assert!((b[0] - 3.0).abs() < 1e-6 && (b[4] - 3.5).abs() < 1e-6, "{b:?}");
+        let d = downsample(&[1.0, 3.0, 5.0, 7.0], 2, 2, 1, 1, 1);
+        assert_eq!(d, vec![4.0]);
+        let up = resize(&[0.0, 1.0], 2, 1, 4, 1);
+        assert_eq!(up, vec![0.0, 0.25, 0.75, 1.0]);
+        let key = [0, 0, 1, 1, 0, 1];
+        let (ids, n) = components(3, 2, |p, q| key[p] == key[q]);
+        assert_eq!(n, 3);
+        assert_eq!(ids[0], ids[1]);
+        assert_eq!(ids[0], ids[4]);
+        assert_ne!(ids[0], ids[3]);
+        assert_eq!(ids[2], ids[5]);
+    }
+}

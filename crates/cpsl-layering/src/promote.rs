@@ -1,0 +1,250 @@
+//! Instance promotion and background merging: the fused label map becomes at most `K`
+//! depth-ordered layers. Salient regions that stand in front of their surroundings get
+//! dedicated layers; the rest is grouped by label and neighbouring groups (in depth order)
+//! are merged by depth and texture statistics until the target count is met.
+
+use crate::cues::{luma, Work};
+use crate::fuse::Fusion;
+use crate::grid::components;
+use serde::{Deserialize, Serialize};
+
+/// Configuration of promotion and merging.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct PromoteConfig {
+    /// Most promoted instances (at most `K - 1` in any case).
+    pub max_promoted: usize,
+    /// Smallest promoted region, as a fraction of the image.
+    pub min_area: f32,
+    /// Largest promoted region, as a fraction of the image.
+    pub max_area: f32,
+    /// Promotion score threshold (mean saliency x instance support x size).
+    pub threshold: f32,
+    /// How much nearer (normalised inverse depth) than its surrounding ring a promoted
+    /// region must be.
+    pub min_standout: f32,
+}
+
+impl Default for PromoteConfig {
+    fn default() -> Self {
+        Self {
+            max_promoted: 3,
+            min_area: 0.002,
+            max_area: 0.35,
+            threshold: 0.25,
+            min_standout: 0.03,
+        }
+    }
+}
+
+/// What a final layer is.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Kind {
+    /// A promoted region.
+    Promoted,
+    /// A (possibly merged) background group.
+    Background,
+}
+
+/// One final layer at working resolution.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Planned {
+    /// Kind.
+    pub kind: Kind,
+    /// Representative normalised inverse depth.
+    pub disparity: f32,
+    /// Mean saliency of its pixels.
+    pub saliency: f32,
+    /// Its promotion score (0 for background groups).
+    pub score: f32,
+}
+
+/// The plan: a final layer per working pixel, layers nearest first.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Plan {
+    /// Final layer index per working pixel.
+    pub owner: Vec<u8>,
+    /// The layers, nearest first.
+    pub layers: Vec<Planned>,
+}
+
+#[derive(Debug, Clone, Default)]
+struct Stats {
+    n: f64,
+    disp: f64,
+    sal: f64,
+    luma: f64,
+    luma2: f64,
+}
+
+impl Stats {
+    fn add(&mut self, o: &Stats) {
+        self.n += o.n;
+        self.disp += o.disp;
+        self.sal += o.sal;
+        self.luma += o.luma;
+        self.luma2 += o.luma2;
+    }
+    fn mean(&self, v: f64) -> f64 {
+        v / self.n.max(1.0)
+    }
+    fn luma_sd(&self) -> f64 {
+        (self.mean(self.luma2) - self.mean(self.luma).powi(2)).max(0.0).sqrt()
+    }
+}
+
+/// Promotes salient regions and merges the background to at most `k` layers.
+pub fn promote(work: &Work, fusion: &Fusion, k: usize, cfg: &PromoteConfig) -> Plan {
+    let (w, h) = (work.width, work.height);
+    let n = w * h;
+    let lab = &fusion.labels;
+    let y = luma(&work.rgb);
+    let px = |p: usize| Stats {
+        n: 1.0,
+        disp: work.disparity[p] as f64,
+        sal: work.saliency[p] as f64,
+        luma: y[p] as f64,
+        luma2: (y[p] * y[p]) as f64,
+    };
+
+    // Regions: connected components of equal label.
+    let (region, nr) = components(w, h, |p, q| lab[p] == lab[q]);
+    let mut rs = vec![Stats::default(); nr];
+    let mut ring = vec![Stats::default(); nr];
+    let mut inst = vec![0f64; nr];
+    let ids = &work.instances.ids;
+    for p in 0..n {
+        let r = region[p] as usize;
+        rs[r].add(&px(p));
+        let id = ids[p] as usize;
+        if id > 0 {
+            inst[r] += work.instances.confidence[id - 1] as f64;
+        }
+        // The ring: neighbours in other regions.
+        let (x, yy) = (p % w, p / w);
+        for q in [
+            (x > 0).then(|| p - 1),
+            (x + 1 < w).then(|| p + 1),
+            (yy > 0).then(|| p - w),
+            (yy + 1 < h).then(|| p + w),
+        ]
+        .into_iter()
+        .flatten()
+        {
+            if region[q] as usize != r {
+                ring[r].add(&px(q));
+            }
+        }
+    }
+
+    // Promotion candidates.
+    let mut cand: Vec<(usize, f32)> = Vec::new();
+    for r in 0..nr {
+        let area = (rs[r].n / n as f64) as f32;
+        if area < cfg.min_area || area > cfg.max_area || ring[r].n == 0.0 {
+            continue;
+        }
+        let standout = (rs[r].mean(rs[r].disp) - ring[r].mean(ring[r].disp)) as f32;
+        if standout < cfg.min_standout {
+            continue;
+        }
+        let support = (inst[r] / rs[r].n) as f32;
+        let size = (area / 0.02).min(1.0).sqrt();
+        let score = rs[r].mean(rs[r].sal) as f32 * (0.5 + 0.5 * support) * size;
+        if score >= cfg.threshold {
+            cand.push((r, score));
+        }
+    }
+    cand.sort_by(|a, b| b.1.total_cmp(&a.1));
+    cand.truncate(cfg.max_promoted.min(k.saturating_sub(1)));
+
+    // Background groups per label (pixels not promoted).
+    let nl = fusion.representatives.len();
+    let mut promoted_of = vec![usize::MAX; nr];
+    for (i, &(r, _)) in cand.iter().enumerate() {
+        promoted_of[r] = i;
+    }
+    let mut gs = vec![Stats::default(); nl];
+    for p in 0..n {
+        if promoted_of[region[p] as usize] == usize::MAX {
+            gs[lab[p] as usize].add(&px(p));
+        }
+    }
+    // Groups in depth order (labels are nearest first); each group is a run of labels.
+    let mut groups: Vec<(Vec<usize>, Stats)> = (0..nl)
+        .filter(|&l| gs[l].n > 0.0)
+        .map(|l| (vec![l], gs[l].clone()))
+        .collect();
+    let target = k.saturating_sub(cand.len()).max(1);
+    while groups.len() > target {
+        // Ward cost in inverse depth, scaled by texture dissimilarity.
+        let cost = |a: &Stats, b: &Stats| {
+            let dd = a.mean(a.disp) - b.mean(b.disp);
+            let tex = (a.mean(a.luma) - b.mean(b.luma)).abs() + (a.luma_sd() - b.luma_sd()).abs();
+            dd * dd * a.n * b.n / (a.n + b.n) * (1.0 + 2.0 * tex)
+        };
+        let i = (0..groups.len() - 1)
+            .min_by(|&i, &j| {
+                cost(&groups[i].1, &groups[i + 1].1).total_cmp(&cost(&groups[j].1, &groups[j + 1].1))
+            })
+            .unwrap_or(0);
+        let (labels, stats) = groups.remove(i + 1);
+        groups[i].0.extend(labels);
+        groups[i].1.add(&stats);
+    }
+    let mut group_of = vec![0usize; nl];
+    for (g, (labels, _)) in groups.iter().enumerate() {
+        for &l in labels {
+            group_of[l] = g;
+        }
+    }
+
+    // Final layers: promoted regions at their median inverse depth, groups at the weighted
+    // median of their pixels.
+    let median = |mut v: Vec<f32>| -> f32 {
+        if v.is_empty() {
+            return 0.0;
+        }
+        let m = v.len() / 2;
+        *v.select_nth_unstable_by(m, f32::total_cmp).1
+    };
+    let mut pix: Vec<Vec<f32>> = vec![Vec::new(); cand.len() + groups.len()];
+    let slot = |p: usize| {
+        let r = region[p] as usize;
+        if promoted_of[r] != usize::MAX {
+            promoted_of[r]
+        } else {
+            cand.len() + group_of[lab[p] as usize]
+        }
+    };
+    for p in 0..n {
+        pix[slot(p)].push(work.disparity[p]);
+    }
+    let mut planned: Vec<Planned> = Vec::new();
+    for (i, &(r, score)) in cand.iter().enumerate() {
+        planned.push(Planned {
+            kind: Kind::Promoted,
+            disparity: median(std::mem::take(&mut pix[i])),
+            saliency: rs[r].mean(rs[r].sal) as f32,
+            score,
+        });
+    }
+    for (g, (_, st)) in groups.iter().enumerate() {
+        planned.push(Planned {
+            kind: Kind::Background,
+            disparity: median(std::mem::take(&mut pix[cand.len() + g])),
+            saliency: st.mean(st.sal) as f32,
+            score: 0.0,
+        });
+    }
+    let mut order: Vec<usize> = (0..planned.len()).collect();
+    order.sort_by(|&a, &b| planned[b].disparity.total_cmp(&planned[a].disparity));
+    let mut rank = vec![0u8; planned.len()];
+    for (r, &i) in order.iter().enumerate() {
+        rank[i] = r as u8;
+    }
+    Plan {
+        owner: (0..n).map(|p| rank[slot(p)]).collect(),
+        layers: order.iter().map(|&i| planned[i].clone()).collect(),
+    }
+}

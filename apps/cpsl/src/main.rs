@@ -4,6 +4,7 @@
 mod bench;
 mod demo;
 mod eval;
+mod layer;
 mod progress;
 mod render;
 mod synth;
@@ -25,7 +26,10 @@ enum Command {
     Render(render::RenderArgs),
     /// Write a synthetic scene: input view, exact depth and ground-truth novel views.
     Synth(synth::SynthArgs),
-    /// Build a layer set from an image and its depth map by depth slicing.
+    /// Build content-promoted layers from one image (depth, saliency, instances, energy
+    /// fusion, promotion, matting, fill, edge-depth cache).
+    Layer(layer::LayerArgs),
+    /// Build a layer set from an image and its depth map by depth slicing (a baseline).
     Slice(synth::SliceArgs),
     /// The main job end to end on the built-in scene: synthesise, layer, render a sweep, score.
     Demo(demo::DemoArgs),
@@ -57,6 +61,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
     match cli.command {
         Command::Render(a) => render::run(a),
         Command::Synth(a) => synth::run_synth(a),
+        Command::Layer(a) => layer::run(a),
         Command::Slice(a) => synth::run_slice(a),
         Command::Demo(a) => demo::run(a),
         Command::Eval(a) => eval::run(a),

@@ -1,10 +1,11 @@
 //! `cpsl synth` (synthetic ground truth) and `cpsl slice` (depth slicing).
 
+use crate::layer::{open_depth_model, CameraArgs, DepthArgs};
 use crate::progress::Bars;
 use crate::util;
 use anyhow::{Context, Result};
 use clap::Args;
-use cpsl_core::{Camera, Limits, Pose, Progress, ProgressEvent};
+use cpsl_core::{Camera, DepthSource, Limits, Pose, Progress, ProgressEvent};
 use cpsl_io::images::write_png;
 use cpsl_io::pfm::{write_pfm, FloatImage};
 use cpsl_layering::{slice_by_depth, SliceConfig};
@@ -187,33 +188,16 @@ pub fn run_synth(a: SynthArgs) -> Result<()> {
 pub struct SliceArgs {
     /// Input image (PNG or JPEG).
     pub image: PathBuf,
-    /// Depth map of the same size: z-depth as PFM (scene units), 16-bit greyscale PNG or
-    /// NumPy .npy (float32/float64 in scene units, uint16 scaled by --depth-scale).
-    #[arg(long, conflicts_with = "depth_model")]
-    pub depth: Option<PathBuf>,
-    /// Estimate depth with a monocular depth model instead: `fastdepth` (the default when no
-    /// --depth is given; fetched by scripts/setup-models.sh) or any .onnx file described by
-    /// `<model>.json` (or --model-desc).
-    #[arg(long)]
-    pub depth_model: Option<String>,
-    /// Description of the --depth-model (input size, normalisation, output kind).
-    #[arg(long, requires = "depth_model")]
-    pub model_desc: Option<PathBuf>,
-    /// Scene units per integer step of 16-bit PNG / uint16 .npy depth (0.001: mm to m).
-    #[arg(long, default_value_t = 0.001)]
-    pub depth_scale: f32,
+    #[command(flatten)]
+    pub depth: DepthArgs,
     /// Output layer-set folder.
     #[arg(short, long)]
     pub output: PathBuf,
     /// Number of layers K.
     #[arg(long, default_value_t = 6, value_parser = clap::value_parser!(u32).range(1..=64))]
     pub layers: u32,
-    /// Camera intrinsics as JSON (as written by `cpsl synth`); defaults to --fov.
-    #[arg(long)]
-    pub camera: Option<PathBuf>,
-    /// Horizontal field of view in degrees when no --camera is given.
-    #[arg(long, default_value_t = 60.0)]
-    pub fov: f64,
+    #[command(flatten)]
+    pub camera: CameraArgs,
 }
 
 /// Slices an image + depth and writes the layer set with its resolved config (stage, depth
@@ -258,90 +242,27 @@ pub fn estimate_depth(
     width: u32,
     height: u32,
 ) -> Result<(Vec<f32>, String)> {
-    let path = match model {
-        "fastdepth" => cpsl_models::runtime::cache_dir().join("models/fastdepth_7.onnx"),
-        other => PathBuf::from(other),
-    };
-    let desc = desc.map(cpsl_models::DepthModelDesc::load).transpose()?;
-    let mut m = cpsl_models::OnnxDepth::open(&path, desc)
-        .with_context(|| format!("loading depth model {}", path.display()))?;
-    let e = m.estimate(rgb, width, height)?;
-    Ok((e.depth, format!("model {}", path.display())))
+    let mut m = open_depth_model(model, desc)?;
+    Ok((m.depth(rgb, width, height)?, m.name()))
 }
 
 /// Runs `cpsl slice`.
 pub fn run_slice(a: SliceArgs) -> Result<()> {
-    let limits = Limits::default();
-    let img = cpsl_io::images::read_rgb8(&a.image, &limits)
+    let img = cpsl_io::images::read_rgb8(&a.image, &Limits::default())
         .with_context(|| format!("reading image {}", a.image.display()))?;
-    let (depth, depth_source) = match (&a.depth, &a.depth_model) {
-        (Some(path), _) => {
-            anyhow::ensure!(
-                a.depth_scale.is_finite() && a.depth_scale > 0.0,
-                "--depth-scale must be finite and > 0, found {}",
-                a.depth_scale
-            );
-            let units = cpsl_io::depth::DepthUnits {
-                scale: a.depth_scale,
-            };
-            let d = cpsl_io::depth::read_depth(path, units, &limits)
-                .with_context(|| format!("reading depth {}", path.display()))?;
-            (d, path.display().to_string())
-        }
-        (None, model) => {
-            let model = model.as_deref().unwrap_or("fastdepth");
-            let (data, source) = estimate_depth(
-                model,
-                a.model_desc.as_deref(),
-                &img.data,
-                img.width,
-                img.height,
-            )?;
-            let d = FloatImage {
-                width: img.width,
-                height: img.height,
-                data,
-            };
-            (d, source)
-        }
-    };
-    anyhow::ensure!(
-        (depth.width, depth.height) == (img.width, img.height),
-        "{depth_source}: depth is {}x{} but the image is {}x{}",
-        depth.width,
-        depth.height,
-        img.width,
-        img.height
-    );
-    let cam = match &a.camera {
-        Some(p) => {
-            let c: Camera = serde_json::from_slice(
-                &std::fs::read(p).with_context(|| format!("reading {}", p.display()))?,
-            )
-            .with_context(|| format!("{}: not a camera JSON", p.display()))?;
-            anyhow::ensure!(
-                (c.width, c.height) == (img.width, img.height),
-                "{}: camera is {}x{} but the image is {}x{}",
-                p.display(),
-                c.width,
-                c.height,
-                img.width,
-                img.height
-            );
-            c
-        }
-        None => Camera::from_fov(img.width, img.height, a.fov),
-    };
+    let (mut source, _) = a.depth.source()?;
+    let depth = source.depth(&img.data, img.width, img.height)?;
+    let cam = a.camera.camera(img.width, img.height)?;
     let invalid = depth
-        .data
         .iter()
         .filter(|z| !(z.is_finite() && **z > 0.0))
         .count();
     if invalid > 0 {
         Bars::default().event(ProgressEvent::Warning {
             message: format!(
-                "{depth_source}: {invalid} of {} pixels have no valid depth (NaN, infinite, zero or negative); they go to the back layer",
-                depth.data.len()
+                "{}: {invalid} of {} pixels have no valid depth (NaN, infinite, zero or negative); they go to the back layer",
+                source.name(),
+                depth.len()
             ),
         });
     }
@@ -349,14 +270,7 @@ pub fn run_slice(a: SliceArgs) -> Result<()> {
         layers: a.layers as usize,
         ..SliceConfig::default()
     };
-    let set = slice_to(
-        &img.data,
-        &depth.data,
-        &depth_source,
-        cam,
-        &config,
-        &a.output,
-    )?;
+    let set = slice_to(&img.data, &depth, &source.name(), cam, &config, &a.output)?;
     println!(
         "wrote {} layers to {} (depths {})",
         set.len(),

@@ -41,7 +41,12 @@ impl DepthSource for FixedDepth {
         self.name.clone()
     }
 
-    fn depth(&mut self, _rgb: &[u8], width: u32, height: u32) -> Result<Vec<f32>, DepthSourceError> {
+    fn depth(
+        &mut self,
+        _rgb: &[u8],
+        width: u32,
+        height: u32,
+    ) -> Result<Vec<f32>, DepthSourceError> {
         if (width, height) != (self.width, self.height) {
             return Err(DepthSourceError {
                 source_name: self.name(),
@@ -70,6 +75,9 @@ mod tests {
         };
         assert_eq!(d.depth(&[0; 6], 2, 1).unwrap(), vec![1.0, 2.0]);
         let e = d.depth(&[0; 9], 3, 1).unwrap_err().to_string();
-        assert!(e.contains("gt") && e.contains("2x1") && e.contains("3x1"), "{e}");
+        assert!(
+            e.contains("gt") && e.contains("2x1") && e.contains("3x1"),
+            "{e}"
+        );
     }
 }

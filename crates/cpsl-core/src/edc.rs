@@ -130,7 +130,9 @@ impl Edc {
             )));
         }
         if &bytes[..8] != EDC_MAGIC {
-            return Err(EdcError::Header("not an edge-depth cache (bad magic)".into()));
+            return Err(EdcError::Header(
+                "not an edge-depth cache (bad magic)".into(),
+            ));
         }
         let u16_at = |o: usize| u16::from_le_bytes([bytes[o], bytes[o + 1]]);
         let u32_at = |o: usize| u32::from_le_bytes(bytes[o..o + 4].try_into().unwrap());
@@ -143,7 +145,9 @@ impl Edc {
         let (width, height, layers) = (u32_at(12), u32_at(16), u16_at(20));
         let step = f32::from_le_bytes(bytes[24..28].try_into().unwrap());
         if !(step.is_finite() && step > 0.0) {
-            return Err(EdcError::Header(format!("step must be finite and > 0, found {step}")));
+            return Err(EdcError::Header(format!(
+                "step must be finite and > 0, found {step}"
+            )));
         }
         let count = u32_at(28);
         let expected = count as usize * SAMPLE;
@@ -240,22 +244,33 @@ mod tests {
     fn rejects_corruption() {
         let b = edc().encode();
         assert!(matches!(Edc::decode(&b[..20]), Err(EdcError::Header(_))));
-        assert!(matches!(Edc::decode(&b[..b.len() - 1]), Err(EdcError::Length { .. })));
+        assert!(matches!(
+            Edc::decode(&b[..b.len() - 1]),
+            Err(EdcError::Length { .. })
+        ));
         let mut bad = b.clone();
         bad[0] = b'X';
         assert!(matches!(Edc::decode(&bad), Err(EdcError::Header(_))));
         let mut bad = b.clone();
         bad[32] = 10; // x = 10 in a 10 px wide image
-        assert!(matches!(Edc::decode(&bad), Err(EdcError::Sample { index: 0, .. })));
+        assert!(matches!(
+            Edc::decode(&bad),
+            Err(EdcError::Sample { index: 0, .. })
+        ));
         let mut bad = b.clone();
         bad[36] = 2; // front == back
-        assert!(matches!(Edc::decode(&bad), Err(EdcError::Sample { index: 0, .. })));
+        assert!(matches!(
+            Edc::decode(&bad),
+            Err(EdcError::Sample { index: 0, .. })
+        ));
         let mut bad = b;
         bad[8] = 9;
         assert!(matches!(Edc::decode(&bad), Err(EdcError::Header(_))));
         // Arbitrary bytes never panic.
         for n in 0..200u32 {
-            let junk: Vec<u8> = (0..n).map(|i| (i.wrapping_mul(2654435761) >> 13) as u8).collect();
+            let junk: Vec<u8> = (0..n)
+                .map(|i| (i.wrapping_mul(2654435761) >> 13) as u8)
+                .collect();
             let _ = Edc::decode(&junk);
         }
     }

@@ -24,6 +24,47 @@ impl Default for DepthUnits {
     }
 }
 
+/// A depth file as a [`cpsl_core::DepthSource`]: read when depth is asked for, checked
+/// against the frame's size.
+#[derive(Debug, Clone)]
+pub struct DepthFile {
+    /// The file.
+    pub path: std::path::PathBuf,
+    /// Units of integer formats.
+    pub units: DepthUnits,
+    /// Size limits.
+    pub limits: Limits,
+}
+
+impl cpsl_core::DepthSource for DepthFile {
+    fn name(&self) -> String {
+        format!("file {}", self.path.display())
+    }
+
+    fn depth(
+        &mut self,
+        _rgb: &[u8],
+        width: u32,
+        height: u32,
+    ) -> Result<Vec<f32>, cpsl_core::DepthSourceError> {
+        let fail = |cause: Box<dyn std::error::Error + Send + Sync>| cpsl_core::DepthSourceError {
+            source_name: self.name(),
+            cause,
+        };
+        let d = read_depth(&self.path, self.units, &self.limits).map_err(|e| fail(Box::new(e)))?;
+        if (d.width, d.height) != (width, height) {
+            return Err(fail(
+                format!(
+                    "depth is {}x{} but the image is {width}x{height}",
+                    d.width, d.height
+                )
+                .into(),
+            ));
+        }
+        Ok(d.data)
+    }
+}
+
 /// Reads a depth map (`.pfm`, `.png`, `.npy`).
 pub fn read_depth(path: &Path, units: DepthUnits, limits: &Limits) -> Result<FloatImage, IoError> {
     let ext = path

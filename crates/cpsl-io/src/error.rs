@@ -63,6 +63,14 @@ pub enum IoError {
         /// The broken invariant.
         cause: CoreError,
     },
+    /// An Edge-Depth Cache file is malformed or does not fit its layer set.
+    #[error("{path}: {cause}")]
+    Edc {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        cause: String,
+    },
     /// The write target exists and is not a layer set, so it is not replaced.
     #[error(
         "{path}: exists and is not a CPSL layer set (no manifest.json); refusing to replace it"

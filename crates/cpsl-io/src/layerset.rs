@@ -10,12 +10,54 @@ use crate::atomic::StagedDir;
 use crate::error::IoError;
 use crate::images;
 use cpsl_core::{
-    Layer, LayerEntry, LayerSet, Limits, Manifest, PremulImage, FORMAT_NAME, FORMAT_VERSION,
+    Edc, Layer, LayerEntry, LayerSet, Limits, Manifest, PremulImage, FORMAT_NAME, FORMAT_VERSION,
 };
 use std::path::Path;
 
 /// Name of the manifest inside a layer-set folder.
 pub const MANIFEST_FILE: &str = "manifest.json";
+
+/// Name of the Edge-Depth Cache side file inside a layer-set folder.
+pub const EDC_FILE: &str = "edc.bin";
+
+/// Reads the Edge-Depth Cache of a layer set, if the folder has one, and checks that it fits
+/// `set` (same size and layer count).
+pub fn read_edc(dir: &Path, set: &LayerSet, limits: &Limits) -> Result<Option<Edc>, IoError> {
+    let path = dir.join(EDC_FILE);
+    let meta = match std::fs::metadata(&path) {
+        Ok(m) => m,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
+        Err(e) => return Err(IoError::io(&path, e)),
+    };
+    if meta.len() > limits.max_file_bytes {
+        return Err(IoError::FileTooLarge {
+            path,
+            size: meta.len(),
+            max: limits.max_file_bytes,
+        });
+    }
+    let bytes = std::fs::read(&path).map_err(|e| IoError::io(&path, e))?;
+    let edc = Edc::decode(&bytes).map_err(|e| IoError::Edc {
+        path: path.clone(),
+        cause: e.to_string(),
+    })?;
+    let cam = set.camera();
+    if (edc.width, edc.height, edc.layers as usize) != (cam.width, cam.height, set.len()) {
+        return Err(IoError::Edc {
+            path,
+            cause: format!(
+                "cache is for {}x{} with {} layers, the layer set is {}x{} with {}",
+                edc.width,
+                edc.height,
+                edc.layers,
+                cam.width,
+                cam.height,
+                set.len()
+            ),
+        });
+    }
+    Ok(Some(edc))
+}
 
 /// Reads and validates a layer-set folder.
 pub fn read_layer_set(dir: &Path, limits: &Limits) -> Result<LayerSet, IoError> {
@@ -195,6 +237,39 @@ mod tests {
         // Rewriting over an existing layer set replaces it.
         write_layer_set(&p, &set(), &[]).unwrap();
         assert!(!p.join("extra.bin").exists());
+    }
+
+    #[test]
+    fn edge_depth_cache_roundtrips_and_must_fit() {
+        let d = tempfile::tempdir().unwrap();
+        let p = d.path().join("ls");
+        let edc = Edc {
+            width: 5,
+            height: 4,
+            layers: 2,
+            step: 0.01,
+            samples: vec![cpsl_core::EdcSample {
+                x: 1,
+                y: 1,
+                front: 0,
+                back: 1,
+                front_offset: 3,
+                back_offset: -4,
+            }],
+        };
+        write_layer_set(&p, &set(), &[]).unwrap();
+        assert_eq!(read_edc(&p, &set(), &Limits::default()).unwrap(), None);
+        write_layer_set(&p, &set(), &[(EDC_FILE, &edc.encode())]).unwrap();
+        assert_eq!(
+            read_edc(&p, &set(), &Limits::default()).unwrap(),
+            Some(edc.clone())
+        );
+        let other = Edc { layers: 3, ..edc };
+        write_layer_set(&p, &set(), &[(EDC_FILE, &other.encode())]).unwrap();
+        let e = read_edc(&p, &set(), &Limits::default())
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("3 layers") && e.contains("edc.bin"), "{e}");
     }
 
     #[test]

@@ -14,4 +14,4 @@ pub mod layerset;
 pub mod pfm;
 
 pub use error::IoError;
-pub use layerset::{read_layer_set, write_layer_set, MANIFEST_FILE};
+pub use layerset::{read_edc, read_layer_set, write_layer_set, EDC_FILE, MANIFEST_FILE};

@@ -38,6 +38,15 @@ impl Default for CueConfig {
     }
 }
 
+/// A prompt for a promptable segmentation model, in full-resolution pixels.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Prompt {
+    /// A point inside the object.
+    pub point: (f32, f32),
+    /// The object's bounding box `[x0, y0, x1, y1]`, when known.
+    pub bbox: Option<[f32; 4]>,
+}
+
 /// Where instance masks came from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -177,7 +186,10 @@ fn validate_depth(
             y: first / w,
         });
     }
-    let mut inv: Vec<f32> = depth.iter().map(|&z| if z.is_nan() { 0.0 } else { 1.0 / z }).collect();
+    let mut inv: Vec<f32> = depth
+        .iter()
+        .map(|&z| if z.is_nan() { 0.0 } else { 1.0 / z })
+        .collect();
     if missing > 0 {
         let wt: Vec<f32> = depth.iter().map(|z| (!z.is_nan()) as u8 as f32).collect();
         push_pull(&mut inv, &wt, w, h, 1);
@@ -250,7 +262,11 @@ fn saliency(rgb: &[f32], disparity: &[f32], w: usize, h: usize) -> Vec<f32> {
         .map(|(d, s)| (d - s).max(0.0))
         .collect();
     normalise(&mut contrast);
-    let mut s: Vec<f32> = mbd.iter().zip(&contrast).map(|(m, c)| 0.6 * m + 0.4 * c).collect();
+    let mut s: Vec<f32> = mbd
+        .iter()
+        .zip(&contrast)
+        .map(|(m, c)| 0.6 * m + 0.4 * c)
+        .collect();
     normalise(&mut s);
     s
 }
@@ -258,7 +274,13 @@ fn saliency(rgb: &[f32], disparity: &[f32], w: usize, h: usize) -> Vec<f32> {
 /// Connected components of depth-coherent regions as instances: 4-neighbours join when their
 /// normalised inverse depth differs by at most `component_step`; components that are too
 /// small, larger than half the image or spread over too much depth are dropped.
-fn depth_components(work_disp: &[f32], work_conf: &[f32], w: usize, h: usize, cfg: &CueConfig) -> Instances {
+fn depth_components(
+    work_disp: &[f32],
+    work_conf: &[f32],
+    w: usize,
+    h: usize,
+    cfg: &CueConfig,
+) -> Instances {
     let (comp, n) = components(w, h, |p, q| {
         (work_disp[p] - work_disp[q]).abs() <= cfg.component_step
     });
@@ -388,35 +410,59 @@ impl Cues {
 
     /// Saliency at full resolution (bilinear from the working resolution).
     pub fn saliency_full(&self) -> Vec<f32> {
-        resize(&self.work.saliency, self.work.width, self.work.height, self.width, self.height)
+        resize(
+            &self.work.saliency,
+            self.work.width,
+            self.work.height,
+            self.width,
+            self.height,
+        )
     }
 
-    /// Prompt points for a promptable segmentation model, in full-resolution pixels, most
-    /// salient first: the innermost point of every salient depth-coherent component (a region
-    /// bounded by depth discontinuities) and the strongest saliency peaks outside them.
-    pub fn prompts(&self, max: usize) -> Vec<(f32, f32)> {
+    /// Prompts for a promptable segmentation model, in full-resolution pixels, most salient
+    /// first: every salient depth-coherent component (a region bounded by depth
+    /// discontinuities) as its innermost point plus its bounding box, and the strongest
+    /// saliency peaks outside them as points.
+    pub fn prompts(&self, max: usize) -> Vec<Prompt> {
         let (w, h) = (self.work.width, self.work.height);
+        let (sx, sy) = (self.width as f32 / w as f32, self.height as f32 / h as f32);
+        let at = |p: usize| (((p % w) as f32 + 0.5) * sx, ((p / w) as f32 + 0.5) * sy);
         let sal = &self.work.saliency;
-        let mut found: Vec<(f32, usize)> = Vec::new();
+        let mut found: Vec<(f32, Prompt)> = Vec::new();
         let inst = &self.work.instances;
         for id in 1..=inst.confidence.len() as u32 {
-            let inside: Vec<bool> = inst.ids.iter().map(|&i| i != id).collect();
-            let d = distance(&inside, w, h);
-            let (mut best, mut at) = (0f32, 0);
+            let outside: Vec<bool> = inst.ids.iter().map(|&i| i != id).collect();
+            let d = distance(&outside, w, h);
+            let (mut best, mut inner) = (0f32, 0);
             let (mut s, mut a) = (0f32, 0usize);
+            let (mut x0, mut y0, mut x1, mut y1) = (w, h, 0, 0);
             for p in (0..w * h).filter(|&p| inst.ids[p] == id) {
                 s += sal[p];
                 a += 1;
                 if d[p] > best {
                     best = d[p];
-                    at = p;
+                    inner = p;
                 }
+                let (x, y) = (p % w, p / w);
+                (x0, y0, x1, y1) = (x0.min(x), y0.min(y), x1.max(x + 1), y1.max(y + 1));
             }
             if a > 0 && s / a as f32 >= 0.3 {
-                found.push((s / a as f32, at));
+                let bbox = [
+                    x0 as f32 * sx,
+                    y0 as f32 * sy,
+                    x1 as f32 * sx,
+                    y1 as f32 * sy,
+                ];
+                found.push((
+                    s / a as f32,
+                    Prompt {
+                        point: at(inner),
+                        bbox: Some(bbox),
+                    },
+                ));
             }
         }
-        // Saliency peaks: local maxima of blurred saliency above 0.5, away from found points.
+        // Saliency peaks: local maxima of blurred saliency above 0.5 outside the components.
         let blurred = box_blur(sal, w, h, 2);
         let r = (w.max(h) / 16).max(2);
         for y in 0..h {
@@ -430,23 +476,27 @@ impl Cues {
                     (x.saturating_sub(r)..(x + r + 1).min(w)).all(|xx| blurred[yy * w + xx] <= v)
                 });
                 if is_max {
-                    found.push((v, p));
+                    found.push((
+                        v,
+                        Prompt {
+                            point: at(p),
+                            bbox: None,
+                        },
+                    ));
                 }
             }
         }
         found.sort_by(|a, b| b.0.total_cmp(&a.0));
-        let (sx, sy) = (self.width as f32 / w as f32, self.height as f32 / h as f32);
-        found
-            .into_iter()
-            .take(max)
-            .map(|(_, p)| (((p % w) as f32 + 0.5) * sx, ((p / w) as f32 + 0.5) * sy))
-            .collect()
+        found.into_iter().take(max).map(|f| f.1).collect()
     }
 
-    /// Replaces the instances by full-resolution masks (e.g. from a segmentation model), most
-    /// confident first: each working pixel goes to the first mask covering at least half of it.
-    pub fn set_instance_masks(&mut self, masks: &[(Vec<bool>, f32)]) {
+    /// Adds full-resolution instance masks (e.g. from a segmentation model), most confident
+    /// first: each working pixel goes to the first mask covering at least half of it. A mask
+    /// spread over more depth than `max_instance_spread` (it leaked onto a surface) is
+    /// rejected. Depth components mostly left uncovered by the masks stay instances.
+    pub fn add_instance_masks(&mut self, masks: &[(Vec<bool>, f32)], cfg: &CueConfig) {
         let (w, h) = (self.work.width, self.work.height);
+        let disp = &self.work.disparity;
         let mut ids = vec![0u32; w * h];
         let mut confidence = Vec::new();
         let mut order: Vec<usize> = (0..masks.len()).collect();
@@ -458,16 +508,29 @@ impl Cues {
             }
             let m: Vec<f32> = mask.iter().map(|&b| b as u8 as f32).collect();
             let cover = downsample(&m, self.width, self.height, 1, w, h);
-            let id = confidence.len() as u32 + 1;
-            let mut any = false;
-            for (p, &c) in cover.iter().enumerate() {
-                if c >= 0.5 && ids[p] == 0 {
-                    ids[p] = id;
-                    any = true;
-                }
+            let mut px: Vec<usize> = (0..w * h)
+                .filter(|&p| cover[p] >= 0.5 && ids[p] == 0)
+                .collect();
+            if px.is_empty() {
+                continue;
             }
-            if any {
-                confidence.push(conf.clamp(0.0, 1.0));
+            let mut d: Vec<f32> = px.iter().map(|&p| disp[p]).collect();
+            d.sort_by(f32::total_cmp);
+            if d[d.len() * 9 / 10] - d[d.len() / 10] > cfg.max_instance_spread {
+                continue;
+            }
+            confidence.push(conf.clamp(0.0, 1.0));
+            let id = confidence.len() as u32;
+            px.drain(..).for_each(|p| ids[p] = id);
+        }
+        let old = &self.work.instances;
+        for (c, &conf) in old.confidence.iter().enumerate() {
+            let members: Vec<usize> = (0..w * h).filter(|&p| old.ids[p] == c as u32 + 1).collect();
+            let free: Vec<usize> = members.iter().copied().filter(|&p| ids[p] == 0).collect();
+            if !free.is_empty() && free.len() * 2 >= members.len() {
+                confidence.push(conf);
+                let id = confidence.len() as u32;
+                free.into_iter().for_each(|p| ids[p] = id);
             }
         }
         self.work.instances = Instances {

@@ -176,7 +176,11 @@ pub fn fuse(work: &Work, labels: usize, cfg: &FusionConfig) -> Fusion {
             .min_by(|&a, &b| (d - reps[a]).abs().total_cmp(&(d - reps[b]).abs()))
             .unwrap_or(0)
     };
-    let mut lab: Vec<u8> = work.disparity.iter().map(|&d| nearest(d, &reps) as u8).collect();
+    let mut lab: Vec<u8> = work
+        .disparity
+        .iter()
+        .map(|&d| nearest(d, &reps) as u8)
+        .collect();
     let n_inst = work.instances.confidence.len();
     let mut energies = Vec::new();
     for _ in 0..cfg.rounds.max(1) {
@@ -266,7 +270,13 @@ fn total_energy(prob: &Problem, lab: &[u8], reps: &[f32], inst_label: &[usize]) 
 
 /// One alpha-expansion move: every pixel keeps its label or switches to `alpha`, whichever
 /// set of switches minimises the energy (an exact binary graph cut, Potts being a metric).
-fn expand(prob: &Problem, lab: &[u8], alpha: usize, reps: &[f32], inst_label: &[usize]) -> (Vec<u8>, f64) {
+fn expand(
+    prob: &Problem,
+    lab: &[u8],
+    alpha: usize,
+    reps: &[f32],
+    inst_label: &[usize],
+) -> (Vec<u8>, f64) {
     let (w, n) = (prob.work.width, lab.len());
     let mut g = Graph::new(n, 2 * n);
     // Unary energies for x = 0 (keep) and x = 1 (switch), plus pairwise decompositions.
@@ -323,7 +333,9 @@ mod tests {
     fn work(w: usize, h: usize, seed: u64) -> Work {
         let mut s = seed;
         let mut rnd = move || {
-            s = s.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            s = s
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
             ((s >> 40) as f32) / (1u64 << 24) as f32
         };
         let n = w * h;
@@ -361,7 +373,9 @@ mod tests {
             let prob = problem(&wk);
             let reps = [0.8f32, 0.5, 0.1];
             let inst = [0usize, 2];
-            let lab: Vec<u8> = (0..12).map(|p| ((p * 7 + seed as usize) % 3) as u8).collect();
+            let lab: Vec<u8> = (0..12)
+                .map(|p| ((p * 7 + seed as usize) % 3) as u8)
+                .collect();
             for alpha in 0..3 {
                 let (_, e) = expand(&prob, &lab, alpha, &reps, &inst);
                 let mut best = f64::INFINITY;
@@ -371,7 +385,10 @@ mod tests {
                         .collect();
                     best = best.min(total_energy(&prob, &cand, &reps, &inst));
                 }
-                assert!((e - best).abs() < 1e-3, "seed {seed} alpha {alpha}: {e} vs {best}");
+                assert!(
+                    (e - best).abs() < 1e-3,
+                    "seed {seed} alpha {alpha}: {e} vs {best}"
+                );
             }
         }
     }
@@ -381,7 +398,10 @@ mod tests {
         let wk = work(24, 16, 3);
         let f = fuse(&wk, 4, &FusionConfig::default());
         assert!(f.representatives.windows(2).all(|r| r[0] > r[1]));
-        assert!(f.labels.iter().all(|&l| (l as usize) < f.representatives.len()));
+        assert!(f
+            .labels
+            .iter()
+            .all(|&l| (l as usize) < f.representatives.len()));
         assert!(f.energy.iter().all(|e| e.is_finite()));
     }
 }

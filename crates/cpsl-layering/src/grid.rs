@@ -24,14 +24,26 @@ pub fn box_blur(src: &[f32], w: usize, h: usize, r: usize) -> Vec<f32> {
 }
 
 /// Area-averaging downscale of a `channels`-interleaved map to `nw x nh`.
-pub fn downsample(src: &[f32], w: usize, h: usize, channels: usize, nw: usize, nh: usize) -> Vec<f32> {
+pub fn downsample(
+    src: &[f32],
+    w: usize,
+    h: usize,
+    channels: usize,
+    nw: usize,
+    nh: usize,
+) -> Vec<f32> {
     let mut out = vec![0f32; nw * nh * channels];
     let (sx, sy) = (w as f64 / nw as f64, h as f64 / nh as f64);
     for y in 0..nh {
-        let (y0, y1) = ((y as f64 * sy) as usize, (((y + 1) as f64 * sy).ceil() as usize).min(h));
+        let (y0, y1) = (
+            (y as f64 * sy) as usize,
+            (((y + 1) as f64 * sy).ceil() as usize).min(h),
+        );
         for x in 0..nw {
-            let (x0, x1) =
-                ((x as f64 * sx) as usize, (((x + 1) as f64 * sx).ceil() as usize).min(w));
+            let (x0, x1) = (
+                (x as f64 * sx) as usize,
+                (((x + 1) as f64 * sx).ceil() as usize).min(w),
+            );
             let o = &mut out[(y * nw + x) * channels..(y * nw + x + 1) * channels];
             for yy in y0..y1 {
                 for xx in x0..x1 {
@@ -92,7 +104,8 @@ pub fn distance(inside: &[bool], w: usize, h: usize) -> Vec<f32> {
         for q in 1..len {
             loop {
                 let p = v[k];
-                let s = ((f[q] + (q * q) as f32) - (f[p] + (p * p) as f32)) / (2 * q - 2 * p) as f32;
+                let s =
+                    ((f[q] + (q * q) as f32) - (f[p] + (p * p) as f32)) / (2 * q - 2 * p) as f32;
                 if s <= z[k] && k > 0 {
                     k -= 1;
                     continue;
@@ -132,12 +145,24 @@ pub fn distance(inside: &[bool], w: usize, h: usize) -> Vec<f32> {
             g[y * w + x] = d[x];
         }
     }
-    g.iter().map(|&s| if s >= INF * 0.5 { f32::INFINITY } else { s.sqrt() }).collect()
+    g.iter()
+        .map(|&s| {
+            if s >= INF * 0.5 {
+                f32::INFINITY
+            } else {
+                s.sqrt()
+            }
+        })
+        .collect()
 }
 
 /// Labels 4-connected components of equal `key` where `joinable` allows; returns the
 /// component id of every pixel and the number of components.
-pub fn components(w: usize, h: usize, joinable: impl Fn(usize, usize) -> bool) -> (Vec<u32>, usize) {
+pub fn components(
+    w: usize,
+    h: usize,
+    joinable: impl Fn(usize, usize) -> bool,
+) -> (Vec<u32>, usize) {
     let n = w * h;
     let mut parent: Vec<u32> = (0..n as u32).collect();
     fn find(parent: &mut [u32], mut i: u32) -> u32 {
@@ -192,12 +217,18 @@ mod tests {
                 for yy in 0..h {
                     for xx in 0..w {
                         if inside[yy * w + xx] {
-                            let e = ((x as f32 - xx as f32).powi(2) + (y as f32 - yy as f32).powi(2)).sqrt();
+                            let e = ((x as f32 - xx as f32).powi(2)
+                                + (y as f32 - yy as f32).powi(2))
+                            .sqrt();
                             best = best.min(e);
                         }
                     }
                 }
-                assert!((d[y * w + x] - best).abs() < 1e-4, "({x},{y}) {} vs {best}", d[y * w + x]);
+                assert!(
+                    (d[y * w + x] - best).abs() < 1e-4,
+                    "({x},{y}) {} vs {best}",
+                    d[y * w + x]
+                );
             }
         }
         assert!(distance(&[false; 6], 3, 2).iter().all(|v| v.is_infinite()));
@@ -207,7 +238,10 @@ mod tests {
     fn blur_resample_and_components() {
         let m = vec![1f32, 2.0, 3.0, 4.0, 5.0, 6.0];
         let b = box_blur(&m, 3, 2, 1);
-        assert!((b[0] - 3.0).abs() < 1e-6 && (b[4] - 3.5).abs() < 1e-6, "{b:?}");
+        assert!(
+            (b[0] - 3.0).abs() < 1e-6 && (b[4] - 3.5).abs() < 1e-6,
+            "{b:?}"
+        );
         let d = downsample(&[1.0, 3.0, 5.0, 7.0], 2, 2, 1, 1, 1);
         assert_eq!(d, vec![4.0]);
         let up = resize(&[0.0, 1.0], 2, 1, 4, 1);

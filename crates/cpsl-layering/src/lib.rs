@@ -17,7 +17,7 @@ pub mod pipeline;
 pub mod promote;
 pub mod slice;
 
-pub use cues::{CueConfig, Cues};
+pub use cues::{CueConfig, Cues, Prompt};
 pub use error::LayeringError;
 pub use pipeline::{layer_cues, layer_frame, Layered, LayeringConfig};
 pub use slice::{slice_by_depth, Bins, SliceConfig};

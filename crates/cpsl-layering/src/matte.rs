@@ -21,7 +21,9 @@ use crate::error::LayeringError;
 use crate::fill::push_pull;
 use crate::grid::{distance, source_coord};
 use crate::promote::{Kind, Plan};
-use cpsl_core::{Camera, Edc, EdcSample, Layer, LayerMeta, LayerRole, LayerSet, Limits, PremulImage};
+use cpsl_core::{
+    Camera, Edc, EdcSample, Layer, LayerMeta, LayerRole, LayerSet, Limits, PremulImage,
+};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::collections::HashSet;
@@ -69,7 +71,11 @@ impl Default for MatteConfig {
 pub fn upsample_owner(
     cues: &Cues,
     rgb: &[u8],
-    plan: &Plan, sigma: f32, truncation: f32, cfg: &MatteConfig) -> Vec<u8> {
+    plan: &Plan,
+    sigma: f32,
+    truncation: f32,
+    cfg: &MatteConfig,
+) -> Vec<u8> {
     let (w, h) = (cues.width, cues.height);
     let (ww, wh) = (cues.work.width, cues.work.height);
     let wrgb = &cues.work.rgb;
@@ -166,7 +172,11 @@ pub fn build_layers(
         .map(|i| {
             let back = i + 1 == k;
             let own: Vec<bool> = owner.iter().map(|&o| o as usize == i).collect();
-            let dist = if back { Vec::new() } else { distance(&own, w, h) };
+            let dist = if back {
+                Vec::new()
+            } else {
+                distance(&own, w, h)
+            };
             let alpha: Vec<f32> = (0..w * h)
                 .map(|p| {
                     let o = owner[p] as usize;

@@ -200,7 +200,13 @@ impl Graph {
         self.flow += b as f64;
     }
 
-    fn adopt(&mut self, p: usize, time: u32, queue: &mut VecDeque<u32>, orphans: &mut VecDeque<u32>) {
+    fn adopt(
+        &mut self,
+        p: usize,
+        time: u32,
+        queue: &mut VecDeque<u32>,
+        orphans: &mut VecDeque<u32>,
+    ) {
         let source = self.tree[p] == SOURCE;
         let mut best = NONE;
         let mut dmin = u32::MAX;
@@ -299,7 +305,10 @@ mod tests {
     struct Lcg(u64);
     impl Lcg {
         fn next(&mut self) -> f32 {
-            self.0 = self.0.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            self.0 = self
+                .0
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
             ((self.0 >> 40) as f32) / (1u64 << 24) as f32
         }
     }
@@ -313,7 +322,10 @@ mod tests {
             let mut tw = vec![(0f32, 0f32); n];
             for (p, t) in tw.iter_mut().enumerate() {
                 // Integer-valued costs keep float sums exact; some negative.
-                *t = ((r.next() * 10.0).floor() - 3.0, (r.next() * 10.0).floor() - 3.0);
+                *t = (
+                    (r.next() * 10.0).floor() - 3.0,
+                    (r.next() * 10.0).floor() - 3.0,
+                );
                 g.add_tweights(p, t.0, t.1);
             }
             let mut edges = Vec::new();
@@ -347,9 +359,15 @@ mod tests {
             let best = (0..1u32 << n)
                 .map(|m| cost(&|p| m >> p & 1 == 1))
                 .fold(f64::INFINITY, f64::min);
-            assert!((flow - best).abs() < 1e-6, "case {case}: flow {flow}, min cut {best}");
+            assert!(
+                (flow - best).abs() < 1e-6,
+                "case {case}: flow {flow}, min cut {best}"
+            );
             let found = cost(&|p| g.sink_side(p));
-            assert!((found - best).abs() < 1e-6, "case {case}: cut {found}, min {best}");
+            assert!(
+                (found - best).abs() < 1e-6,
+                "case {case}: cut {found}, min {best}"
+            );
         }
     }
 }

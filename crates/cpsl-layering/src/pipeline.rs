@@ -119,7 +119,12 @@ pub struct Layered {
     pub timings: Vec<(&'static str, f64)>,
 }
 
-fn timed<T>(timings: &mut Vec<(&'static str, f64)>, progress: &dyn Progress, stage: &'static str, f: impl FnOnce() -> T) -> T {
+fn timed<T>(
+    timings: &mut Vec<(&'static str, f64)>,
+    progress: &dyn Progress,
+    stage: &'static str,
+    f: impl FnOnce() -> T,
+) -> T {
     progress.event(ProgressEvent::Start { stage, total: None });
     let t = Instant::now();
     let r = f();
@@ -156,7 +161,14 @@ pub fn layer_cues(
         promote(&cues.work, &fusion, cfg.layers, &cfg.promote)
     });
     let owner = timed(&mut timings, progress, "upsampling", || {
-        upsample_owner(cues, rgb, &plan, cfg.fusion.sigma, cfg.fusion.truncation, &cfg.matte)
+        upsample_owner(
+            cues,
+            rgb,
+            &plan,
+            cfg.fusion.sigma,
+            cfg.fusion.truncation,
+            &cfg.matte,
+        )
     });
     let set = timed(&mut timings, progress, "matting and fill", || {
         build_layers(cues, rgb, &owner, &plan, camera, &cfg.matte)
@@ -185,7 +197,13 @@ pub fn layer_frame(
 ) -> Result<(Cues, Layered), LayeringError> {
     cfg.validate()?;
     let t = Instant::now();
-    let cues = Cues::compute(rgb, depth, camera.width as usize, camera.height as usize, &cfg.cues)?;
+    let cues = Cues::compute(
+        rgb,
+        depth,
+        camera.width as usize,
+        camera.height as usize,
+        &cfg.cues,
+    )?;
     let cue_ms = t.elapsed().as_secs_f64() * 1e3;
     let mut layered = layer_cues(&cues, rgb, camera, cfg, progress)?;
     layered.timings.insert(0, ("cues", cue_ms));

@@ -89,7 +89,9 @@ impl Stats {
         v / self.n.max(1.0)
     }
     fn luma_sd(&self) -> f64 {
-        (self.mean(self.luma2) - self.mean(self.luma).powi(2)).max(0.0).sqrt()
+        (self.mean(self.luma2) - self.mean(self.luma).powi(2))
+            .max(0.0)
+            .sqrt()
     }
 }
 
@@ -107,12 +109,13 @@ pub fn promote(work: &Work, fusion: &Fusion, k: usize, cfg: &PromoteConfig) -> P
         luma2: (y[p] * y[p]) as f64,
     };
 
-    // Regions: connected components of equal label.
-    let (region, nr) = components(w, h, |p, q| lab[p] == lab[q]);
+    // Regions: connected components of equal label and instance (instance boundaries split
+    // regions even where depth is continuous, e.g. a pole standing on the floor).
+    let ids = &work.instances.ids;
+    let (region, nr) = components(w, h, |p, q| lab[p] == lab[q] && ids[p] == ids[q]);
     let mut rs = vec![Stats::default(); nr];
     let mut ring = vec![Stats::default(); nr];
     let mut inst = vec![0f64; nr];
-    let ids = &work.instances.ids;
     for p in 0..n {
         let r = region[p] as usize;
         rs[r].add(&px(p));
@@ -185,7 +188,8 @@ pub fn promote(work: &Work, fusion: &Fusion, k: usize, cfg: &PromoteConfig) -> P
         };
         let i = (0..groups.len() - 1)
             .min_by(|&i, &j| {
-                cost(&groups[i].1, &groups[i + 1].1).total_cmp(&cost(&groups[j].1, &groups[j + 1].1))
+                cost(&groups[i].1, &groups[i + 1].1)
+                    .total_cmp(&cost(&groups[j].1, &groups[j + 1].1))
             })
             .unwrap_or(0);
         let (labels, stats) = groups.remove(i + 1);

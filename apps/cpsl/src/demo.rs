@@ -33,7 +33,7 @@ pub struct DemoArgs {
     #[arg(long)]
     pub config: Option<PathBuf>,
     /// Instance masks for layering.
-    #[arg(long, value_enum, default_value_t = InstanceMode::Auto)]
+    #[arg(long, value_enum, default_value_t = InstanceMode::Components)]
     pub instances: InstanceMode,
     /// Layer from a monocular depth model (`fastdepth` or an .onnx path) instead of the
     /// ground-truth depth. Monocular depth has no absolute scale, so it is scaled to match

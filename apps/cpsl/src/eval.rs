@@ -1,15 +1,16 @@
 //! `cpsl eval`: layer real reference views, render their target views, score against the real
 //! images.
 
+use crate::layer::{layer_image, InstanceMode};
 use crate::progress::Bars;
 use crate::synth::estimate_depth;
 use anyhow::{Context, Result};
 use clap::{Args, ValueEnum};
-use cpsl_core::{PremulImage, Progress, ProgressEvent};
+use cpsl_core::{FixedDepth, PremulImage, Progress, ProgressEvent};
 use cpsl_eval::baselines::dibr;
 use cpsl_eval::datasets::{self, align_median, Dataset, Target};
 use cpsl_eval::metrics::{psnr_masked, ssim};
-use cpsl_layering::{slice_by_depth, Bins, SliceConfig};
+use cpsl_layering::{slice_by_depth, Bins, LayeringConfig, SliceConfig};
 use cpsl_render::PreparedLayers;
 use serde::Serialize;
 use std::path::PathBuf;
@@ -18,6 +19,10 @@ use std::path::PathBuf;
 #[derive(Clone, Copy, PartialEq, Eq, ValueEnum, Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Method {
+    /// Content-promoted scene layers (`cpsl layer`): K layers.
+    Cpsl,
+    /// CPSL without the saliency and instance terms and without promotion.
+    CpslDepthOnly,
     /// Depth slicing into K layers (k-means on inverse depth).
     DepthSlice,
     /// Uniform multiplane image: --mpi-planes planes uniform in inverse depth, hard alpha.
@@ -36,6 +41,8 @@ pub enum Method {
 impl Method {
     fn name(self) -> &'static str {
         match self {
+            Method::Cpsl => "cpsl",
+            Method::CpslDepthOnly => "cpsl-depth-only",
             Method::DepthSlice => "depth-slice",
             Method::Mpi => "mpi",
             Method::SinglePlane => "single-plane",
@@ -50,7 +57,7 @@ impl Method {
 #[derive(Args)]
 pub struct EvalArgs {
     /// Dataset name (hci/backgammon, middlebury2005/Art|Books|Dolls,
-    /// middlebury2003/Teddy|Cones) or `all`.
+    /// middlebury2003/Teddy|Cones, middlebury-mview/templeSparseRing) or `all`.
     pub dataset: String,
     /// Folder holding the datasets (`../shared/data` beside the checkout).
     #[arg(long, default_value = "../shared/data")]
@@ -58,14 +65,21 @@ pub struct EvalArgs {
     /// Layering method.
     #[arg(long, value_enum, default_value_t = Method::All)]
     pub method: Method,
-    /// Number of layers K for depth slicing.
-    #[arg(long, default_value_t = 6, value_parser = clap::value_parser!(u32).range(1..=64))]
+    /// Number of layers K for CPSL and depth slicing.
+    #[arg(long, default_value_t = 6, value_parser = clap::value_parser!(u32).range(2..=16))]
     pub layers: u32,
+    /// Layering configuration for CPSL as JSON (as for `cpsl layer --config`).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Instance masks for CPSL.
+    #[arg(long, value_enum, default_value_t = InstanceMode::Components)]
+    pub instances: InstanceMode,
     /// Number of planes of the uniform MPI baseline.
     #[arg(long, default_value_t = 32, value_parser = clap::value_parser!(u32).range(1..=64))]
     pub mpi_planes: u32,
     /// Depth source: `gt` (the dataset's ground truth) or a model (`fastdepth` or an .onnx
-    /// path), median-scaled to the ground truth.
+    /// path), median-scaled to the ground truth (or, for the temple ring, which has none, to
+    /// the depth of the scene centre given by the poses).
     #[arg(long, default_value = "gt")]
     pub depth: String,
     /// Write the full report (per view) as JSON.
@@ -143,6 +157,13 @@ fn render_layers(prepared: &PreparedLayers, t: &Target) -> (Vec<u8>, Vec<bool>) 
     (img.over_background([0, 0, 0]), covered)
 }
 
+/// Progress sink that drops the expected warning about unknown ground-truth depth.
+struct NoWarnings;
+
+impl Progress for NoWarnings {
+    fn event(&self, _event: ProgressEvent<'_>) {}
+}
+
 fn mean(v: impl Iterator<Item = f64>) -> f64 {
     let (s, n) = v.fold((0.0, 0usize), |(s, n), x| (s + x, n + 1));
     s / n.max(1) as f64
@@ -163,22 +184,32 @@ pub fn run(a: EvalArgs) -> Result<()> {
     let bars = Bars::default();
     let mut reports = Vec::new();
     println!(
-        "{:<22} {:<12} {:>3} {:>9} {:>7} {:>9} {:>6}",
+        "{:<22} {:<16} {:>3} {:>9} {:>7} {:>9} {:>6}",
         "dataset", "method", "K", "PSNR dB", "SSIM", "coverage", "views"
     );
     for name in names {
         let ds = datasets::load(&a.data, name).with_context(|| format!("loading {name}"))?;
         let (depth, depth_name) = if a.depth == "gt" {
+            if ds.centre_depth.is_some() {
+                println!("{name:<22} skipped: no ground-truth depth (use --depth fastdepth)");
+                continue;
+            }
             (ds.depth.clone(), "ground truth".to_string())
         } else {
             let (est, source) =
                 estimate_depth(&a.depth, None, &ds.rgb, ds.camera.width, ds.camera.height)?;
-            let (aligned, s) = align_median(&est, &ds.depth)
+            let truth = match ds.centre_depth {
+                Some(z) => vec![z; est.len()],
+                None => ds.depth.clone(),
+            };
+            let (aligned, s) = align_median(&est, &truth)
                 .with_context(|| format!("{source}: no valid depth to align"))?;
             (aligned, format!("{source}, median-scaled x{s:.3}"))
         };
         let methods: Vec<Method> = match a.method {
             Method::All => vec![
+                Method::Cpsl,
+                Method::CpslDepthOnly,
                 Method::DepthSlice,
                 Method::Mpi,
                 Method::SinglePlane,
@@ -200,6 +231,39 @@ pub fn run(a: EvalArgs) -> Result<()> {
                 Ok((PreparedLayers::new(&set), n))
             };
             let (views, layers) = match method {
+                Method::Cpsl | Method::CpslDepthOnly => {
+                    let mut cfg = LayeringConfig {
+                        layers: a.layers as usize,
+                        ..match &a.config {
+                            Some(p) => crate::layer::read_config(p)?,
+                            None => LayeringConfig::default(),
+                        }
+                    };
+                    if method == Method::CpslDepthOnly {
+                        cfg = cfg.depth_only();
+                    }
+                    let mut source = FixedDepth {
+                        name: depth_name.clone(),
+                        width: ds.camera.width,
+                        height: ds.camera.height,
+                        depth: depth.clone(),
+                    };
+                    let run = layer_image(
+                        &ds.rgb,
+                        ds.camera,
+                        &mut source,
+                        true,
+                        &cfg,
+                        a.instances,
+                        &NoWarnings,
+                    )
+                    .with_context(|| format!("layering {name}"))?;
+                    let prepared = PreparedLayers::new(&run.layered.set);
+                    (
+                        score(&ds, |t| render_layers(&prepared, t), &bars),
+                        run.layered.set.len(),
+                    )
+                }
                 Method::DepthSlice | Method::Mpi | Method::SinglePlane => {
                     let (k, bins) = match method {
                         Method::DepthSlice => (a.layers as usize, Bins::KMeans),
@@ -245,7 +309,7 @@ pub fn run(a: EvalArgs) -> Result<()> {
                 views,
             };
             println!(
-                "{:<22} {:<12} {:>3} {:>9.2} {:>7.4} {:>8.1}% {:>6}",
+                "{:<22} {:<16} {:>3} {:>9.2} {:>7.4} {:>8.1}% {:>6}",
                 r.dataset,
                 r.method,
                 r.layers,

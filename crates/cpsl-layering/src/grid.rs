@@ -189,16 +189,17 @@ pub fn components(
         }
     }
     let mut id = vec![u32::MAX; n];
-    let mut ids = vec![0u32; n];
     let mut count = 0;
-    for p in 0..n {
-        let r = find(&mut parent, p as u32) as usize;
-        if id[r] == u32::MAX {
-            id[r] = count as u32;
-            count += 1;
-        }
-        ids[p] = id[r];
-    }
+    let ids = (0..n)
+        .map(|p| {
+            let r = find(&mut parent, p as u32) as usize;
+            if id[r] == u32::MAX {
+                id[r] = count as u32;
+                count += 1;
+            }
+            id[r]
+        })
+        .collect();
     (ids, count)
 }
 

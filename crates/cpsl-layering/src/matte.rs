@@ -124,28 +124,121 @@ pub fn upsample_owner(
 
 /// Feather width per pixel.
 fn feather(cues: &Cues, cfg: &MatteConfig) -> Vec<f32> {
-    let (w, h) = (cues.width, cues.height);
-    let z = &cues.depth;
-    let mut out = vec![0f32; w * h];
-    out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-        for (x, o) in row.iter_mut().enumerate() {
-            // Largest |grad ln z| in the 5x5 neighbourhood, so that both sides of a depth
-            // edge see it.
-            let mut g = 0f32;
-            for yy in y.saturating_sub(2)..(y + 3).min(h) {
-                for xx in x.saturating_sub(2)..(x + 3).min(w) {
-                    let at = |a: usize, b: usize| z[b * w + a].ln();
-                    let gx = (at((xx + 1).min(w - 1), yy) - at(xx.saturating_sub(1), yy)) * 0.5;
-                    let gy = (at(xx, (yy + 1).min(h - 1)) - at(xx, yy.saturating_sub(1))) * 0.5;
-                    g = g.max((gx * gx + gy * gy).sqrt());
+    cues.depth_gradient
+        .iter()
+        .zip(&cues.confidence)
+        .map(|(&g, &c)| {
+            (cfg.feather_base + cfg.feather_gradient * g + cfg.feather_uncertainty * (1.0 - c))
+                .clamp(0.0, cfg.max_feather)
+        })
+        .collect()
+}
+
+/// A rectangle `[x0, x1) x [y0, y1)`.
+#[derive(Debug, Clone, Copy)]
+struct Rect {
+    x0: usize,
+    y0: usize,
+    x1: usize,
+    y1: usize,
+}
+
+impl Rect {
+    /// The bounding box of the pixels where `f` holds, if any.
+    fn bounding(w: usize, h: usize, f: impl Fn(usize) -> bool) -> Option<Self> {
+        let mut r = Rect {
+            x0: w,
+            y0: h,
+            x1: 0,
+            y1: 0,
+        };
+        for y in 0..h {
+            for x in 0..w {
+                if f(y * w + x) {
+                    r = Rect {
+                        x0: r.x0.min(x),
+                        y0: r.y0.min(y),
+                        x1: r.x1.max(x + 1),
+                        y1: r.y1.max(y + 1),
+                    };
                 }
             }
-            let unc = 1.0 - cues.confidence[y * w + x];
-            *o = (cfg.feather_base + cfg.feather_gradient * g + cfg.feather_uncertainty * unc)
-                .clamp(0.0, cfg.max_feather);
         }
-    });
-    out
+        (r.x1 > r.x0).then_some(r)
+    }
+
+    fn grow(self, by: usize, w: usize, h: usize) -> Self {
+        Rect {
+            x0: self.x0.saturating_sub(by),
+            y0: self.y0.saturating_sub(by),
+            x1: (self.x1 + by).min(w),
+            y1: (self.y1 + by).min(h),
+        }
+    }
+
+    fn width(&self) -> usize {
+        self.x1 - self.x0
+    }
+
+    fn height(&self) -> usize {
+        self.y1 - self.y0
+    }
+}
+
+/// Fills `col` (RGB, full frame) at the pixels where `hidden` holds from the pixels where
+/// `known` holds, by push-pull at half resolution within `rect`, bilinearly upsampled.
+fn fill_half(
+    col: &mut [f32],
+    w: usize,
+    rect: Rect,
+    known: impl Fn(usize) -> bool,
+    hidden: impl Fn(usize) -> bool,
+) -> bool {
+    let (hw, hh) = (rect.width().div_ceil(2), rect.height().div_ceil(2));
+    let mut sub = vec![0f32; hw * hh * 3];
+    let mut wt = vec![0f32; hw * hh];
+    for y in rect.y0..rect.y1 {
+        for x in rect.x0..rect.x1 {
+            let p = y * w + x;
+            if known(p) {
+                let q = ((y - rect.y0) / 2) * hw + (x - rect.x0) / 2;
+                wt[q] += 1.0;
+                for c in 0..3 {
+                    sub[q * 3 + c] += col[p * 3 + c];
+                }
+            }
+        }
+    }
+    for (q, &n) in wt.iter().enumerate() {
+        if n > 0.0 {
+            (0..3).for_each(|c| sub[q * 3 + c] /= n);
+        }
+    }
+    let wt: Vec<f32> = wt.iter().map(|&n| (n > 0.0) as u8 as f32).collect();
+    if !push_pull(&mut sub, &wt, hw, hh, 3) {
+        return false;
+    }
+    for y in rect.y0..rect.y1 {
+        let sy = ((y - rect.y0) as f32 + 0.5) / 2.0 - 0.5;
+        let sy = sy.clamp(0.0, (hh - 1) as f32);
+        let (ya, fy) = (sy.floor() as usize, sy.fract());
+        let yb = (ya + 1).min(hh - 1);
+        for x in rect.x0..rect.x1 {
+            let p = y * w + x;
+            if !hidden(p) {
+                continue;
+            }
+            let sx = (((x - rect.x0) as f32 + 0.5) / 2.0 - 0.5).clamp(0.0, (hw - 1) as f32);
+            let (xa, fx) = (sx.floor() as usize, sx.fract());
+            let xb = (xa + 1).min(hw - 1);
+            for c in 0..3 {
+                let s = |yy: usize, xx: usize| sub[(yy * hw + xx) * 3 + c];
+                col[p * 3 + c] = (s(ya, xa) * (1.0 - fx) + s(ya, xb) * fx) * (1.0 - fy)
+                    + (s(yb, xa) * (1.0 - fx) + s(yb, xb) * fx) * fy;
+            }
+        }
+    }
+    true
 }
 
 /// Builds the layer set: alpha, colour (input where visible, filled behind nearer layers),
@@ -171,76 +264,50 @@ pub fn build_layers(
         .into_par_iter()
         .map(|i| {
             let back = i + 1 == k;
-            let own: Vec<bool> = owner.iter().map(|&o| o as usize == i).collect();
-            let dist = if back {
-                Vec::new()
-            } else {
-                distance(&own, w, h)
-            };
-            let alpha: Vec<f32> = (0..w * h)
-                .map(|p| {
+            let own = |p: usize| owner[p] as usize == i;
+            // Alpha: 1 everywhere on the back layer; elsewhere from the distance to the own
+            // region, which only matters within reach of it.
+            let mut alpha = vec![0f32; w * h];
+            if back {
+                alpha.fill(1.0);
+            } else if let Some(r) = Rect::bounding(w, h, own) {
+                let reach = (margin + cfg.max_feather).ceil() as usize + 2;
+                let r = r.grow(reach, w, h);
+                let (rw, rh) = (r.width(), r.height());
+                let inside: Vec<bool> = (0..rw * rh)
+                    .map(|q| own((q / rw + r.y0) * w + q % rw + r.x0))
+                    .collect();
+                let dist = distance(&inside, rw, rh);
+                for (q, &d) in dist.iter().enumerate() {
+                    let p = (q / rw + r.y0) * w + q % rw + r.x0;
                     let o = owner[p] as usize;
-                    if back || o == i {
+                    alpha[p] = if o == i {
                         1.0
                     } else if o > i {
-                        (1.0 - dist[p] / (wf[p] + 1.0)).max(0.0)
-                    } else if dist[p] <= margin {
+                        (1.0 - d / (wf[p] + 1.0)).max(0.0)
+                    } else if d <= margin {
                         1.0
                     } else {
-                        (1.0 - (dist[p] - margin) / (wf[p] + 1.0)).max(0.0)
-                    }
-                })
-                .collect();
-            // Colour: the input where visible at the reference view, filled elsewhere from
-            // the layer's own pixels, within the bounding box of the hidden part.
+                        (1.0 - (d - margin) / (wf[p] + 1.0)).max(0.0)
+                    };
+                }
+            }
+            // Colour: the input where visible at the reference view, filled behind nearer
+            // layers from the layer's own pixels.
             let mut col: Vec<f32> = rgb.iter().map(|&v| v as f32).collect();
             let hidden = |p: usize| (owner[p] as usize) < i && alpha[p] > 0.0;
-            let (mut x0, mut y0, mut x1, mut y1) = (w, h, 0, 0);
-            for p in (0..w * h).filter(|&p| hidden(p)) {
-                let (x, y) = (p % w, p / w);
-                x0 = x0.min(x);
-                y0 = y0.min(y);
-                x1 = x1.max(x + 1);
-                y1 = y1.max(y + 1);
-            }
-            if x1 > x0 {
-                // Grow the box so that it holds own pixels to fill from.
+            if let Some(r) = Rect::bounding(w, h, hidden) {
                 let pad = (margin.ceil() as usize + 2).max(8);
-                let (x0, y0) = (x0.saturating_sub(pad), y0.saturating_sub(pad));
-                let (x1, y1) = ((x1 + pad).min(w), (y1 + pad).min(h));
-                let (bw, bh) = (x1 - x0, y1 - y0);
-                let mut sub = vec![0f32; bw * bh * 3];
-                let mut wt = vec![0f32; bw * bh];
-                for y in 0..bh {
-                    for x in 0..bw {
-                        let p = (y + y0) * w + x + x0;
-                        if own[p] {
-                            wt[y * bw + x] = 1.0;
-                            sub[(y * bw + x) * 3..(y * bw + x) * 3 + 3]
-                                .copy_from_slice(&col[p * 3..p * 3 + 3]);
-                        }
-                    }
-                }
-                if !push_pull(&mut sub, &wt, bw, bh, 3) {
+                let near = r.grow(pad, w, h);
+                if !fill_half(&mut col, w, near, own, hidden) {
                     // No own pixel near: fill from the whole layer.
-                    let wt: Vec<f32> = own.iter().map(|&b| b as u8 as f32).collect();
-                    let mut all = col.clone();
-                    push_pull(&mut all, &wt, w, h, 3);
-                    sub = (0..bw * bh)
-                        .flat_map(|q| {
-                            let p = (q / bw + y0) * w + q % bw + x0;
-                            [all[p * 3], all[p * 3 + 1], all[p * 3 + 2]]
-                        })
-                        .collect();
-                }
-                for y in 0..bh {
-                    for x in 0..bw {
-                        let p = (y + y0) * w + x + x0;
-                        if hidden(p) {
-                            col[p * 3..p * 3 + 3]
-                                .copy_from_slice(&sub[(y * bw + x) * 3..(y * bw + x) * 3 + 3]);
-                        }
-                    }
+                    let all = Rect {
+                        x0: 0,
+                        y0: 0,
+                        x1: w,
+                        y1: h,
+                    };
+                    fill_half(&mut col, w, all, own, hidden);
                 }
             }
             let mut data = vec![0u8; w * h * 4];

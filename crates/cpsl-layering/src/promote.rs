@@ -23,6 +23,9 @@ pub struct PromoteConfig {
     /// How much nearer (normalised inverse depth) than its surrounding ring a promoted
     /// region must be.
     pub min_standout: f32,
+    /// Largest inverse-depth spread (10th to 90th percentile, normalised) of a promoted
+    /// region: one plane must represent it well.
+    pub max_spread: f32,
 }
 
 impl Default for PromoteConfig {
@@ -33,6 +36,7 @@ impl Default for PromoteConfig {
             max_area: 0.35,
             threshold: 0.25,
             min_standout: 0.03,
+            max_spread: 0.05,
         }
     }
 }
@@ -149,6 +153,14 @@ pub fn promote(work: &Work, fusion: &Fusion, k: usize, cfg: &PromoteConfig) -> P
         }
         let standout = (rs[r].mean(rs[r].disp) - ring[r].mean(ring[r].disp)) as f32;
         if standout < cfg.min_standout {
+            continue;
+        }
+        let mut d: Vec<f32> = (0..n)
+            .filter(|&p| region[p] as usize == r)
+            .map(|p| work.disparity[p])
+            .collect();
+        d.sort_by(f32::total_cmp);
+        if d[d.len() * 9 / 10] - d[d.len() / 10] > cfg.max_spread {
             continue;
         }
         let support = (inst[r] / rs[r].n) as f32;

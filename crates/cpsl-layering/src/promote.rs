@@ -171,7 +171,8 @@ pub fn promote(work: &Work, fusion: &Fusion, k: usize, cfg: &PromoteConfig) -> P
         }
     }
     cand.sort_by(|a, b| b.1.total_cmp(&a.1));
-    cand.truncate(cfg.max_promoted.min(k.saturating_sub(1)));
+    // At least half the layers stay for the background depth range.
+    cand.truncate(cfg.max_promoted.min(k.saturating_sub(1) / 2));
 
     // Background groups per label (pixels not promoted).
     let nl = fusion.representatives.len();

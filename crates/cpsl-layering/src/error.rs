@@ -56,3 +56,26 @@ pub enum LayeringError {
     #[error("layer set invalid: {0}")]
     Invalid(#[from] cpsl_core::CoreError),
 }
+
+/// Checks that `rgb` (3 bytes per pixel) and `depth` (one value per pixel) fit a
+/// `width x height` frame.
+pub(crate) fn check_frame(
+    rgb: &[u8],
+    depth: &[f32],
+    width: u32,
+    height: u32,
+) -> Result<(), LayeringError> {
+    let n = width as usize * height as usize;
+    for (what, found, expected) in [("colour", rgb.len(), n * 3), ("depth", depth.len(), n)] {
+        if found != expected {
+            return Err(LayeringError::Size {
+                what,
+                found,
+                expected,
+                width,
+                height,
+            });
+        }
+    }
+    Ok(())
+}

@@ -209,3 +209,77 @@ pub fn layer_frame(
     layered.timings.insert(0, ("cues", cue_ms));
     Ok((cues, layered))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use cpsl_core::NoProgress;
+
+    #[test]
+    fn degenerate_frames_still_give_valid_layer_sets() {
+        let cfg = LayeringConfig::default();
+        for (w, h) in [(1u32, 1u32), (8, 6), (3, 40)] {
+            let cam = Camera::from_fov(w, h, 60.0);
+            let n = (w * h) as usize;
+            let rgb: Vec<u8> = (0..n * 3).map(|i| (i * 37 % 256) as u8).collect();
+            // Flat depth: one layer.
+            let (_, out) = layer_frame(&rgb, &vec![2.0; n], cam, &cfg, &NoProgress).unwrap();
+            assert_eq!(out.set.len(), 1);
+            assert_eq!(out.set.layers()[0].depth, 2.0);
+            // Two depths.
+            let depth: Vec<f32> = (0..n).map(|i| if i % 2 == 0 { 1.0 } else { 5.0 }).collect();
+            let (_, out) = layer_frame(&rgb, &depth, cam, &cfg, &NoProgress).unwrap();
+            // (a promoted region may sit on its own layer at the depth of another)
+            for l in out.set.layers() {
+                assert!(
+                    (l.depth - 1.0).abs() < 1e-4 || (l.depth - 5.0).abs() < 1e-4,
+                    "{w}x{h}: layer at {}",
+                    l.depth
+                );
+            }
+            assert_eq!(out.owner.len(), n);
+        }
+    }
+
+    #[test]
+    fn rejects_bad_configuration_and_input() {
+        let cam = Camera::from_fov(4, 4, 60.0);
+        let rgb = [0u8; 48];
+        let bad_k = LayeringConfig {
+            layers: 17,
+            ..Default::default()
+        };
+        assert!(matches!(
+            layer_frame(&rgb, &[1.0; 16], cam, &bad_k, &NoProgress),
+            Err(LayeringError::Config {
+                field: "layers",
+                ..
+            })
+        ));
+        let cfg = LayeringConfig::default();
+        assert!(matches!(
+            layer_frame(&rgb[..47], &[1.0; 16], cam, &cfg, &NoProgress),
+            Err(LayeringError::Size { what: "colour", .. })
+        ));
+        let mut depth = [1.0f32; 16];
+        depth[5] = -1.0;
+        assert!(matches!(
+            layer_frame(&rgb, &depth, cam, &cfg, &NoProgress),
+            Err(LayeringError::BadDepth { x: 1, y: 1, .. })
+        ));
+        depth[5] = f32::NAN;
+        assert!(matches!(
+            layer_frame(&rgb, &depth, cam, &cfg, &NoProgress),
+            Err(LayeringError::MissingDepth { count: 1, .. })
+        ));
+        let mut allow = cfg;
+        allow.cues.allow_missing_depth = true;
+        let (cues, _) = layer_frame(&rgb, &depth, cam, &allow, &NoProgress).unwrap();
+        assert_eq!(cues.missing, 1);
+        assert_eq!(cues.depth[5], 1.0);
+        assert!(matches!(
+            layer_frame(&rgb, &[f32::NAN; 16], cam, &allow, &NoProgress),
+            Err(LayeringError::NoValidDepth)
+        ));
+    }
+}

@@ -173,17 +173,7 @@ pub fn slice_by_depth(
     }
     let (w, h) = (camera.width as usize, camera.height as usize);
     let n = w * h;
-    for (what, found, expected) in [("colour", rgb.len(), n * 3), ("depth", depth.len(), n)] {
-        if found != expected {
-            return Err(LayeringError::Size {
-                what,
-                found,
-                expected,
-                width: camera.width,
-                height: camera.height,
-            });
-        }
-    }
+    crate::error::check_frame(rgb, depth, camera.width, camera.height)?;
     let valid = |z: f32| z.is_finite() && z > 0.0;
     let disp: Vec<f32> = depth
         .iter()

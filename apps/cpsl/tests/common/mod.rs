@@ -1,0 +1,47 @@
+//! Helpers shared by the CLI test binaries.
+#![allow(dead_code)] // each test binary uses its own subset
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+/// Runs the `cpsl` binary.
+pub fn cpsl(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_cpsl"))
+        .args(args)
+        .output()
+        .expect("cpsl runs")
+}
+
+/// Runs `cpsl`, asserts success and returns its stdout.
+pub fn ok(args: &[&str]) -> String {
+    let o = cpsl(args);
+    assert!(
+        o.status.success(),
+        "cpsl {args:?} failed: {}",
+        String::from_utf8_lossy(&o.stderr)
+    );
+    String::from_utf8_lossy(&o.stdout).into_owned()
+}
+
+/// A path as `&str`.
+pub fn s(p: &Path) -> &str {
+    p.to_str().unwrap()
+}
+
+/// Whether the model cache holds ONNX Runtime and every file in `models` (relative to
+/// `$CPSL_CACHE/models`); fails instead when `CPSL_REQUIRE_MODELS` is set.
+pub fn models_present(models: &[&str]) -> bool {
+    let cache = std::env::var_os("CPSL_CACHE")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from(std::env::var_os("HOME").unwrap()).join(".cache/cpsl"));
+    let present = cache.join("onnxruntime/libonnxruntime.so.1.31.1").is_file()
+        && models
+            .iter()
+            .all(|m| cache.join("models").join(m).is_file());
+    assert!(
+        present || std::env::var_os("CPSL_REQUIRE_MODELS").is_none(),
+        "models missing in {}: run scripts/setup-models.sh",
+        cache.display()
+    );
+    present
+}

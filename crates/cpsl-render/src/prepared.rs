@@ -25,6 +25,24 @@ pub(crate) struct PreparedLayer {
 }
 
 impl PreparedLayer {
+    /// Bilinear alpha in `[0, 1]` at source position `(sx, sy)` (transparent outside).
+    pub(crate) fn alpha_at(&self, sx: f64, sy: f64) -> f32 {
+        let (fx, fy) = (sx.floor(), sy.floor());
+        let (ax, ay) = ((sx - fx) as f32, (sy - fy) as f32);
+        // Texel (x, y) lives at (y + 1) * pitch + x + 1; the border is transparent.
+        let rows = self.texels.len() / self.pitch;
+        let at = |x: f64, y: f64| -> f32 {
+            let (tx, ty) = (x + 1.0, y + 1.0);
+            if tx < 0.0 || ty < 0.0 || tx >= self.pitch as f64 || ty >= rows as f64 {
+                return 0.0;
+            }
+            (self.texels[ty as usize * self.pitch + tx as usize] >> 24) as f32 / 255.0
+        };
+        let top = at(fx, fy) * (1.0 - ax) + at(fx + 1.0, fy) * ax;
+        let bottom = at(fx, fy + 1.0) * (1.0 - ax) + at(fx + 1.0, fy + 1.0) * ax;
+        top * (1.0 - ay) + bottom * ay
+    }
+
     fn block_sum(table: &[u32], bw: usize, bx0: usize, by0: usize, bx1: usize, by1: usize) -> u32 {
         // Inclusive block range [bx0, bx1] x [by0, by1].
         let s = bw + 1;
@@ -59,6 +77,8 @@ pub struct PreparedLayers {
     pub(crate) layers: Vec<PreparedLayer>,
     /// Use the AVX2 kernel where the CPU has it.
     pub(crate) simd: bool,
+    /// Edge-Depth Cache offsets per layer pair, for the Dynamic Pixel Strip.
+    pub(crate) edge_offsets: crate::dps::EdgeOffsets,
 }
 
 fn simd_available() -> bool {
@@ -137,7 +157,14 @@ impl PreparedLayers {
             camera: cam,
             layers,
             simd: simd_available(),
+            edge_offsets: Default::default(),
         }
+    }
+
+    /// Uses an Edge-Depth Cache (from the layer set's `edc.bin`) in the Dynamic Pixel Strip.
+    pub fn with_edc(mut self, edc: &cpsl_core::Edc) -> Self {
+        self.edge_offsets = crate::dps::EdgeOffsets::from_edc(edc);
+        self
     }
 
     /// Enables or disables the SIMD kernel (on by default where the CPU supports it). Results

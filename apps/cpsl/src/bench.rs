@@ -279,7 +279,7 @@ struct Report {
 }
 
 /// `YYYY-MM-DD` (UTC) from the system clock.
-fn today() -> String {
+pub fn today() -> String {
     let secs = std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
         .map(|d| d.as_secs())

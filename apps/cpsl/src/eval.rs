@@ -1,32 +1,37 @@
-//! `cpsl eval`: layer real reference views, render their target views, score against the real
-//! images.
+//! `cpsl eval`: layer real reference views, render their target views, score them against the
+//! real images (PSNR, SSIM, LPIPS, crack and hole ratios) and report as a table, JSON and HTML.
 
-use crate::layer::{layer_image, InstanceMode};
+use crate::layer::{layer_image, open_depth_model, InstanceMode};
 use crate::progress::Bars;
-use crate::synth::estimate_depth;
 use anyhow::{Context, Result};
 use clap::{Args, ValueEnum};
-use cpsl_core::{FixedDepth, PremulImage, Progress, ProgressEvent};
+use cpsl_core::{DepthSource, FixedDepth, PremulImage, Progress, ProgressEvent};
 use cpsl_eval::baselines::dibr;
+use cpsl_eval::coverage::{covisible, crack_ratio, edge_band, hole_ratio};
 use cpsl_eval::datasets::{self, align_median, Dataset, Target};
 use cpsl_eval::metrics::{psnr_masked, ssim};
 use cpsl_layering::{slice_by_depth, Bins, LayeringConfig, SliceConfig};
-use cpsl_render::PreparedLayers;
+use cpsl_render::{DpsConfig, PreparedLayers};
 use serde::Serialize;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 /// Methods `cpsl eval` compares.
 #[derive(Clone, Copy, PartialEq, Eq, ValueEnum, Serialize)]
 #[serde(rename_all = "kebab-case")]
 pub enum Method {
-    /// Content-promoted scene layers (`cpsl layer`): K layers.
+    /// Content-promoted scene layers (`cpsl layer`): K layers, rendered with the Dynamic Pixel
+    /// Strip guided by the Edge-Depth Cache.
     Cpsl,
-    /// CPSL without the saliency and instance terms and without promotion.
+    /// CPSL rendered without the Dynamic Pixel Strip (ablation).
+    CpslNoDps,
+    /// CPSL without the saliency and instance terms and without promotion (with DPS).
     CpslDepthOnly,
-    /// Depth slicing into K layers (k-means on inverse depth).
+    /// Depth slicing into K layers (k-means on inverse depth), hard alpha.
     DepthSlice,
     /// Uniform multiplane image: --mpi-planes planes uniform in inverse depth, hard alpha.
     Mpi,
+    /// Uniform multiplane image with K planes (the same budget as CPSL).
+    MpiK,
     /// One plane at the median depth: the reference image shifted as a whole (no parallax
     /// between objects), the "plain 2D" baseline.
     SinglePlane,
@@ -42,15 +47,29 @@ impl Method {
     fn name(self) -> &'static str {
         match self {
             Method::Cpsl => "cpsl",
+            Method::CpslNoDps => "cpsl-no-dps",
             Method::CpslDepthOnly => "cpsl-depth-only",
             Method::DepthSlice => "depth-slice",
             Method::Mpi => "mpi",
+            Method::MpiK => "mpi-k",
             Method::SinglePlane => "single-plane",
             Method::Dibr => "dibr",
             Method::DibrFill => "dibr-fill",
             Method::All => "all",
         }
     }
+
+    const EVERY: [Method; 9] = [
+        Method::Cpsl,
+        Method::CpslNoDps,
+        Method::CpslDepthOnly,
+        Method::DepthSlice,
+        Method::Mpi,
+        Method::MpiK,
+        Method::SinglePlane,
+        Method::Dibr,
+        Method::DibrFill,
+    ];
 }
 
 /// Arguments of `cpsl eval`.
@@ -62,41 +81,57 @@ pub struct EvalArgs {
     /// Folder holding the datasets (`../shared/data` beside the checkout).
     #[arg(long, default_value = "../shared/data")]
     pub data: PathBuf,
-    /// Layering method.
+    /// Method.
     #[arg(long, value_enum, default_value_t = Method::All)]
     pub method: Method,
-    /// Number of layers K for CPSL and depth slicing.
+    /// Number of layers K for CPSL, depth slicing and `mpi-k`.
     #[arg(long, default_value_t = 6, value_parser = clap::value_parser!(u32).range(2..=16))]
     pub layers: u32,
+    /// Number of planes of the `mpi` baseline.
+    #[arg(long, default_value_t = 32, value_parser = clap::value_parser!(u32).range(1..=64))]
+    pub mpi_planes: u32,
     /// Layering configuration for CPSL as JSON (as for `cpsl layer --config`).
     #[arg(long)]
     pub config: Option<PathBuf>,
     /// Instance masks for CPSL.
     #[arg(long, value_enum, default_value_t = InstanceMode::Components)]
     pub instances: InstanceMode,
-    /// Number of planes of the uniform MPI baseline.
-    #[arg(long, default_value_t = 32, value_parser = clap::value_parser!(u32).range(1..=64))]
-    pub mpi_planes: u32,
-    /// Depth source: `gt` (the dataset's ground truth) or a model (`fastdepth` or an .onnx
-    /// path), median-scaled to the ground truth (or, for the temple ring, which has none, to
-    /// the depth of the scene centre given by the poses).
+    /// Depth: `gt` (the dataset's ground truth) or a model, `model:<name>` (`model:fastdepth`,
+    /// `model:path.onnx`; `fastdepth` alone also works), median-scaled to the ground truth (or,
+    /// for the temple ring, which has none, to the depth of the scene centre given by the
+    /// poses).
     #[arg(long, default_value = "gt")]
     pub depth: String,
-    /// Write the full report (per view) as JSON.
+    /// Skip LPIPS (it needs the graph from scripts/setup-models.sh).
+    #[arg(long)]
+    pub no_lpips: bool,
+    /// Write the full report (per view) as JSON; the schema is in EVALUATION.md.
     #[arg(long)]
     pub json: Option<PathBuf>,
+    /// Write an HTML report (tables, per-view plots, image crops) into this folder.
+    #[arg(long)]
+    pub html: Option<PathBuf>,
 }
 
 /// Scores of one rendered view.
 #[derive(Serialize)]
 struct ViewScore {
     view: String,
-    /// PSNR over the pixels the render covers (dB).
+    /// Distance of the target camera from the reference camera (scene units).
+    offset: f64,
+    /// Fraction of the view in the co-visibility mask (the pixels every metric scores).
+    covisible: f64,
+    /// PSNR (dB) over the co-visibility mask; null if it is empty.
     psnr: Option<f64>,
-    /// SSIM over the covered pixels.
+    /// SSIM over the co-visibility mask.
     ssim: f64,
-    /// Fraction of pixels the render covers.
-    coverage: f64,
+    /// LPIPS (AlexNet, v0.1) with pixels outside the mask taken from the target; null when
+    /// skipped.
+    lpips: Option<f64>,
+    /// Crack ratio in the depth-edge band (see EVALUATION.md).
+    crack: f64,
+    /// Hole ratio: fraction of pixels not covered before any filling.
+    hole: f64,
 }
 
 #[derive(Serialize)]
@@ -107,54 +142,120 @@ struct MethodReport {
     depth: String,
     mean_psnr: f64,
     mean_ssim: f64,
-    mean_coverage: f64,
+    mean_lpips: Option<f64>,
+    mean_crack: f64,
+    mean_hole: f64,
     views: Vec<ViewScore>,
 }
 
-/// Scores every target view of `ds` synthesised by `synth` (RGB and covered pixels).
-fn score(
-    ds: &Dataset,
-    synth: impl Fn(&Target) -> (Vec<u8>, Vec<bool>),
-    progress: &dyn Progress,
-) -> Vec<ViewScore> {
-    let stage = "render views";
-    progress.event(ProgressEvent::Start {
-        stage,
-        total: Some(ds.targets.len() as u64),
-    });
-    let out = ds
-        .targets
-        .iter()
-        .enumerate()
-        .map(|(i, t)| {
-            let (rgb, covered) = synth(t);
+/// A synthesised target view.
+struct Synth {
+    /// RGB over black.
+    rgb: Vec<u8>,
+    /// `V`: covered before any filling.
+    covered: Vec<bool>,
+}
+
+/// Everything one dataset's scoring needs besides the method: per target view the depth-edge
+/// band and the co-visibility mask, and LPIPS.
+struct Scorer<'a> {
+    ds: &'a Dataset,
+    bands: Vec<Vec<bool>>,
+    masks: Vec<Vec<bool>>,
+    lpips: Option<&'a std::cell::RefCell<cpsl_models::Lpips>>,
+}
+
+impl Scorer<'_> {
+    /// Scores every target view synthesised by `synth`; returns the scores and the view
+    /// with the largest offset (for the report's crops).
+    fn score(
+        &self,
+        synth: impl Fn(&Target) -> Synth,
+        progress: &dyn Progress,
+    ) -> Result<(Vec<ViewScore>, Vec<u8>)> {
+        let stage = "render views";
+        progress.event(ProgressEvent::Start {
+            stage,
+            total: Some(self.ds.targets.len() as u64),
+        });
+        let far = farthest(self.ds);
+        let mut kept = Vec::new();
+        let mut out = Vec::new();
+        for (i, t) in self.ds.targets.iter().enumerate() {
+            let s = synth(t);
+            let (w, h) = (t.camera.width as usize, t.camera.height as usize);
+            let mask = &self.masks[i];
+            let lpips = match self.lpips {
+                Some(m) => {
+                    // Pixels outside the mask count as perfect, as for PSNR and SSIM.
+                    let mut img = s.rgb.clone();
+                    for (p, &sc) in mask.iter().enumerate() {
+                        if !sc {
+                            img[p * 3..p * 3 + 3].copy_from_slice(&t.rgb[p * 3..p * 3 + 3]);
+                        }
+                    }
+                    Some(
+                        m.borrow_mut()
+                            .distance(&img, &t.rgb, t.camera.width, t.camera.height)?
+                            as f64,
+                    )
+                }
+                None => None,
+            };
+            out.push(ViewScore {
+                view: t.name.clone(),
+                offset: t.pose.translation.norm(),
+                covisible: mask.iter().filter(|&&m| m).count() as f64 / mask.len() as f64,
+                psnr: psnr_masked(&s.rgb, &t.rgb, mask),
+                ssim: ssim(&s.rgb, &t.rgb, w, h, Some(mask)),
+                lpips,
+                crack: crack_ratio(&s.covered, &self.bands[i], w, h),
+                hole: hole_ratio(&s.covered),
+            });
+            if i == far {
+                kept = s.rgb;
+            }
             progress.event(ProgressEvent::Advance {
                 stage,
                 done: i as u64 + 1,
             });
-            let (w, h) = (t.camera.width as usize, t.camera.height as usize);
-            ViewScore {
-                view: t.name.clone(),
-                psnr: psnr_masked(&rgb, &t.rgb, &covered),
-                ssim: ssim(&rgb, &t.rgb, w, h, Some(&covered)),
-                coverage: covered.iter().filter(|&&c| c).count() as f64 / covered.len() as f64,
-            }
-        })
-        .collect();
-    progress.event(ProgressEvent::Finish { stage });
-    out
+        }
+        progress.event(ProgressEvent::Finish { stage });
+        Ok((out, kept))
+    }
 }
 
-/// Renders a target view from prepared layers: RGB over black and the fully covered pixels.
-fn render_layers(prepared: &PreparedLayers, t: &Target) -> (Vec<u8>, Vec<bool>) {
+/// Index of the target farthest from the reference.
+fn farthest(ds: &Dataset) -> usize {
+    (0..ds.targets.len())
+        .max_by(|&a, &b| {
+            let n = |i: usize| ds.targets[i].pose.translation.norm();
+            n(a).total_cmp(&n(b))
+        })
+        .unwrap_or(0)
+}
+
+/// Renders a target view from prepared layers, with or without the Dynamic Pixel Strip.
+fn render_layers(prepared: &PreparedLayers, t: &Target, dps: bool) -> Synth {
     let mut img = PremulImage::new(t.camera.width, t.camera.height);
-    prepared.render_into(&t.pose, &t.camera, &mut img);
-    let covered = img
-        .as_bytes()
-        .chunks_exact(4)
-        .map(|p| p[3] == 255)
-        .collect();
-    (img.over_background([0, 0, 0]), covered)
+    if dps {
+        prepared.render_dps_into(&t.pose, &t.camera, &mut img, &DpsConfig::default());
+    } else {
+        prepared.render_into(&t.pose, &t.camera, &mut img);
+    }
+    Synth {
+        rgb: img.over_background([0, 0, 0]),
+        covered: img
+            .as_bytes()
+            .chunks_exact(4)
+            .map(|p| p[3] >= 128)
+            .collect(),
+    }
+}
+
+fn mean(v: impl Iterator<Item = f64>) -> f64 {
+    let (s, n) = v.fold((0.0, 0usize), |(s, n), x| (s + x, n + 1));
+    s / n.max(1) as f64
 }
 
 /// Progress sink that drops the expected warning about unknown ground-truth depth.
@@ -164,9 +265,28 @@ impl Progress for NoWarnings {
     fn event(&self, _event: ProgressEvent<'_>) {}
 }
 
-fn mean(v: impl Iterator<Item = f64>) -> f64 {
-    let (s, n) = v.fold((0.0, 0usize), |(s, n), x| (s + x, n + 1));
-    s / n.max(1) as f64
+/// The depth to layer `ds` with, and its description; `None` when the dataset has no ground
+/// truth and `gt` was asked for.
+fn dataset_depth(ds: &Dataset, depth: &str) -> Result<Option<(Vec<f32>, String)>> {
+    if depth == "gt" {
+        if ds.centre_depth.is_some() {
+            return Ok(None);
+        }
+        return Ok(Some((ds.depth.clone(), "ground truth".to_string())));
+    }
+    let model = depth.strip_prefix("model:").unwrap_or(depth);
+    let mut m = open_depth_model(model, None)?;
+    let est = m.depth(&ds.rgb, ds.camera.width, ds.camera.height)?;
+    let truth = match ds.centre_depth {
+        Some(z) => vec![z; est.len()],
+        None => ds.depth.clone(),
+    };
+    let (aligned, s) = align_median(&est, &truth)
+        .with_context(|| format!("{}: no valid depth to align", m.name()))?;
+    Ok(Some((
+        aligned,
+        format!("{}, median-scaled x{s:.3}", m.name()),
+    )))
 }
 
 /// Runs `cpsl eval`.
@@ -181,45 +301,53 @@ pub fn run(a: EvalArgs) -> Result<()> {
     } else {
         vec![a.dataset.as_str()]
     };
+    let methods: Vec<Method> = match a.method {
+        Method::All => Method::EVERY.to_vec(),
+        m => vec![m],
+    };
     let bars = Bars::default();
+    let lpips = if a.no_lpips {
+        None
+    } else {
+        let path = cpsl_models::lpips::default_path();
+        match cpsl_models::Lpips::open(&path) {
+            Ok(m) => Some(std::cell::RefCell::new(m)),
+            Err(e) => {
+                bars.event(ProgressEvent::Warning {
+                    message: format!("LPIPS skipped: {e}"),
+                });
+                None
+            }
+        }
+    };
     let mut reports = Vec::new();
+    let mut crops = Vec::new();
     println!(
-        "{:<22} {:<16} {:>3} {:>9} {:>7} {:>9} {:>6}",
-        "dataset", "method", "K", "PSNR dB", "SSIM", "coverage", "views"
+        "{:<22} {:<16} {:>3} {:>8} {:>7} {:>7} {:>7} {:>7} {:>5}",
+        "dataset", "method", "K", "PSNR dB", "SSIM", "LPIPS", "crack", "hole", "views"
     );
     for name in names {
         let ds = datasets::load(&a.data, name).with_context(|| format!("loading {name}"))?;
-        let (depth, depth_name) = if a.depth == "gt" {
-            if ds.centre_depth.is_some() {
-                println!("{name:<22} skipped: no ground-truth depth (use --depth fastdepth)");
-                continue;
-            }
-            (ds.depth.clone(), "ground truth".to_string())
-        } else {
-            let (est, source) =
-                estimate_depth(&a.depth, None, &ds.rgb, ds.camera.width, ds.camera.height)?;
-            let truth = match ds.centre_depth {
-                Some(z) => vec![z; est.len()],
-                None => ds.depth.clone(),
-            };
-            let (aligned, s) = align_median(&est, &truth)
-                .with_context(|| format!("{source}: no valid depth to align"))?;
-            (aligned, format!("{source}, median-scaled x{s:.3}"))
+        let Some((depth, depth_name)) = dataset_depth(&ds, &a.depth)? else {
+            println!("{name:<22} skipped: no ground-truth depth (use --depth model:fastdepth)");
+            continue;
         };
-        let methods: Vec<Method> = match a.method {
-            Method::All => vec![
-                Method::Cpsl,
-                Method::CpslDepthOnly,
-                Method::DepthSlice,
-                Method::Mpi,
-                Method::SinglePlane,
-                Method::Dibr,
-                Method::DibrFill,
-            ],
-            m => vec![m],
+        let scorer = Scorer {
+            ds: &ds,
+            bands: ds
+                .targets
+                .iter()
+                .map(|t| edge_band(&depth, &ds.camera, &t.pose, &t.camera, 0.05, 2))
+                .collect(),
+            masks: ds
+                .targets
+                .iter()
+                .map(|t| covisible(&depth, &ds.camera, &t.pose, &t.camera))
+                .collect(),
+            lpips: lpips.as_ref(),
         };
-        for method in methods {
-            let layered = |k: usize, bins: Bins| -> Result<(PreparedLayers, usize)> {
+        for &method in &methods {
+            let sliced = |k: usize, bins: Bins| -> Result<(PreparedLayers, usize)> {
                 let config = SliceConfig {
                     layers: k,
                     bins,
@@ -227,11 +355,10 @@ pub fn run(a: EvalArgs) -> Result<()> {
                 };
                 let set = slice_by_depth(&ds.rgb, &depth, ds.camera, &config)
                     .with_context(|| format!("layering {name}"))?;
-                let n = set.len();
-                Ok((PreparedLayers::new(&set), n))
+                Ok((PreparedLayers::new(&set), set.len()))
             };
-            let (views, layers) = match method {
-                Method::Cpsl | Method::CpslDepthOnly => {
+            let ((views, crop), layers) = match method {
+                Method::Cpsl | Method::CpslNoDps | Method::CpslDepthOnly => {
                     let mut cfg = LayeringConfig {
                         layers: a.layers as usize,
                         ..match &a.config {
@@ -258,38 +385,39 @@ pub fn run(a: EvalArgs) -> Result<()> {
                         &NoWarnings,
                     )
                     .with_context(|| format!("layering {name}"))?;
-                    let prepared = PreparedLayers::new(&run.layered.set);
+                    let prepared = PreparedLayers::new(&run.layered.set).with_edc(&run.layered.edc);
+                    let dps = method != Method::CpslNoDps;
                     (
-                        score(&ds, |t| render_layers(&prepared, t), &bars),
+                        scorer.score(|t| render_layers(&prepared, t, dps), &bars)?,
                         run.layered.set.len(),
                     )
                 }
-                Method::DepthSlice | Method::Mpi | Method::SinglePlane => {
+                Method::DepthSlice | Method::Mpi | Method::MpiK | Method::SinglePlane => {
                     let (k, bins) = match method {
                         Method::DepthSlice => (a.layers as usize, Bins::KMeans),
                         Method::Mpi => (a.mpi_planes as usize, Bins::UniformInverse),
+                        Method::MpiK => (a.layers as usize, Bins::UniformInverse),
                         _ => (1, Bins::KMeans),
                     };
-                    let (prepared, n) = layered(k, bins)?;
-                    (score(&ds, |t| render_layers(&prepared, t), &bars), n)
+                    let (prepared, n) = sliced(k, bins)?;
+                    (
+                        scorer.score(|t| render_layers(&prepared, t, false), &bars)?,
+                        n,
+                    )
                 }
                 Method::Dibr | Method::DibrFill => {
                     let fill = method == Method::DibrFill;
-                    let views = score(
-                        &ds,
+                    let scored = scorer.score(
                         |t| {
                             let s = dibr(&ds.rgb, &depth, &ds.camera, &t.pose, &t.camera, fill);
-                            // Filled DIBR covers every pixel it filled, i.e. all of them.
-                            let covered = if fill {
-                                vec![true; s.covered.len()]
-                            } else {
-                                s.covered
-                            };
-                            (s.rgb, covered)
+                            Synth {
+                                rgb: s.rgb,
+                                covered: s.covered,
+                            }
                         },
                         &bars,
-                    );
-                    (views, 0)
+                    )?;
+                    (scored, 0)
                 }
                 Method::All => unreachable!("expanded above"),
             };
@@ -305,19 +433,37 @@ pub fn run(a: EvalArgs) -> Result<()> {
                         .filter(|p| p.is_finite()),
                 ),
                 mean_ssim: mean(views.iter().map(|v| v.ssim)),
-                mean_coverage: mean(views.iter().map(|v| v.coverage)),
+                mean_lpips: lpips
+                    .as_ref()
+                    .map(|_| mean(views.iter().filter_map(|v| v.lpips))),
+                mean_crack: mean(views.iter().map(|v| v.crack)),
+                mean_hole: mean(views.iter().map(|v| v.hole)),
                 views,
             };
             println!(
-                "{:<22} {:<16} {:>3} {:>9.2} {:>7.4} {:>8.1}% {:>6}",
+                "{:<22} {:<16} {:>3} {:>8.2} {:>7.4} {:>7} {:>7.4} {:>7.4} {:>5}",
                 r.dataset,
                 r.method,
                 r.layers,
                 r.mean_psnr,
                 r.mean_ssim,
-                r.mean_coverage * 100.0,
+                r.mean_lpips.map_or("-".to_string(), |l| format!("{l:.4}")),
+                r.mean_crack,
+                r.mean_hole,
                 r.views.len()
             );
+            if a.html.is_some() {
+                let t = &ds.targets[farthest(&ds)];
+                crops.push(Crop {
+                    dataset: name.into(),
+                    method: method.name().into(),
+                    width: t.camera.width as usize,
+                    height: t.camera.height as usize,
+                    rgb: crop,
+                    truth: t.rgb.clone(),
+                    view: t.name.clone(),
+                });
+            }
             reports.push(r);
         }
     }
@@ -325,5 +471,179 @@ pub fn run(a: EvalArgs) -> Result<()> {
         crate::util::write_json(path, &reports)?;
         println!("wrote {}", path.display());
     }
+    if let Some(dir) = &a.html {
+        write_html(dir, &reports, &crops, &a)?;
+        println!("wrote {}", dir.join("index.html").display());
+    }
     Ok(())
+}
+
+/// The synthesised view kept for a report crop.
+struct Crop {
+    dataset: String,
+    method: String,
+    view: String,
+    width: usize,
+    height: usize,
+    rgb: Vec<u8>,
+    truth: Vec<u8>,
+}
+
+fn slug(s: &str) -> String {
+    s.chars()
+        .map(|c| if c.is_ascii_alphanumeric() { c } else { '_' })
+        .collect()
+}
+
+fn esc(s: &str) -> String {
+    s.replace('&', "&amp;")
+        .replace('<', "&lt;")
+        .replace('>', "&gt;")
+}
+
+/// The centre `cw x ch` region of an RGB image.
+fn centre_crop(rgb: &[u8], w: usize, h: usize, cw: usize, ch: usize) -> Vec<u8> {
+    let (x0, y0) = ((w - cw) / 2, (h - ch) / 2);
+    (y0..y0 + ch)
+        .flat_map(|y| rgb[(y * w + x0) * 3..(y * w + x0 + cw) * 3].iter().copied())
+        .collect()
+}
+
+/// An SVG line plot of `value` against each view's offset, one line per method.
+fn svg_plot(
+    reports: &[&MethodReport],
+    title: &str,
+    value: impl Fn(&ViewScore) -> Option<f64>,
+) -> String {
+    let (w, h, m) = (420.0, 240.0, 40.0);
+    let pts: Vec<(f64, f64)> = reports
+        .iter()
+        .flat_map(|r| {
+            r.views
+                .iter()
+                .filter_map(|v| value(v).map(|y| (v.offset, y)))
+        })
+        .filter(|p| p.1.is_finite())
+        .collect();
+    if pts.is_empty() {
+        return String::new();
+    }
+    let (x0, x1) = pts
+        .iter()
+        .fold((f64::MAX, f64::MIN), |a, p| (a.0.min(p.0), a.1.max(p.0)));
+    let (y0, y1) = pts
+        .iter()
+        .fold((f64::MAX, f64::MIN), |a, p| (a.0.min(p.1), a.1.max(p.1)));
+    let sx = |x: f64| m + (x - x0) / (x1 - x0).max(1e-12) * (w - 2.0 * m);
+    let sy = |y: f64| h - m - (y - y0) / (y1 - y0).max(1e-12) * (h - 2.0 * m);
+    let colours = [
+        "#d62728", "#ff7f0e", "#8c564b", "#2ca02c", "#1f77b4", "#17becf", "#7f7f7f", "#9467bd",
+        "#e377c2",
+    ];
+    let mut svg = format!(
+        "<svg xmlns='http://www.w3.org/2000/svg' width='{w}' height='{h}' font-size='10'>\
+         <text x='{m}' y='14'>{} (x: viewpoint offset {x0:.3}..{x1:.3}; y: {y0:.3}..{y1:.3})</text>\
+         <rect x='{m}' y='{m}' width='{}' height='{}' fill='none' stroke='#999'/>",
+        esc(title),
+        w - 2.0 * m,
+        h - 2.0 * m
+    );
+    for (i, r) in reports.iter().enumerate() {
+        let mut v: Vec<(f64, f64)> = r
+            .views
+            .iter()
+            .filter_map(|v| value(v).map(|y| (v.offset, y)))
+            .filter(|p| p.1.is_finite())
+            .collect();
+        v.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let c = colours[i % colours.len()];
+        for p in &v {
+            svg += &format!(
+                "<circle cx='{:.1}' cy='{:.1}' r='2' fill='{c}'/>",
+                sx(p.0),
+                sy(p.1)
+            );
+        }
+        svg += &format!(
+            "<text x='{}' y='{}' fill='{c}'>{}</text>",
+            w - m + 2.0 - 40.0,
+            m + 12.0 * (i as f64 + 1.0),
+            esc(&r.method)
+        );
+    }
+    svg + "</svg>"
+}
+
+/// Writes `index.html` with per-dataset tables, plots of PSNR and crack ratio against the
+/// viewpoint offset, and centre crops of the farthest target for every method.
+fn write_html(dir: &Path, reports: &[MethodReport], crops: &[Crop], a: &EvalArgs) -> Result<()> {
+    std::fs::create_dir_all(dir.join("crops"))
+        .with_context(|| format!("creating {}", dir.display()))?;
+    let mut html = format!(
+        "<!doctype html><meta charset='utf-8'><title>cpsl eval</title>\
+         <style>body{{font-family:sans-serif;margin:2em}}table{{border-collapse:collapse}}\
+         td,th{{border:1px solid #ccc;padding:2px 8px;text-align:right}}img{{image-rendering:pixelated;margin:2px}}\
+         figure{{display:inline-block;margin:4px;text-align:center;font-size:11px}}</style>\
+         <h1>cpsl eval</h1><p>{} &middot; depth: {} &middot; K = {} &middot; metrics over scored pixels; \
+         crack and hole ratios as defined in EVALUATION.md</p>",
+        crate::bench::today(),
+        esc(&a.depth),
+        a.layers
+    );
+    let mut names: Vec<&str> = reports.iter().map(|r| r.dataset.as_str()).collect();
+    names.dedup();
+    for name in names {
+        let rs: Vec<&MethodReport> = reports.iter().filter(|r| r.dataset == name).collect();
+        html += &format!(
+            "<h2>{}</h2><p>depth: {}</p><table><tr><th>method</th><th>K</th><th>PSNR dB</th><th>SSIM</th><th>LPIPS</th><th>crack</th><th>hole</th><th>views</th></tr>",
+            esc(name),
+            esc(&rs[0].depth)
+        );
+        for r in &rs {
+            html += &format!(
+                "<tr><th>{}</th><td>{}</td><td>{:.2}</td><td>{:.4}</td><td>{}</td><td>{:.4}</td><td>{:.4}</td><td>{}</td></tr>",
+                esc(&r.method),
+                r.layers,
+                r.mean_psnr,
+                r.mean_ssim,
+                r.mean_lpips.map_or("-".into(), |l| format!("{l:.4}")),
+                r.mean_crack,
+                r.mean_hole,
+                r.views.len()
+            );
+        }
+        html += "</table>";
+        html += &svg_plot(&rs, "PSNR (dB) per view", |v| v.psnr);
+        html += &svg_plot(&rs, "crack ratio per view", |v| Some(v.crack));
+        let cs: Vec<&Crop> = crops.iter().filter(|c| c.dataset == name).collect();
+        if let Some(first) = cs.first() {
+            let (cw, ch) = (first.width.min(192), first.height.min(144));
+            html += &format!(
+                "<p>centre crops of {}, the target farthest from the reference:</p>",
+                esc(&first.view)
+            );
+            let save = |label: &str, rgb: &[u8]| -> Result<String> {
+                let file = format!("crops/{}_{}.png", slug(name), slug(label));
+                let png = cpsl_io::images::encode_png(
+                    cw as u32,
+                    ch as u32,
+                    3,
+                    &centre_crop(rgb, first.width, first.height, cw, ch),
+                )
+                .map_err(anyhow::Error::msg)?;
+                cpsl_io::images::write_file_atomic(&dir.join(&file), &png)?;
+                Ok(format!(
+                    "<figure><img src='{file}' width='{}'><figcaption>{}</figcaption></figure>",
+                    cw * 2,
+                    esc(label)
+                ))
+            };
+            html += &save("ground truth", &first.truth)?;
+            for c in &cs {
+                html += &save(&c.method, &c.rgb)?;
+            }
+        }
+    }
+    cpsl_io::images::write_file_atomic(&dir.join("index.html"), html.as_bytes())
+        .with_context(|| format!("writing {}", dir.join("index.html").display()))
 }

@@ -308,6 +308,7 @@ fn eval_on_real_data_and_its_errors() {
         "unknown dataset 'kitti/06'",
     );
     let json = d.path().join("report.json");
+    let html = d.path().join("report");
     let out = ok(&[
         "eval",
         "middlebury2003/Teddy",
@@ -315,14 +316,67 @@ fn eval_on_real_data_and_its_errors() {
         s(&data),
         "--json",
         s(&json),
+        "--html",
+        s(&html),
     ]);
     assert!(
-        out.contains("depth-slice") && out.contains("single-plane"),
+        out.contains("depth-slice") && out.contains("single-plane") && out.contains("cpsl-no-dps"),
         "{out}"
     );
     let report: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
-    let first = &report[0];
+    let methods: Vec<&str> = report
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| r["method"].as_str().unwrap())
+        .collect();
+    assert_eq!(
+        methods,
+        [
+            "cpsl",
+            "cpsl-no-dps",
+            "cpsl-depth-only",
+            "depth-slice",
+            "mpi",
+            "mpi-k",
+            "single-plane",
+            "dibr",
+            "dibr-fill"
+        ]
+    );
+    let by = |m: &str| {
+        report
+            .as_array()
+            .unwrap()
+            .iter()
+            .find(|r| r["method"] == m)
+            .unwrap()
+    };
+    let first = by("cpsl");
     assert_eq!(first["dataset"], "middlebury2003/Teddy");
     assert!(first["mean_psnr"].as_f64().unwrap() > 15.0, "{first}");
-    assert_eq!(first["views"].as_array().unwrap().len(), 1);
+    let view = &first["views"][0];
+    for key in [
+        "psnr",
+        "ssim",
+        "lpips",
+        "crack",
+        "hole",
+        "covisible",
+        "offset",
+    ] {
+        assert!(view.get(key).is_some(), "views[].{key} in {view}");
+    }
+    // Unfilled DIBR cracks along depth edges; CPSL does not.
+    assert!(by("dibr")["mean_crack"].as_f64().unwrap() > 0.05);
+    assert!(first["mean_crack"].as_f64().unwrap() <= 0.01);
+    if models_present(&["lpips_alex_v0.1.onnx"]) {
+        let l = first["mean_lpips"].as_f64().unwrap();
+        assert!(l > 0.0 && l < 0.5, "LPIPS {l}");
+    }
+    let index = std::fs::read_to_string(html.join("index.html")).unwrap();
+    assert!(index.contains("<svg") && index.contains("crops/middlebury2003_Teddy_cpsl.png"));
+    assert!(html
+        .join("crops/middlebury2003_Teddy_ground_truth.png")
+        .is_file());
 }

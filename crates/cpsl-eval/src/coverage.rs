@@ -44,6 +44,17 @@ pub fn crack_ratio(covered: &[bool], band: &[bool], w: usize, h: usize) -> f64 {
     cracks as f64 / n as f64
 }
 
+/// The co-visibility mask of a target view: pixels that see surfaces the reference saw, i.e.
+/// where a per-pixel forward warp of the reference with `depth` lands, with its one- and
+/// two-pixel cracks closed (two 3x3 closings). Disocclusions and content outside the
+/// reference frame are excluded. The same mask scores every method of a comparison.
+pub fn covisible(depth: &[f32], src: &Camera, pose: &Pose, dst: &Camera) -> Vec<bool> {
+    let black = vec![0u8; depth.len() * 3];
+    let warped = crate::baselines::dibr(&black, depth, src, pose, dst, false);
+    let (w, h) = (dst.width as usize, dst.height as usize);
+    close3x3(&close3x3(&warped.covered, w, h), w, h)
+}
+
 /// The band of a target view: pixels within `r` (Chebyshev distance) of a depth edge, found by
 /// forward-projecting the reference's depth edges (4-neighbours whose depths differ by more
 /// than `ratio`, the nearer pixel of the pair) into the target with the reference depth.
@@ -137,6 +148,34 @@ mod tests {
         assert_eq!(crack_ratio(&v, &left, w, h), 1.0);
         // Full coverage: no cracks.
         assert_eq!(crack_ratio(&vec![true; w * h], &band, w, h), 0.0);
+    }
+
+    #[test]
+    fn covisibility_excludes_disocclusions_and_the_revealed_border() {
+        let cam = Camera::from_fov(40, 10, 60.0);
+        // Near plane on the left half, far on the right; the viewer moves right, so the near
+        // half shifts left more: a disocclusion opens at the edge and the right border is
+        // revealed.
+        let depth: Vec<f32> = (0..400)
+            .map(|i| if i % 40 < 20 { 1.0 } else { 4.0 })
+            .collect();
+        let shift = 8.0; // pixels of the near plane (the far one moves 2)
+        let pose = Pose::from_translation(cpsl_core::Vec3::new(shift / cam.fx, 0.0, 0.0));
+        let m = covisible(&depth, &cam, &pose, &cam);
+        for y in 0..10 {
+            let row: Vec<bool> = (0..40).map(|x| m[y * 40 + x]).collect();
+            // The near plane now covers x = 0..=11, the far plane x = 18..=37.
+            assert!(row[..12].iter().all(|&b| b), "{row:?}");
+            assert!(
+                row[13..17].iter().all(|&b| !b),
+                "disocclusion excluded: {row:?}"
+            );
+            assert!(row[18..38].iter().all(|&b| b), "{row:?}");
+            assert!(!row[38] && !row[39], "revealed border excluded: {row:?}");
+        }
+        assert!(covisible(&depth, &cam, &Pose::IDENTITY, &cam)
+            .iter()
+            .all(|&b| b));
     }
 
     #[test]

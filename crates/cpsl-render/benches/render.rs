@@ -20,6 +20,15 @@ fn bench(c: &mut Criterion) {
     }
     let set = synthetic_layer_set(1280, 720, 6, Coverage::Typical, 7);
     c.bench_function("prepare_720p_k6", |b| b.iter(|| PreparedLayers::new(&set)));
+    // The Dynamic Pixel Strip pass on top of the render (typical layers, the same pose).
+    let prepared = PreparedLayers::new(&set);
+    let cam = *set.camera();
+    let mut out = PremulImage::new(cam.width, cam.height);
+    c.bench_function("render_dps_720p_k6_typical", |b| {
+        b.iter(|| {
+            prepared.render_dps_into(&pose, &cam, &mut out, &cpsl_render::DpsConfig::default())
+        })
+    });
 }
 
 criterion_group! {

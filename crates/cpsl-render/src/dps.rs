@@ -4,13 +4,12 @@
 //!
 //! `z_dps = (1 - gamma) z_f + gamma z_b`, `C_dps = (1 - gamma) C_f + gamma C_b`.
 //!
-//! * **Support.** Pixels with accumulated alpha below 1/2 (`V` is the rest) inside the
-//!   morphological closing of `V` by a square of radius `s`: gaps at most about `2 s` wide
-//!   with coverage on both sides. `s` follows the pose: the largest screen-space parallax
-//!   between neighbouring layers at the image centre, plus one pixel, capped at
-//!   [`DpsConfig::max_width`]. Only pixels with covered pixels on two opposite sides (within
-//!   `2 s`) are synthesised. Covered pixels are never changed (no interior blur), and wide
-//!   disocclusions or content outside the reference frame stay as they are.
+//! * **Support.** Pixels with accumulated alpha below 1/2 (`V` is the rest) that have covered
+//!   pixels within `2 s` on two opposite sides (along their row or column): gaps at most
+//!   `4 s` wide, bounded on both sides. `s` follows the pose: the largest
+//!   screen-space parallax between neighbouring layers at the image centre, plus one pixel,
+//!   capped at [`DpsConfig::max_width`]. Covered pixels are never changed (no interior blur),
+//!   and wide disocclusions or content outside the reference frame stay as they are.
 //! * **Sides.** Along eight directions the nearest covered pixel within `2 s` is found; the
 //!   visible layer there (the first with warped alpha >= 1/2) gives its depth. The nearest
 //!   side with the smallest depth is the foreground `f`, with the largest the background `b`.
@@ -80,36 +79,6 @@ const DIRS: [(i32, i32); 8] = [
     (-1, 1),
 ];
 
-fn close(v: &[bool], w: usize, h: usize, r: usize) -> Vec<bool> {
-    // Square dilation then erosion, both separable.
-    let pass = |src: &[bool], dilate: bool| -> Vec<bool> {
-        let mut tmp = vec![false; w * h];
-        for y in 0..h {
-            for x in 0..w {
-                let row = &src[y * w + x.saturating_sub(r)..y * w + (x + r + 1).min(w)];
-                tmp[y * w + x] = if dilate {
-                    row.iter().any(|&b| b)
-                } else {
-                    row.iter().all(|&b| b)
-                };
-            }
-        }
-        let mut out = vec![false; w * h];
-        for y in 0..h {
-            for x in 0..w {
-                let mut col = (y.saturating_sub(r)..(y + r + 1).min(h)).map(|yy| tmp[yy * w + x]);
-                out[y * w + x] = if dilate {
-                    col.any(|b| b)
-                } else {
-                    col.all(|b| b)
-                };
-            }
-        }
-        out
-    };
-    pass(&pass(v, true), false)
-}
-
 impl PreparedLayers {
     /// Screen-space parallax in pixels between neighbouring layers at the image centre.
     fn max_parallax(&self, pose: &Pose, target: &Camera) -> f64 {
@@ -168,7 +137,6 @@ impl PreparedLayers {
         if covered.iter().all(|&c| c) {
             return stats;
         }
-        let closed = close(&covered, w, h, s as usize);
         let homs: Vec<Option<[[f64; 3]; 3]>> = self
             .layers
             .iter()
@@ -179,11 +147,63 @@ impl PreparedLayers {
             })
             .collect();
         let reach = 2 * s as i32;
+        // Distance to the nearest covered pixel leftwards / rightwards / upwards / downwards
+        // (saturating), to find two-sided gaps in linear time.
+        let far = u16::MAX;
+        let mut run = [
+            vec![far; w * h],
+            vec![far; w * h],
+            vec![far; w * h],
+            vec![far; w * h],
+        ];
+        for y in 0..h {
+            let mut d = far;
+            for x in 0..w {
+                d = if covered[y * w + x] {
+                    0
+                } else {
+                    d.saturating_add(1)
+                };
+                run[0][y * w + x] = d;
+            }
+            d = far;
+            for x in (0..w).rev() {
+                d = if covered[y * w + x] {
+                    0
+                } else {
+                    d.saturating_add(1)
+                };
+                run[1][y * w + x] = d;
+            }
+        }
+        let mut col = vec![far; w];
+        for y in 0..h {
+            for (x, d) in col.iter_mut().enumerate() {
+                *d = if covered[y * w + x] {
+                    0
+                } else {
+                    d.saturating_add(1)
+                };
+                run[2][y * w + x] = *d;
+            }
+        }
+        col.fill(far);
+        for y in (0..h).rev() {
+            for (x, d) in col.iter_mut().enumerate() {
+                *d = if covered[y * w + x] {
+                    0
+                } else {
+                    d.saturating_add(1)
+                };
+                run[3][y * w + x] = *d;
+            }
+        }
+        let near = |i: usize, p: usize| (run[i][p] as i32) <= reach;
         let mut writes = Vec::new();
         for y in 0..h {
             for x in 0..w {
                 let p = y * w + x;
-                if covered[p] || !closed[p] {
+                if covered[p] || !((near(0, p) && near(1, p)) || (near(2, p) && near(3, p))) {
                     continue;
                 }
                 // Nearest covered pixel along each direction: (distance, pixel, layer).
@@ -206,7 +226,7 @@ impl PreparedLayers {
                         }
                     }
                 }
-                // A gap has content on two opposite sides (DIRS holds opposite pairs).
+                // Both sides must show a layer (DIRS holds opposite pairs).
                 if !(0..4).any(|i| hit[2 * i] && hit[2 * i + 1]) {
                     continue;
                 }

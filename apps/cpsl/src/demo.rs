@@ -121,11 +121,12 @@ pub fn run(a: DemoArgs) -> Result<()> {
         layer_dir.display()
     );
 
-    let prepared = PreparedLayers::new(&set);
+    let prepared = PreparedLayers::new(&set).with_edc(&run.layered.edc);
     let sweep_dir = a.output.join("sweep");
     let sweep = Sweep::parse("tx:-0.3:0.3:61").expect("valid sweep");
     render_sweep(
         &prepared,
+        true,
         &sweep.poses(),
         &sweep_dir,
         Output::Over([0, 0, 0]),
@@ -145,7 +146,8 @@ pub fn run(a: DemoArgs) -> Result<()> {
 
     let mut scores = Vec::new();
     for (entry, truth) in &synth.views {
-        let img = prepared.render(&entry.pose_matrix);
+        let mut img = cpsl_core::PremulImage::new(set.camera().width, set.camera().height);
+        crate::render::render_pose(&prepared, true, &entry.pose_matrix, &mut img);
         scores.push(Score {
             view: entry.name.clone(),
             pose: entry.pose.clone(),

@@ -34,6 +34,9 @@ pub struct RenderArgs {
     /// Frames per second of the sweep video.
     #[arg(long, default_value_t = 30)]
     pub fps: u32,
+    /// Render without the Dynamic Pixel Strip (ablation).
+    #[arg(long)]
+    pub no_dps: bool,
 }
 
 /// A sweep of poses along one axis.
@@ -102,6 +105,7 @@ impl Sweep {
 /// and, when FFmpeg is present, `sweep.mp4`.
 pub fn render_sweep(
     prepared: &PreparedLayers,
+    dps: bool,
     poses: &[Pose],
     dir: &Path,
     how: Output,
@@ -124,7 +128,7 @@ pub fn render_sweep(
         total: Some(poses.len() as u64),
     });
     for (i, pose) in poses.iter().enumerate() {
-        prepared.render_into(pose, &cam, &mut img);
+        render_pose(prepared, dps, pose, &mut img);
         util::write_render(&dir.join(format!("frame_{i:03}.png")), &img, how)?;
         if picks.contains(&i) {
             let (small, w, h) = util::downscale_rgb(
@@ -157,10 +161,32 @@ pub fn render_sweep(
     Ok(())
 }
 
+/// Renders one view with the reference camera, with or without the Dynamic Pixel Strip.
+pub fn render_pose(prepared: &PreparedLayers, dps: bool, pose: &Pose, img: &mut PremulImage) {
+    let cam = *prepared.camera();
+    if dps {
+        prepared.render_dps_into(pose, &cam, img, &cpsl_render::DpsConfig::default());
+    } else {
+        prepared.render_into(pose, &cam, img);
+    }
+}
+
+/// Prepares a layer set for rendering, with its Edge-Depth Cache when the folder has one.
+pub fn prepare(dir: &Path, set: &cpsl_core::LayerSet) -> Result<PreparedLayers> {
+    let prepared = PreparedLayers::new(set);
+    Ok(
+        match cpsl_io::read_edc(dir, set, &cpsl_core::Limits::default())? {
+            Some(edc) => prepared.with_edc(&edc),
+            None => prepared,
+        },
+    )
+}
+
 /// Runs `cpsl render`.
 pub fn run(a: RenderArgs) -> Result<()> {
     let set = util::load_layer_set(&a.layerset)?;
-    let prepared = PreparedLayers::new(&set);
+    let prepared = prepare(&a.layerset, &set)?;
+    let dps = !a.no_dps;
     let how = if a.alpha {
         Output::Alpha
     } else {
@@ -168,13 +194,16 @@ pub fn run(a: RenderArgs) -> Result<()> {
     };
     match (a.pose, a.sweep) {
         (Some(pose), None) => {
-            let img = prepared.render(&pose);
+            let cam = *prepared.camera();
+            let mut img = PremulImage::new(cam.width, cam.height);
+            render_pose(&prepared, dps, &pose, &mut img);
             util::write_render(&a.output, &img, how)?;
             println!("wrote {}", a.output.display());
         }
         (None, Some(sweep)) => {
             render_sweep(
                 &prepared,
+                dps,
                 &sweep.poses(),
                 &a.output,
                 how,

@@ -147,7 +147,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
     let mut scores = Vec::new();
     for (entry, truth) in &synth.views {
         let mut img = cpsl_core::PremulImage::new(set.camera().width, set.camera().height);
-        crate::render::render_pose(&prepared, true, &entry.pose_matrix, &mut img);
+        crate::render::render_pose(&prepared, true, &entry.pose_matrix, set.camera(), &mut img);
         scores.push(Score {
             view: entry.name.clone(),
             pose: entry.pose.clone(),

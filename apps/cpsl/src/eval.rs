@@ -1,17 +1,18 @@
 //! `cpsl eval`: layer real reference views, render their target views, score them against the
 //! real images (PSNR, SSIM, LPIPS, crack and hole ratios) and report as a table, JSON and HTML.
 
-use crate::layer::{layer_image, open_depth_model, InstanceMode};
+use crate::layer::{layer_image, InstanceMode};
 use crate::progress::Bars;
+use crate::synth::estimate_depth;
 use anyhow::{Context, Result};
 use clap::{Args, ValueEnum};
-use cpsl_core::{DepthSource, FixedDepth, PremulImage, Progress, ProgressEvent};
+use cpsl_core::{FixedDepth, NoProgress, PremulImage, Progress, ProgressEvent};
 use cpsl_eval::baselines::dibr;
 use cpsl_eval::coverage::{covisible, crack_ratio, edge_band, hole_ratio};
 use cpsl_eval::datasets::{self, align_median, Dataset, Target};
 use cpsl_eval::metrics::{psnr_masked, ssim};
 use cpsl_layering::{slice_by_depth, Bins, LayeringConfig, SliceConfig};
-use cpsl_render::{DpsConfig, PreparedLayers};
+use cpsl_render::PreparedLayers;
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 
@@ -238,11 +239,7 @@ fn farthest(ds: &Dataset) -> usize {
 /// Renders a target view from prepared layers, with or without the Dynamic Pixel Strip.
 fn render_layers(prepared: &PreparedLayers, t: &Target, dps: bool) -> Synth {
     let mut img = PremulImage::new(t.camera.width, t.camera.height);
-    if dps {
-        prepared.render_dps_into(&t.pose, &t.camera, &mut img, &DpsConfig::default());
-    } else {
-        prepared.render_into(&t.pose, &t.camera, &mut img);
-    }
+    crate::render::render_pose(prepared, dps, &t.pose, &t.camera, &mut img);
     Synth {
         rgb: img.over_background([0, 0, 0]),
         covered: img
@@ -258,13 +255,6 @@ fn mean(v: impl Iterator<Item = f64>) -> f64 {
     s / n.max(1) as f64
 }
 
-/// Progress sink that drops the expected warning about unknown ground-truth depth.
-struct NoWarnings;
-
-impl Progress for NoWarnings {
-    fn event(&self, _event: ProgressEvent<'_>) {}
-}
-
 /// The depth to layer `ds` with, and its description; `None` when the dataset has no ground
 /// truth and `gt` was asked for.
 fn dataset_depth(ds: &Dataset, depth: &str) -> Result<Option<(Vec<f32>, String)>> {
@@ -275,18 +265,14 @@ fn dataset_depth(ds: &Dataset, depth: &str) -> Result<Option<(Vec<f32>, String)>
         return Ok(Some((ds.depth.clone(), "ground truth".to_string())));
     }
     let model = depth.strip_prefix("model:").unwrap_or(depth);
-    let mut m = open_depth_model(model, None)?;
-    let est = m.depth(&ds.rgb, ds.camera.width, ds.camera.height)?;
+    let (est, source) = estimate_depth(model, None, &ds.rgb, ds.camera.width, ds.camera.height)?;
     let truth = match ds.centre_depth {
         Some(z) => vec![z; est.len()],
         None => ds.depth.clone(),
     };
-    let (aligned, s) = align_median(&est, &truth)
-        .with_context(|| format!("{}: no valid depth to align", m.name()))?;
-    Ok(Some((
-        aligned,
-        format!("{}, median-scaled x{s:.3}", m.name()),
-    )))
+    let (aligned, s) =
+        align_median(&est, &truth).with_context(|| format!("{source}: no valid depth to align"))?;
+    Ok(Some((aligned, format!("{source}, median-scaled x{s:.3}"))))
 }
 
 /// Runs `cpsl eval`.
@@ -382,7 +368,7 @@ pub fn run(a: EvalArgs) -> Result<()> {
                         true,
                         &cfg,
                         a.instances,
-                        &NoWarnings,
+                        &NoProgress,
                     )
                     .with_context(|| format!("layering {name}"))?;
                     let prepared = PreparedLayers::new(&run.layered.set).with_edc(&run.layered.edc);

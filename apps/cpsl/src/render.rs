@@ -4,7 +4,7 @@ use crate::progress::Bars;
 use crate::util::{self, Output};
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use cpsl_core::{Pose, PremulImage, Progress, ProgressEvent, Vec3};
+use cpsl_core::{Camera, Pose, PremulImage, Progress, ProgressEvent, Vec3};
 use cpsl_render::PreparedLayers;
 use std::path::{Path, PathBuf};
 
@@ -128,7 +128,7 @@ pub fn render_sweep(
         total: Some(poses.len() as u64),
     });
     for (i, pose) in poses.iter().enumerate() {
-        render_pose(prepared, dps, pose, &mut img);
+        render_pose(prepared, dps, pose, &cam, &mut img);
         util::write_render(&dir.join(format!("frame_{i:03}.png")), &img, how)?;
         if picks.contains(&i) {
             let (small, w, h) = util::downscale_rgb(
@@ -161,13 +161,19 @@ pub fn render_sweep(
     Ok(())
 }
 
-/// Renders one view with the reference camera, with or without the Dynamic Pixel Strip.
-pub fn render_pose(prepared: &PreparedLayers, dps: bool, pose: &Pose, img: &mut PremulImage) {
-    let cam = *prepared.camera();
+/// Renders the view of camera `target` at `pose` into `img`, with or without the Dynamic Pixel
+/// Strip.
+pub fn render_pose(
+    prepared: &PreparedLayers,
+    dps: bool,
+    pose: &Pose,
+    target: &Camera,
+    img: &mut PremulImage,
+) {
     if dps {
-        prepared.render_dps_into(pose, &cam, img, &cpsl_render::DpsConfig::default());
+        prepared.render_dps_into(pose, target, img, &cpsl_render::DpsConfig::default());
     } else {
-        prepared.render_into(pose, &cam, img);
+        prepared.render_into(pose, target, img);
     }
 }
 
@@ -196,7 +202,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
         (Some(pose), None) => {
             let cam = *prepared.camera();
             let mut img = PremulImage::new(cam.width, cam.height);
-            render_pose(&prepared, dps, &pose, &mut img);
+            render_pose(&prepared, dps, &pose, &cam, &mut img);
             util::write_render(&a.output, &img, how)?;
             println!("wrote {}", a.output.display());
         }

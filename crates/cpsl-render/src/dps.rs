@@ -22,7 +22,8 @@
 //! The strip fills the remaining transmittance: `I += (1 - A) C_dps`.
 
 use crate::prepared::PreparedLayers;
-use cpsl_core::{Camera, Edc, Homography, Pose, PremulImage};
+use crate::raster::Warp;
+use cpsl_core::{Camera, Edc, Pose, PremulImage};
 use std::collections::HashMap;
 
 /// Configuration of the Dynamic Pixel Strip.
@@ -97,10 +98,10 @@ impl PreparedLayers {
     }
 
     /// Index of the first layer whose warped alpha at target pixel `(x, y)` is at least 1/2.
-    fn visible_layer(&self, homs: &[Option<[[f64; 3]; 3]>], x: usize, y: usize) -> Option<usize> {
+    fn visible_layer(&self, warps: &[Option<Warp>], x: usize, y: usize) -> Option<usize> {
         let (sw, sh) = (self.camera.width as f64, self.camera.height as f64);
-        homs.iter().enumerate().find_map(|(k, h)| {
-            let h = h.as_ref()?;
+        warps.iter().enumerate().find_map(|(k, wp)| {
+            let h = &wp.as_ref()?.h;
             let (u, v) = (x as f64, y as f64);
             let d = h[2][0] * u + h[2][1] * v + h[2][2];
             if d <= 0.0 {
@@ -137,15 +138,7 @@ impl PreparedLayers {
         if covered.iter().all(|&c| c) {
             return stats;
         }
-        let homs: Vec<Option<[[f64; 3]; 3]>> = self
-            .layers
-            .iter()
-            .map(|l| {
-                Homography::plane_inverse(&self.camera, target, pose, l.depth)
-                    .filter(|h| h.0.is_finite())
-                    .map(|h| h.0 .0)
-            })
-            .collect();
+        let warps = self.warps(pose, target);
         let reach = 2 * s as i32;
         // Distance to the nearest covered pixel leftwards / rightwards / upwards / downwards
         // (saturating), to find two-sided gaps in linear time.
@@ -217,7 +210,7 @@ impl PreparedLayers {
                         }
                         let q = yy as usize * w + xx as usize;
                         if covered[q] {
-                            if let Some(k) = self.visible_layer(&homs, xx as usize, yy as usize) {
+                            if let Some(k) = self.visible_layer(&warps, xx as usize, yy as usize) {
                                 let len = ((dx * dx + dy * dy) as f64).sqrt() * step as f64;
                                 sides.push((len, q, k));
                                 hit[dir] = true;

@@ -47,8 +47,9 @@ impl std::ops::Add for RenderStats {
 }
 
 #[derive(Clone, Copy)]
-struct Warp {
-    h: [[f64; 3]; 3],
+pub(crate) struct Warp {
+    /// Inverse homography: target pixel to source pixel.
+    pub(crate) h: [[f64; 3]; 3],
 }
 
 enum Class {
@@ -457,7 +458,7 @@ fn span_misses_layer(
 }
 
 impl PreparedLayers {
-    fn warps(&self, pose: &Pose, target: &Camera) -> Vec<Option<Warp>> {
+    pub(crate) fn warps(&self, pose: &Pose, target: &Camera) -> Vec<Option<Warp>> {
         self.layers
             .iter()
             .map(|l| {

@@ -9,7 +9,11 @@
 //! * `S(x) = k`: 1;
 //! * `S(x) > k` (behind, outside the contour): `max(0, 1 - D / (w + 1))`;
 //! * `S(x) < k` (in front): 1 within `D <= m` (the extension that parallax can reveal),
-//!   then `max(0, 1 - (D - m) / (w + 1))`; the farthest layer is opaque everywhere.
+//!   then `max(0, 1 - (D - m) / (w + 1))`, but only where layer `k` is the layer behind
+//!   `S(x)` whose pixels are nearest (within one pixel): behind an occluder, each side is
+//!   continued by the surface that borders it there, never by a layer that merely lies within
+//!   reach (that would show a ghost copy of its edge, a double edge, when the occluder moves
+//!   away); the farthest layer is opaque everywhere.
 //!
 //! Colour is the input wherever a layer is visible at the reference view (own and behind
 //! pixels), so the reference composite reproduces the input exactly; behind nearer layers it
@@ -262,6 +266,31 @@ pub fn build_layers(
     for (p, &o) in owner.iter().enumerate() {
         per[o as usize].push(cues.depth[p]);
     }
+    // Distance to every layer's own pixels, within reach of them (the back layer too: where
+    // it is the nearest layer behind an occluder, nothing else extends there).
+    let reach = (margin + cfg.max_feather).ceil() as usize + 2;
+    let dists: Vec<Option<(Rect, Vec<f32>)>> = (0..k)
+        .into_par_iter()
+        .map(|i| {
+            let own = |p: usize| owner[p] as usize == i;
+            let r = Rect::bounding(w, h, own)?.grow(reach, w, h);
+            let rw = r.width();
+            let inside: Vec<bool> = (0..rw * r.height())
+                .map(|q| own((q / rw + r.y0) * w + q % rw + r.x0))
+                .collect();
+            Some((r, distance(&inside, rw, r.height())))
+        })
+        .collect();
+    let dist = |l: usize, p: usize| -> f32 {
+        let Some((r, d)) = &dists[l] else {
+            return f32::INFINITY;
+        };
+        let (x, y) = (p % w, p / w);
+        if x < r.x0 || x >= r.x1 || y < r.y0 || y >= r.y1 {
+            return f32::INFINITY;
+        }
+        d[(y - r.y0) * r.width() + x - r.x0]
+    };
     let layers: Vec<Layer> = (0..k)
         .into_par_iter()
         .map(|i| {
@@ -272,25 +301,21 @@ pub fn build_layers(
             let mut alpha = vec![0f32; w * h];
             if back {
                 alpha.fill(1.0);
-            } else if let Some(r) = Rect::bounding(w, h, own) {
-                let reach = (margin + cfg.max_feather).ceil() as usize + 2;
-                let r = r.grow(reach, w, h);
-                let (rw, rh) = (r.width(), r.height());
-                let inside: Vec<bool> = (0..rw * rh)
-                    .map(|q| own((q / rw + r.y0) * w + q % rw + r.x0))
-                    .collect();
-                let dist = distance(&inside, rw, rh);
-                for (q, &d) in dist.iter().enumerate() {
-                    let p = (q / rw + r.y0) * w + q % rw + r.x0;
+            } else if let Some((r, di)) = &dists[i] {
+                for (q, &d) in di.iter().enumerate() {
+                    let p = (q / r.width() + r.y0) * w + q % r.width() + r.x0;
                     let o = owner[p] as usize;
+                    let ramp = |excess: f32| (1.0 - excess / (wf[p] + 1.0)).clamp(0.0, 1.0);
                     alpha[p] = if o == i {
                         1.0
                     } else if o > i {
-                        (1.0 - d / (wf[p] + 1.0)).max(0.0)
-                    } else if d <= margin {
-                        1.0
+                        ramp(d)
                     } else {
-                        (1.0 - (d - margin) / (wf[p] + 1.0)).max(0.0)
+                        // Behind a nearer layer: extend only where this layer is the one
+                        // nearest the occluder's pixel among the layers behind it, so a layer
+                        // never shows through where another surface borders the occluder.
+                        let nearest = (o + 1..k).map(|l| dist(l, p)).fold(f32::INFINITY, f32::min);
+                        ramp((d - margin).max(0.0)).min((1.0 - (d - nearest)).clamp(0.0, 1.0))
                     };
                 }
             }

@@ -26,6 +26,11 @@ pub struct PromoteConfig {
     /// Largest inverse-depth spread (10th to 90th percentile, normalised) of a promoted
     /// region: one plane must represent it well.
     pub max_spread: f32,
+    /// How much more depth-fit error (relative) a promotion may cost. A promoted region takes
+    /// a layer from the background, so candidates (best score first) are promoted only if the
+    /// squared inverse-depth error of the whole plan grows by at most this fraction; 0
+    /// promotes only where that improves the depth fit, a large value (1e9) always promotes.
+    pub cost_tolerance: f32,
 }
 
 impl Default for PromoteConfig {
@@ -37,6 +42,7 @@ impl Default for PromoteConfig {
             threshold: 0.25,
             min_standout: 0.03,
             max_spread: 0.05,
+            cost_tolerance: 0.15,
         }
     }
 }
@@ -76,6 +82,7 @@ pub struct Plan {
 struct Stats {
     n: f64,
     disp: f64,
+    disp2: f64,
     sal: f64,
     luma: f64,
     luma2: f64,
@@ -85,12 +92,17 @@ impl Stats {
     fn add(&mut self, o: &Stats) {
         self.n += o.n;
         self.disp += o.disp;
+        self.disp2 += o.disp2;
         self.sal += o.sal;
         self.luma += o.luma;
         self.luma2 += o.luma2;
     }
     fn mean(&self, v: f64) -> f64 {
         v / self.n.max(1.0)
+    }
+    /// Sum of squared inverse-depth deviations from the mean.
+    fn sse(&self) -> f64 {
+        (self.disp2 - self.disp * self.disp / self.n.max(1.0)).max(0.0)
     }
     fn luma_sd(&self) -> f64 {
         (self.mean(self.luma2) - self.mean(self.luma).powi(2))
@@ -108,6 +120,7 @@ pub fn promote(work: &Work, fusion: &Fusion, k: usize, cfg: &PromoteConfig) -> P
     let px = |p: usize| Stats {
         n: 1.0,
         disp: work.disparity[p] as f64,
+        disp2: (work.disparity[p] * work.disparity[p]) as f64,
         sal: work.saliency[p] as f64,
         luma: y[p] as f64,
         luma2: (y[p] * y[p]) as f64,
@@ -174,40 +187,40 @@ pub fn promote(work: &Work, fusion: &Fusion, k: usize, cfg: &PromoteConfig) -> P
     // At least half the layers stay for the background depth range.
     cand.truncate(cfg.max_promoted.min(k.saturating_sub(1) / 2));
 
-    // Background groups per label (pixels not promoted).
+    // Candidates are taken best score first; each is promoted only if the plan's depth-fit
+    // error stays within the tolerance of the plan without it.
     let nl = fusion.representatives.len();
+    let plan_for = |chosen: &[(usize, f32)]| -> (Vec<(Vec<usize>, Stats)>, f64) {
+        let mut promoted = vec![false; nr];
+        for &(r, _) in chosen {
+            promoted[r] = true;
+        }
+        let mut gs = vec![Stats::default(); nl];
+        for p in 0..n {
+            if !promoted[region[p] as usize] {
+                gs[lab[p] as usize].add(&px(p));
+            }
+        }
+        let groups = merge(gs, k.saturating_sub(chosen.len()).max(1));
+        let sse = groups.iter().map(|g| g.1.sse()).sum::<f64>()
+            + chosen.iter().map(|&(r, _)| rs[r].sse()).sum::<f64>();
+        (groups, sse)
+    };
+    let mut chosen = Vec::new();
+    let (mut groups, mut sse) = plan_for(&chosen);
+    for &c in &cand {
+        chosen.push(c);
+        let (g, s) = plan_for(&chosen);
+        if s <= sse * (1.0 + cfg.cost_tolerance as f64) {
+            (groups, sse) = (g, s);
+        } else {
+            chosen.pop();
+        }
+    }
+    let cand = chosen;
     let mut promoted_of = vec![usize::MAX; nr];
     for (i, &(r, _)) in cand.iter().enumerate() {
         promoted_of[r] = i;
-    }
-    let mut gs = vec![Stats::default(); nl];
-    for p in 0..n {
-        if promoted_of[region[p] as usize] == usize::MAX {
-            gs[lab[p] as usize].add(&px(p));
-        }
-    }
-    // Groups in depth order (labels are nearest first); each group is a run of labels.
-    let mut groups: Vec<(Vec<usize>, Stats)> = (0..nl)
-        .filter(|&l| gs[l].n > 0.0)
-        .map(|l| (vec![l], gs[l].clone()))
-        .collect();
-    let target = k.saturating_sub(cand.len()).max(1);
-    while groups.len() > target {
-        // Ward cost in inverse depth, scaled by texture dissimilarity.
-        let cost = |a: &Stats, b: &Stats| {
-            let dd = a.mean(a.disp) - b.mean(b.disp);
-            let tex = (a.mean(a.luma) - b.mean(b.luma)).abs() + (a.luma_sd() - b.luma_sd()).abs();
-            dd * dd * a.n * b.n / (a.n + b.n) * (1.0 + 2.0 * tex)
-        };
-        let i = (0..groups.len() - 1)
-            .min_by(|&i, &j| {
-                cost(&groups[i].1, &groups[i + 1].1)
-                    .total_cmp(&cost(&groups[j].1, &groups[j + 1].1))
-            })
-            .unwrap_or(0);
-        let (labels, stats) = groups.remove(i + 1);
-        groups[i].0.extend(labels);
-        groups[i].1.add(&stats);
     }
     let mut group_of = vec![0usize; nl];
     for (g, (labels, _)) in groups.iter().enumerate() {
@@ -264,4 +277,33 @@ pub fn promote(work: &Work, fusion: &Fusion, k: usize, cfg: &PromoteConfig) -> P
         owner: (0..n).map(|p| rank[slot(p)]).collect(),
         layers: order.iter().map(|&i| planned[i].clone()).collect(),
     }
+}
+
+/// Groups the labels' statistics (nearest first; empty labels dropped) into at most `target`
+/// runs of neighbouring labels, merging the cheapest neighbouring pair first: Ward cost in
+/// inverse depth, scaled by texture dissimilarity.
+fn merge(gs: Vec<Stats>, target: usize) -> Vec<(Vec<usize>, Stats)> {
+    let mut groups: Vec<(Vec<usize>, Stats)> = gs
+        .into_iter()
+        .enumerate()
+        .filter(|(_, g)| g.n > 0.0)
+        .map(|(l, g)| (vec![l], g))
+        .collect();
+    let cost = |a: &Stats, b: &Stats| {
+        let dd = a.mean(a.disp) - b.mean(b.disp);
+        let tex = (a.mean(a.luma) - b.mean(b.luma)).abs() + (a.luma_sd() - b.luma_sd()).abs();
+        dd * dd * a.n * b.n / (a.n + b.n) * (1.0 + 2.0 * tex)
+    };
+    while groups.len() > target {
+        let i = (0..groups.len() - 1)
+            .min_by(|&i, &j| {
+                cost(&groups[i].1, &groups[i + 1].1)
+                    .total_cmp(&cost(&groups[j].1, &groups[j + 1].1))
+            })
+            .unwrap_or(0);
+        let (labels, stats) = groups.remove(i + 1);
+        groups[i].0.extend(labels);
+        groups[i].1.add(&stats);
+    }
+    groups
 }

@@ -82,6 +82,7 @@ impl LayeringConfig {
             ("matte.max_feather", self.matte.max_feather),
             ("matte.extend", self.matte.extend),
             ("matte.colour_weight", self.matte.colour_weight),
+            ("promote.cost_tolerance", self.promote.cost_tolerance),
         ] {
             if !(v.is_finite() && v >= 0.0) {
                 return Err(LayeringError::Config {

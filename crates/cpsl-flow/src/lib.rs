@@ -1,0 +1,341 @@
+//! Dense optical flow between two grey images, coarse to fine.
+//!
+//! At every level of a factor-2 pyramid (coarsest first, the flow of the level above
+//! doubled as the start), a few Gauss-Newton steps of dense Lucas-Kanade: the second image is
+//! warped by the current flow, and each pixel solves the 2x2 normal equations of the
+//! brightness-constancy residual summed over a `(2r+1)^2` window (box filtered), with a small
+//! Tikhonov term so that flat regions keep the flow they have; a 3x3 median of each component
+//! after every step removes outliers at motion boundaries.
+//!
+//! Convention: `flow(a, b)` returns `u` with `a(x) ~ b(x + u(x))` (per pixel `(dx, dy)`), i.e. the
+//! position in `b` of what `a` shows at `x`: sampling anything attached to `b` at `x + u(x)`
+//! carries it to `a` (backward warping).
+
+use rayon::prelude::*;
+use thiserror::Error;
+
+/// A grey image in `[0, 1]`, row major.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Grey {
+    /// Width.
+    pub width: usize,
+    /// Height.
+    pub height: usize,
+    /// Pixels.
+    pub data: Vec<f32>,
+}
+
+/// A dense flow field: per pixel `(dx, dy)` interleaved.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Flow {
+    /// Width.
+    pub width: usize,
+    /// Height.
+    pub height: usize,
+    /// `[dx0, dy0, dx1, dy1, ...]`.
+    pub data: Vec<f32>,
+}
+
+/// Flow errors.
+#[derive(Debug, Error, PartialEq)]
+pub enum FlowError {
+    /// The images differ in size or do not match their data.
+    #[error("images of {a:?} and {b:?} pixels cannot be compared (both must be the same, non-empty and match their data)")]
+    Size {
+        /// First image's size.
+        a: (usize, usize),
+        /// Second image's size.
+        b: (usize, usize),
+    },
+}
+
+/// Flow configuration.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct FlowConfig {
+    /// Window radius `r` of the local least squares.
+    pub radius: usize,
+    /// Gauss-Newton steps per level.
+    pub iterations: usize,
+    /// Coarsest level's smaller side is at least this.
+    pub min_side: usize,
+    /// Tikhonov weight, relative to the window area.
+    pub regularisation: f32,
+}
+
+impl Default for FlowConfig {
+    fn default() -> Self {
+        Self {
+            radius: 3,
+            iterations: 4,
+            min_side: 8,
+            regularisation: 1e-6,
+        }
+    }
+}
+
+impl Grey {
+    /// From interleaved RGB bytes (Rec. 709 luma).
+    pub fn from_rgb8(rgb: &[u8], width: usize, height: usize) -> Self {
+        let data = rgb
+            .chunks_exact(3)
+            .map(|p| (0.2126 * p[0] as f32 + 0.7152 * p[1] as f32 + 0.0722 * p[2] as f32) / 255.0)
+            .collect();
+        Self {
+            width,
+            height,
+            data,
+        }
+    }
+
+    /// Bilinear sample with clamping to the border.
+    #[inline]
+    pub fn sample(&self, x: f32, y: f32) -> f32 {
+        let x = x.clamp(0.0, (self.width - 1) as f32);
+        let y = y.clamp(0.0, (self.height - 1) as f32);
+        let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+        let (x1, y1) = ((x0 + 1).min(self.width - 1), (y0 + 1).min(self.height - 1));
+        let (fx, fy) = (x - x0 as f32, y - y0 as f32);
+        let d = &self.data;
+        let w = self.width;
+        let top = d[y0 * w + x0] * (1.0 - fx) + d[y0 * w + x1] * fx;
+        let bot = d[y1 * w + x0] * (1.0 - fx) + d[y1 * w + x1] * fx;
+        top * (1.0 - fy) + bot * fy
+    }
+
+    /// Half size, 2x2 average.
+    fn half(&self) -> Self {
+        let (w, h) = (self.width.div_ceil(2), self.height.div_ceil(2));
+        let mut data = vec![0f32; w * h];
+        for y in 0..h {
+            for x in 0..w {
+                let mut s = 0.0;
+                for (dy, dx) in [(0, 0), (0, 1), (1, 0), (1, 1)] {
+                    let sx = (2 * x + dx).min(self.width - 1);
+                    let sy = (2 * y + dy).min(self.height - 1);
+                    s += self.data[sy * self.width + sx];
+                }
+                data[y * w + x] = s / 4.0;
+            }
+        }
+        Self {
+            width: w,
+            height: h,
+            data,
+        }
+    }
+}
+
+impl Flow {
+    /// The flow at pixel `(x, y)`.
+    #[inline]
+    pub fn at(&self, x: usize, y: usize) -> (f32, f32) {
+        let p = (y * self.width + x) * 2;
+        (self.data[p], self.data[p + 1])
+    }
+
+    /// Bilinear resampling to `width x height`, vectors scaled with the size.
+    pub fn resize(&self, width: usize, height: usize) -> Flow {
+        let (sx, sy) = (
+            width as f32 / self.width as f32,
+            height as f32 / self.height as f32,
+        );
+        let comps: Vec<Grey> = (0..2)
+            .map(|c| Grey {
+                width: self.width,
+                height: self.height,
+                data: self.data.iter().skip(c).step_by(2).copied().collect(),
+            })
+            .collect();
+        let mut data = vec![0f32; width * height * 2];
+        data.par_chunks_mut(width * 2)
+            .enumerate()
+            .for_each(|(y, row)| {
+                let fy = (y as f32 + 0.5) / sy - 0.5;
+                for x in 0..width {
+                    let fx = (x as f32 + 0.5) / sx - 0.5;
+                    row[x * 2] = comps[0].sample(fx, fy) * sx;
+                    row[x * 2 + 1] = comps[1].sample(fx, fy) * sy;
+                }
+            });
+        Flow {
+            width,
+            height,
+            data,
+        }
+    }
+}
+
+/// Sum over the `(2r+1)^2` window around every pixel (clamped to the image), separably.
+fn box_sum(src: &[f32], w: usize, h: usize, r: usize) -> Vec<f32> {
+    let mut tmp = vec![0f32; w * h];
+    tmp.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        let s = &src[y * w..(y + 1) * w];
+        let mut acc: f32 = s[..(r + 1).min(w)].iter().sum();
+        for (x, o) in row.iter_mut().enumerate() {
+            *o = acc;
+            if x + r + 1 < w {
+                acc += s[x + r + 1];
+            }
+            if x >= r {
+                acc -= s[x - r];
+            }
+        }
+    });
+    let mut out = vec![0f32; w * h];
+    for x in 0..w {
+        let mut acc: f32 = (0..(r + 1).min(h)).map(|y| tmp[y * w + x]).sum();
+        for y in 0..h {
+            out[y * w + x] = acc;
+            if y + r + 1 < h {
+                acc += tmp[(y + r + 1) * w + x];
+            }
+            if y >= r {
+                acc -= tmp[(y - r) * w + x];
+            }
+        }
+    }
+    out
+}
+
+/// 3x3 median of one flow component (border pixels use their in-image neighbours).
+fn median3(flow: &mut [f32], w: usize, h: usize, c: usize) {
+    let src: Vec<f32> = flow.iter().skip(c).step_by(2).copied().collect();
+    flow.par_chunks_mut(w * 2).enumerate().for_each(|(y, row)| {
+        for x in 0..w {
+            let mut v = [0f32; 9];
+            let mut n = 0;
+            for yy in y.saturating_sub(1)..(y + 2).min(h) {
+                for xx in x.saturating_sub(1)..(x + 2).min(w) {
+                    v[n] = src[yy * w + xx];
+                    n += 1;
+                }
+            }
+            let v = &mut v[..n];
+            v.sort_unstable_by(f32::total_cmp);
+            row[x * 2 + c] = v[n / 2];
+        }
+    });
+}
+
+/// One level: Gauss-Newton steps from `flow`.
+fn refine(a: &Grey, b: &Grey, flow: &mut [f32], cfg: &FlowConfig) {
+    let (w, h) = (a.width, a.height);
+    let n = w * h;
+    // Gradients of `a` (central differences): the template's, fixed over the steps.
+    let mut gx = vec![0f32; n];
+    let mut gy = vec![0f32; n];
+    for y in 0..h {
+        for x in 0..w {
+            let at = |xx: usize, yy: usize| a.data[yy * w + xx];
+            gx[y * w + x] = (at((x + 1).min(w - 1), y) - at(x.saturating_sub(1), y)) * 0.5;
+            gy[y * w + x] = (at(x, (y + 1).min(h - 1)) - at(x, y.saturating_sub(1))) * 0.5;
+        }
+    }
+    let r = cfg.radius;
+    let sxx = box_sum(&gx.iter().map(|v| v * v).collect::<Vec<_>>(), w, h, r);
+    let sxy = box_sum(
+        &gx.iter().zip(&gy).map(|(a, b)| a * b).collect::<Vec<_>>(),
+        w,
+        h,
+        r,
+    );
+    let syy = box_sum(&gy.iter().map(|v| v * v).collect::<Vec<_>>(), w, h, r);
+    let lambda = cfg.regularisation * ((2 * r + 1) * (2 * r + 1)) as f32;
+    // Reliability of each pixel's estimate: the smaller eigenvalue of its normal matrix
+    // (small along edges, where only the normal component is known, and in flat regions).
+    let conf: Vec<f32> = (0..n)
+        .map(|p| {
+            let (t, d) = (sxx[p] + syy[p], sxx[p] * syy[p] - sxy[p] * sxy[p]);
+            (0.5 * (t - (t * t - 4.0 * d).max(0.0).sqrt())).max(0.0) + 1e-12
+        })
+        .collect();
+    let cbox = box_sum(&conf, w, h, r);
+    for _ in 0..cfg.iterations {
+        // Residual of the warped second image.
+        let it: Vec<f32> = (0..n)
+            .into_par_iter()
+            .map(|p| {
+                let (x, y) = (
+                    (p % w) as f32 + flow[p * 2],
+                    (p / w) as f32 + flow[p * 2 + 1],
+                );
+                // No evidence where the match falls outside the second image.
+                let inside = x >= 0.0 && y >= 0.0 && x <= (w - 1) as f32 && y <= (h - 1) as f32;
+                if inside {
+                    b.sample(x, y) - a.data[p]
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        let bx = box_sum(
+            &gx.iter().zip(&it).map(|(g, t)| g * t).collect::<Vec<_>>(),
+            w,
+            h,
+            r,
+        );
+        let by = box_sum(
+            &gy.iter().zip(&it).map(|(g, t)| g * t).collect::<Vec<_>>(),
+            w,
+            h,
+            r,
+        );
+        flow.par_chunks_mut(2).enumerate().for_each(|(p, f)| {
+            let (a11, a12, a22) = (sxx[p] + lambda, sxy[p], syy[p] + lambda);
+            let det = a11 * a22 - a12 * a12;
+            if det <= 0.0 {
+                return;
+            }
+            // Inverse compositional step: b(x + u) ~ a(x) - grad a . du  =>  du = -A^-1 g.
+            let (du, dv) = (
+                (a22 * bx[p] - a12 * by[p]) / det,
+                (a11 * by[p] - a12 * bx[p]) / det,
+            );
+            f[0] -= du.clamp(-2.0, 2.0);
+            f[1] -= dv.clamp(-2.0, 2.0);
+        });
+        // Reliable estimates fill in the aperture-limited ones around them.
+        for c in 0..2 {
+            let weighted: Vec<f32> = (0..n).map(|p| flow[p * 2 + c] * conf[p]).collect();
+            let sum = box_sum(&weighted, w, h, r);
+            for p in 0..n {
+                flow[p * 2 + c] = sum[p] / cbox[p];
+            }
+            median3(flow, w, h, c);
+        }
+    }
+}
+
+/// Dense flow from `a` to `b` (see the module documentation for the convention).
+pub fn flow(a: &Grey, b: &Grey, cfg: &FlowConfig) -> Result<Flow, FlowError> {
+    let ok = |g: &Grey| g.width > 0 && g.height > 0 && g.data.len() == g.width * g.height;
+    if !ok(a) || !ok(b) || (a.width, a.height) != (b.width, b.height) {
+        return Err(FlowError::Size {
+            a: (a.width, a.height),
+            b: (b.width, b.height),
+        });
+    }
+    let mut pyr = vec![(a.clone(), b.clone())];
+    while pyr
+        .last()
+        .is_some_and(|(l, _)| l.width.min(l.height) >= 2 * cfg.min_side)
+    {
+        let (la, lb) = pyr.last().unwrap();
+        let next = (la.half(), lb.half());
+        pyr.push(next);
+    }
+    let mut f: Option<Flow> = None;
+    for (la, lb) in pyr.iter().rev() {
+        let mut data = match &f {
+            Some(prev) => prev.resize(la.width, la.height).data,
+            None => vec![0f32; la.width * la.height * 2],
+        };
+        refine(la, lb, &mut data, cfg);
+        f = Some(Flow {
+            width: la.width,
+            height: la.height,
+            data,
+        });
+    }
+    Ok(f.expect("at least one level"))
+}

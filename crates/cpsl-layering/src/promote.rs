@@ -1,7 +1,9 @@
 //! Instance promotion and background merging: the fused label map becomes at most `K`
 //! depth-ordered layers. Salient regions that stand in front of their surroundings get
-//! dedicated layers; the rest is grouped by label and neighbouring groups (in depth order)
-//! are merged by depth and texture statistics until the target count is met.
+//! dedicated layers, as long as each promotion raises the plan's inverse-depth error by at most
+//! a tolerance (a promoted region takes a layer from the background); the rest is grouped by
+//! label and neighbouring groups (in depth order) are merged by depth and texture statistics
+//! until the target count is met.
 
 use crate::cues::{luma, Work};
 use crate::fuse::Fusion;

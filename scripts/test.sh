@@ -3,6 +3,7 @@
 # architecture), and a build of the benchmarks.
 set -euo pipefail
 cd "$(dirname "$0")/.."
+bash scripts/setup-system.sh   # FFmpeg libraries and clang, which the build needs
 cargo fmt --all --check
 cargo clippy --workspace --all-targets --locked -- -D warnings
 cargo test --workspace --locked

@@ -4,11 +4,13 @@
 mod bench;
 mod demo;
 mod eval;
+mod eval_video;
 mod layer;
 mod progress;
 mod render;
 mod synth;
 mod util;
+mod video;
 
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
@@ -29,12 +31,19 @@ enum Command {
     /// Build content-promoted layers from one image (depth, saliency, instances, energy
     /// fusion, promotion, matting, fill, edge-depth cache).
     Layer(layer::LayerArgs),
+    /// Layer a video or an image sequence: groups of pictures, I-frames layered from scratch,
+    /// P-frames propagated along the motion, adaptive refresh.
+    LayerVideo(video::LayerVideoArgs),
     /// Build a layer set from an image and its depth map by depth slicing (a baseline).
     Slice(synth::SliceArgs),
     /// The main job end to end on the built-in scene: synthesise, layer, render a sweep, score.
     Demo(demo::DemoArgs),
     /// Layer real reference views, render their target views and score them (PSNR, SSIM).
     Eval(eval::EvalArgs),
+    /// The temporal-stability ablation on moving clips: frame-wise layering against I/P
+    /// propagation with and without refinement (boundary variance, F-SSIM, warping error,
+    /// flicker, novel-view PSNR).
+    EvalVideo(eval_video::EvalVideoArgs),
     /// Benchmarks.
     #[command(subcommand)]
     Bench(bench::BenchCommand),
@@ -62,9 +71,11 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Render(a) => render::run(a),
         Command::Synth(a) => synth::run_synth(a),
         Command::Layer(a) => layer::run(a),
+        Command::LayerVideo(a) => video::run(a),
         Command::Slice(a) => synth::run_slice(a),
         Command::Demo(a) => demo::run(a),
         Command::Eval(a) => eval::run(a),
+        Command::EvalVideo(a) => eval_video::run(a),
         Command::Bench(b) => bench::run(b),
     }
 }

@@ -31,6 +31,10 @@ pub struct LayerMeta {
     /// Mean saliency of the layer's pixels, in [0, 1].
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub saliency: Option<f32>,
+    /// Identity across the frames of a video: layers of consecutive frames with the same track
+    /// hold the same content (layer indices follow depth order and may change).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub track: Option<u32>,
 }
 
 /// One CPSL layer `L_k = (C_k, alpha_k, z_k)`: premultiplied colour and alpha plus the depth of

@@ -5,3 +5,4 @@ pub mod baselines;
 pub mod coverage;
 pub mod datasets;
 pub mod metrics;
+pub mod temporal;

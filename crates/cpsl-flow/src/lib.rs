@@ -87,6 +87,36 @@ impl Grey {
         }
     }
 
+    /// From interleaved RGB bytes, area-averaged down so that the long side is at most `side`.
+    pub fn from_rgb8_scaled(rgb: &[u8], width: usize, height: usize, side: usize) -> Self {
+        let full = Self::from_rgb8(rgb, width, height);
+        let (w, h) = (width, height);
+        let s = (side as f32 / w.max(h) as f32).min(1.0);
+        if s >= 1.0 {
+            return full;
+        }
+        let (gw, gh) = (
+            ((w as f32 * s).round() as usize).max(1),
+            ((h as f32 * s).round() as usize).max(1),
+        );
+        let mut data = vec![0f32; gw * gh];
+        data.par_chunks_mut(gw).enumerate().for_each(|(y, row)| {
+            let (y0, y1) = (y * h / gh, ((y + 1) * h / gh).max(y * h / gh + 1));
+            for (x, o) in row.iter_mut().enumerate() {
+                let (x0, x1) = (x * w / gw, ((x + 1) * w / gw).max(x * w / gw + 1));
+                let sum: f32 = (y0..y1)
+                    .map(|yy| full.data[yy * w + x0..yy * w + x1].iter().sum::<f32>())
+                    .sum();
+                *o = sum / ((y1 - y0) * (x1 - x0)) as f32;
+            }
+        });
+        Self {
+            width: gw,
+            height: gh,
+            data,
+        }
+    }
+
     /// Bilinear sample with clamping to the border.
     #[inline]
     pub fn sample(&self, x: f32, y: f32) -> f32 {

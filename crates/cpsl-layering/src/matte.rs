@@ -371,6 +371,7 @@ pub fn build_layers(
                     name: Some(name),
                     role: Some(role),
                     saliency: Some(planned.saliency),
+                    track: None,
                 },
             })
         })
@@ -386,7 +387,18 @@ pub fn build_layers(
 
 /// Samples the Edge-Depth Cache along the boundaries of `owner` (see [`cpsl_core::edc`]).
 pub fn edge_depth_cache(cues: &Cues, owner: &[u8], set: &LayerSet, cfg: &MatteConfig) -> Edc {
-    let (w, h) = (cues.width, cues.height);
+    edge_depth_cache_from(&cues.depth, cues.width, cues.height, owner, set, cfg)
+}
+
+/// [`edge_depth_cache`] from a `w x h` z-depth map.
+pub fn edge_depth_cache_from(
+    depth: &[f32],
+    w: usize,
+    h: usize,
+    owner: &[u8],
+    set: &LayerSet,
+    cfg: &MatteConfig,
+) -> Edc {
     let k = set.len();
     let mut edc = Edc {
         width: w as u32,
@@ -398,6 +410,7 @@ pub fn edge_depth_cache(cues: &Cues, owner: &[u8], set: &LayerSet, cfg: &MatteCo
     let cell = cfg.edc_cell.max(1) as usize;
     let cols = w.div_ceil(cell);
     let mut seen = HashSet::new();
+    let z = depth;
     let depth = |l: usize| set.layers()[l].depth;
     for y in 0..h {
         for x in 0..w {
@@ -422,8 +435,8 @@ pub fn edge_depth_cache(cues: &Cues, owner: &[u8], set: &LayerSet, cfg: &MatteCo
                     y: fy as u16,
                     front: f as u8,
                     back: bk as u8,
-                    front_offset: edc.quantise((cues.depth[fp] as f64 / depth(f)).ln()),
-                    back_offset: edc.quantise((cues.depth[bp] as f64 / depth(bk)).ln()),
+                    front_offset: edc.quantise((z[fp] as f64 / depth(f)).ln()),
+                    back_offset: edc.quantise((z[bp] as f64 / depth(bk)).ln()),
                 });
             }
         }

@@ -256,6 +256,7 @@ pub fn slice_by_depth(
                     LayerRole::Region
                 }),
                 saliency: None,
+                track: None,
             },
         });
     }

@@ -1,0 +1,518 @@
+//! `cpsl eval-video`: the temporal-stability ablation (paper Table 2) on moving clips:
+//! frame-wise depth slicing (the normalising baseline), frame-wise CPSL, I/P propagation,
+//! and I/P with refinement and adaptive refresh with hysteresis.
+
+use crate::layer::open_depth_model;
+use anyhow::{Context, Result};
+use clap::{Args, ValueEnum};
+use cpsl_core::{Camera, DepthSource, LayerSet, Limits, Pose, PremulImage, Vec3};
+use cpsl_eval::metrics::psnr_masked;
+use cpsl_eval::temporal::{alpha_owner, boundary_variance, f_ssim, flicker, warping_error, Motion};
+use cpsl_flow::Flow;
+use cpsl_layering::{slice_by_depth, LayeringConfig, SliceConfig};
+use cpsl_render::PreparedLayers;
+use cpsl_video::{GopConfig, VideoLayerer};
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+
+/// The clips.
+#[derive(ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Clip {
+    /// The built-in scene with its moving board, pole and disc (exact depth, true motion and
+    /// ray-cast novel views).
+    Synthetic,
+    /// HCI backgammon, the centre row of the 9x9 grid as a camera sweep (ground-truth depth
+    /// warped to each view; the row above as novel views).
+    HciRow,
+    /// The fox handheld phone video (50 frames, a quarter of full size, FastDepth).
+    Fox,
+    /// KITTI odometry 06 colour frames 12, 13, 14, 17 (FastDepth).
+    Kitti,
+    /// All of the above.
+    All,
+}
+
+/// Arguments of `cpsl eval-video`.
+#[derive(Args)]
+pub struct EvalVideoArgs {
+    /// Clip.
+    #[arg(value_enum, default_value_t = Clip::All)]
+    pub clip: Clip,
+    /// Folder holding the datasets.
+    #[arg(long, default_value = "../shared/data")]
+    pub data: PathBuf,
+    /// Frames per group of pictures for the I/P methods.
+    #[arg(long, default_value_t = 30)]
+    pub gop: usize,
+    /// Number of layers K.
+    #[arg(long, default_value_t = 6)]
+    pub layers: usize,
+    /// Skip the flicker score (it needs the LPIPS model of scripts/setup-models.sh).
+    #[arg(long)]
+    pub no_lpips: bool,
+    /// Write the results as JSON.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+}
+
+/// A clip ready to layer.
+struct ClipData {
+    name: &'static str,
+    camera: Camera,
+    frames: Vec<Vec<u8>>,
+    depth: Vec<Vec<f32>>,
+    depth_name: String,
+    /// Per frame: the novel viewpoint and its camera.
+    novel: Vec<(Pose, Camera)>,
+    /// Ground truth at the novel viewpoint, where known.
+    truth: Option<Vec<Vec<u8>>>,
+    /// The true motion of the input, where known.
+    motion: Option<Motion>,
+}
+
+/// One row of the table.
+#[derive(Serialize)]
+struct Row {
+    clip: String,
+    method: String,
+    depth: String,
+    frames: usize,
+    i_frames: usize,
+    boundary_variance_px2: f64,
+    /// Relative to frame-wise depth slicing (the paper's normalisation).
+    boundary_variance: f64,
+    /// Relative to frame-wise CPSL.
+    boundary_variance_vs_frame_wise: f64,
+    f_ssim: f64,
+    warping_error: f64,
+    flicker: Option<f64>,
+    psnr: Option<f64>,
+}
+
+const METHODS: [&str; 4] = [
+    "depth-slice (frame-wise)",
+    "cpsl frame-wise",
+    "cpsl I/P",
+    "cpsl I/P + refinement + hysteresis",
+];
+
+fn fastdepth() -> Result<Box<dyn DepthSource>> {
+    Ok(Box::new(open_depth_model("fastdepth", None)?))
+}
+
+fn synthetic() -> ClipData {
+    let scene = cpsl_synth::Scene::default_scene(480, 360);
+    let dt = 0.1;
+    let novel = Pose::from_translation(Vec3::new(0.15, 0.0, 0.0));
+    let (mut frames, mut depth, mut truth, mut object) = (vec![], vec![], vec![], vec![]);
+    for t in 0..16 {
+        let v = scene.render(&scene.camera, &Pose::IDENTITY, t as f64 * dt, 2);
+        frames.push(v.rgb);
+        depth.push(v.depth);
+        object.push(v.object);
+        truth.push(scene.render(&scene.camera, &novel, t as f64 * dt, 2).rgb);
+    }
+    // True motion: every pixel traced back along its object's velocity.
+    let cam = scene.camera;
+    let (w, h) = (cam.width as usize, cam.height as usize);
+    let (mut back, mut valid) = (vec![], vec![]);
+    for t in 0..frames.len() - 1 {
+        let mut data = vec![0f32; w * h * 2];
+        let mut ok = vec![false; w * h];
+        for p in 0..w * h {
+            let o = object[t + 1][p];
+            if o == u16::MAX {
+                continue;
+            }
+            let (x, y) = ((p % w) as f64, (p / w) as f64);
+            let at = cam.unproject(x, y, depth[t + 1][p] as f64);
+            let Some((sx, sy)) = cam.project(at - scene.objects[o as usize].velocity * dt) else {
+                continue;
+            };
+            data[p * 2] = (sx - x) as f32;
+            data[p * 2 + 1] = (sy - y) as f32;
+            let (qx, qy) = (sx.round(), sy.round());
+            if qx >= 0.0 && qy >= 0.0 && qx < w as f64 && qy < h as f64 {
+                ok[p] = object[t][qy as usize * w + qx as usize] == o;
+            }
+        }
+        back.push(Flow {
+            width: w,
+            height: h,
+            data,
+        });
+        valid.push(ok);
+    }
+    ClipData {
+        name: "synthetic",
+        camera: cam,
+        novel: vec![(novel, cam); frames.len()],
+        frames,
+        depth,
+        depth_name: "exact".into(),
+        truth: Some(truth),
+        motion: Some(Motion {
+            width: w,
+            height: h,
+            back,
+            valid,
+        }),
+    }
+}
+
+fn hci_row(data: &Path) -> Result<ClipData> {
+    let ds = cpsl_eval::datasets::load(data, "hci/backgammon")?;
+    let (w, h) = (ds.camera.width as usize, ds.camera.height as usize);
+    let f = ds.camera.fx;
+    let view = |row: i32, col: i32| -> Option<&cpsl_eval::datasets::Target> {
+        let name = format!("input_Cam{:03}", 9 * row + col);
+        ds.targets.iter().find(|t| t.name == name)
+    };
+    let (mut frames, mut depth, mut truth, mut novel) = (vec![], vec![], vec![], vec![]);
+    for col in 0..9 {
+        let (rgb, pose, cam) = match view(4, col) {
+            Some(t) => (t.rgb.clone(), t.pose, t.camera),
+            None => (ds.rgb.clone(), Pose::IDENTITY, ds.camera),
+        };
+        // Ground-truth depth carried from the centre view (z-buffered, holes from the row).
+        let shift = |z: f32| (pose.translation.x() * f / z as f64) as f32;
+        let mut z = vec![f32::INFINITY; w * h];
+        for p in 0..w * h {
+            let zc = ds.depth[p];
+            if !zc.is_finite() {
+                continue;
+            }
+            let x = (p % w) as f32 - shift(zc) + (cam.cx - ds.camera.cx) as f32;
+            let xi = x.round();
+            if xi >= 0.0 && (xi as usize) < w {
+                let q = (p / w) * w + xi as usize;
+                z[q] = z[q].min(zc);
+            }
+        }
+        for y in 0..h {
+            let row = &mut z[y * w..(y + 1) * w];
+            // Fill holes with the farther neighbour (disocclusions show background).
+            for x in 0..w {
+                if !row[x].is_finite() {
+                    let l = (0..x).rev().map(|i| row[i]).find(|v| v.is_finite());
+                    let r = (x + 1..w).map(|i| row[i]).find(|v| v.is_finite());
+                    row[x] = match (l, r) {
+                        (Some(a), Some(b)) => a.max(b),
+                        (Some(a), None) | (None, Some(a)) => a,
+                        (None, None) => 1.0,
+                    };
+                }
+            }
+        }
+        let above = view(3, col).context("HCI row above")?;
+        frames.push(rgb);
+        depth.push(z);
+        truth.push(above.rgb.clone());
+        // The view above relative to this one.
+        novel.push((
+            Pose::from_translation(above.pose.translation - pose.translation),
+            above.camera,
+        ));
+        let _ = cam;
+    }
+    Ok(ClipData {
+        name: "hci-row",
+        camera: ds.camera,
+        frames,
+        depth,
+        depth_name: "ground truth".into(),
+        novel,
+        truth: Some(truth),
+        motion: None,
+    })
+}
+
+/// Area-average downscaling by an integer factor.
+fn shrink(rgb: &[u8], w: usize, h: usize, s: usize) -> Vec<u8> {
+    let (nw, nh) = (w / s, h / s);
+    let mut out = vec![0u8; nw * nh * 3];
+    for y in 0..nh {
+        for x in 0..nw {
+            for c in 0..3 {
+                let mut sum = 0u32;
+                for yy in 0..s {
+                    for xx in 0..s {
+                        sum += rgb[((y * s + yy) * w + x * s + xx) * 3 + c] as u32;
+                    }
+                }
+                out[(y * nw + x) * 3 + c] = (sum / (s * s) as u32) as u8;
+            }
+        }
+    }
+    out
+}
+
+fn estimated(
+    name: &'static str,
+    files: Vec<PathBuf>,
+    camera: Camera,
+    scale: usize,
+) -> Result<ClipData> {
+    let mut model = fastdepth()?;
+    let (mut frames, mut depth) = (vec![], vec![]);
+    for f in &files {
+        let img = cpsl_io::images::read_rgb8(f, &Limits::default())
+            .with_context(|| format!("reading {}", f.display()))?;
+        let rgb = shrink(&img.data, img.width as usize, img.height as usize, scale);
+        let z = model.depth(&rgb, camera.width, camera.height)?;
+        frames.push(rgb);
+        depth.push(z);
+    }
+    let mut sorted: Vec<f32> = depth[0].iter().copied().filter(|z| z.is_finite()).collect();
+    sorted.sort_by(f32::total_cmp);
+    let median = sorted.get(sorted.len() / 2).copied().unwrap_or(1.0) as f64;
+    // A lateral step of 3 % of the median depth.
+    let pose = Pose::from_translation(Vec3::new(0.03 * median, 0.0, 0.0));
+    Ok(ClipData {
+        name,
+        camera,
+        novel: vec![(pose, camera); frames.len()],
+        frames,
+        depth,
+        depth_name: model.name(),
+        truth: None,
+        motion: None,
+    })
+}
+
+fn fox(data: &Path) -> Result<ClipData> {
+    let dir = data.join("instant_ngp_fox_video_frames/images");
+    let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
+        .with_context(|| format!("reading {}", dir.display()))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|e| e == "jpg"))
+        .collect();
+    files.sort();
+    let s = 4.0;
+    let camera = Camera {
+        width: 1080 / 4,
+        height: 1920 / 4,
+        fx: 1375.52 / s,
+        fy: 1374.49 / s,
+        cx: 554.558 / s,
+        cy: 965.268 / s,
+    };
+    estimated("fox", files, camera, 4)
+}
+
+fn kitti(data: &Path) -> Result<ClipData> {
+    let dir = data.join("kitti_odometry06_stereo_snippet/image_2_left_color");
+    let files: Vec<PathBuf> = ["000012", "000013", "000014", "000017"]
+        .iter()
+        .map(|n| dir.join(format!("{n}.png")))
+        .collect();
+    let (w, h) = cpsl_io::images::dimensions(&files[0], &Limits::default())?;
+    let camera = Camera {
+        width: w,
+        height: h,
+        fx: 707.0912,
+        fy: 707.0912,
+        cx: 601.8873,
+        cy: 183.1104,
+    };
+    estimated("kitti", files, camera, 1)
+}
+
+/// Per-frame layer sets of one method (with the Edge-Depth Cache where it has one).
+fn layer_clip(
+    c: &ClipData,
+    method: &str,
+    cfg: &LayeringConfig,
+    gop: usize,
+) -> Result<Vec<(LayerSet, Option<cpsl_core::Edc>, bool)>> {
+    if method.starts_with("depth-slice") {
+        let sc = SliceConfig {
+            layers: cfg.layers,
+            ..SliceConfig::default()
+        };
+        return c
+            .frames
+            .iter()
+            .zip(&c.depth)
+            .map(|(rgb, z)| Ok((slice_by_depth(rgb, z, c.camera, &sc)?, None, true)))
+            .collect();
+    }
+    let g = match method {
+        "cpsl frame-wise" => GopConfig::frame_wise(),
+        "cpsl I/P" => GopConfig {
+            gop,
+            ..GopConfig::propagation_only()
+        },
+        _ => GopConfig {
+            gop,
+            ..GopConfig::default()
+        },
+    };
+    let mut cfg = *cfg;
+    cfg.cues.allow_missing_depth = true;
+    let mut v = VideoLayerer::new(c.camera, cfg, g)?;
+    c.frames
+        .iter()
+        .zip(&c.depth)
+        .map(|(rgb, z)| {
+            let f = v.push(rgb, Some(z))?;
+            Ok((f.set, Some(f.edc), f.refresh.is_some()))
+        })
+        .collect()
+}
+
+fn render(
+    set: &LayerSet,
+    edc: Option<&cpsl_core::Edc>,
+    pose: &Pose,
+    cam: &Camera,
+) -> (Vec<u8>, Vec<bool>) {
+    let mut prepared = PreparedLayers::new(set);
+    if let Some(e) = edc {
+        prepared = prepared.with_edc(e);
+    }
+    let mut img = PremulImage::new(cam.width, cam.height);
+    crate::render::render_pose(&prepared, edc.is_some(), pose, cam, &mut img);
+    let covered = img
+        .as_bytes()
+        .chunks_exact(4)
+        .map(|p| p[3] >= 128)
+        .collect();
+    (img.over_background([0, 0, 0]), covered)
+}
+
+/// Runs `cpsl eval-video`.
+pub fn run(a: EvalVideoArgs) -> Result<()> {
+    let clips = match a.clip {
+        Clip::All => vec![Clip::Synthetic, Clip::HciRow, Clip::Fox, Clip::Kitti],
+        c => vec![c],
+    };
+    let mut lpips = if a.no_lpips {
+        None
+    } else {
+        Some(
+            cpsl_models::Lpips::open(&cpsl_models::lpips::default_path()).context(
+                "LPIPS for the flicker score (run scripts/setup-models.sh or pass --no-lpips)",
+            )?,
+        )
+    };
+    let cfg = LayeringConfig {
+        layers: a.layers,
+        ..LayeringConfig::default()
+    };
+    let mut rows = Vec::new();
+    println!(
+        "{:<10} {:<36} {:>6} {:>9} {:>9} {:>8} {:>8} {:>8} {:>8}",
+        "clip", "method", "I/all", "bnd px^2", "vs fw", "F-SSIM", "warp", "flicker", "PSNR"
+    );
+    for clip in clips {
+        let c = match clip {
+            Clip::Synthetic => synthetic(),
+            Clip::HciRow => hci_row(&a.data)?,
+            Clip::Fox => fox(&a.data)?,
+            Clip::Kitti => kitti(&a.data)?,
+            Clip::All => unreachable!(),
+        };
+        let (w, h) = (c.camera.width as usize, c.camera.height as usize);
+        let input_motion = match &c.motion {
+            Some(m) => m.clone(),
+            None => Motion::estimate(&c.frames, w, h),
+        };
+        // Output frames live at the novel viewpoint: their motion is the truth's where known.
+        let (nw, nh) = (c.novel[0].1.width as usize, c.novel[0].1.height as usize);
+        let reference = c.truth.clone().unwrap_or_else(|| c.frames.clone());
+        let out_motion = Motion::estimate(&reference, nw, nh);
+        let first = rows.len();
+        for method in METHODS {
+            let sets = layer_clip(&c, method, &cfg, a.gop)?;
+            let owners: Vec<Vec<u8>> = sets.iter().map(|s| alpha_owner(&s.0)).collect();
+            let bv = boundary_variance(&owners, &input_motion);
+            let renders: Vec<(Vec<u8>, Vec<bool>)> = sets
+                .iter()
+                .zip(&c.novel)
+                .map(|((set, edc, _), (pose, cam))| render(set, edc.as_ref(), pose, cam))
+                .collect();
+            let outs: Vec<Vec<u8>> = renders.iter().map(|r| r.0.clone()).collect();
+            let psnr = c.truth.as_ref().map(|truth| {
+                let v: Vec<f64> = renders
+                    .iter()
+                    .zip(truth)
+                    .filter_map(|((o, m), t)| psnr_masked(o, t, m))
+                    .collect();
+                v.iter().sum::<f64>() / v.len().max(1) as f64
+            });
+            let flick = lpips
+                .as_mut()
+                .map(|l| -> Result<f64> {
+                    let mut err = None;
+                    let v = flicker(&outs, &reference, |x, y| {
+                        l.distance(x, y, nw as u32, nh as u32)
+                            .map(f64::from)
+                            .unwrap_or_else(|e| {
+                                err = Some(e);
+                                0.0
+                            })
+                    });
+                    match err {
+                        Some(e) => Err(e.into()),
+                        None => Ok(v),
+                    }
+                })
+                .transpose()?;
+            let row = Row {
+                clip: c.name.into(),
+                method: method.into(),
+                depth: c.depth_name.clone(),
+                frames: sets.len(),
+                i_frames: sets.iter().filter(|s| s.2).count(),
+                boundary_variance_px2: bv,
+                boundary_variance: 0.0,
+                boundary_variance_vs_frame_wise: 0.0,
+                f_ssim: f_ssim(&outs, &reference, &out_motion),
+                warping_error: warping_error(&outs, &out_motion),
+                flicker: flick,
+                psnr,
+            };
+            rows.push(row);
+        }
+        // Boundary variance relative to frame-wise slicing (the paper's normalisation) and to
+        // frame-wise CPSL.
+        let by = |m: &str| {
+            rows[first..]
+                .iter()
+                .find(|r| r.method == m)
+                .map(|r| r.boundary_variance_px2)
+        };
+        let (slice, fw) = (by(METHODS[0]).unwrap_or(0.0), by(METHODS[1]).unwrap_or(0.0));
+        for row in &mut rows[first..] {
+            let rel = |base: f64| {
+                if base > 0.0 {
+                    row.boundary_variance_px2 / base
+                } else {
+                    f64::NAN
+                }
+            };
+            row.boundary_variance = rel(slice);
+            row.boundary_variance_vs_frame_wise = rel(fw);
+            let opt = |v: Option<f64>, p: usize| v.map_or("-".to_string(), |x| format!("{x:.p$}"));
+            println!(
+                "{:<10} {:<36} {:>6} {:>9.3} {:>9.3} {:>8.4} {:>8.4} {:>8} {:>8}",
+                row.clip,
+                row.method,
+                format!("{}/{}", row.i_frames, row.frames),
+                row.boundary_variance_px2,
+                row.boundary_variance_vs_frame_wise,
+                row.f_ssim,
+                row.warping_error,
+                opt(row.flicker, 4),
+                opt(row.psnr, 2),
+            );
+        }
+    }
+    if let Some(p) = &a.json {
+        std::fs::write(p, serde_json::to_vec_pretty(&rows)?)
+            .with_context(|| format!("writing {}", p.display()))?;
+        println!("wrote {}", p.display());
+    }
+    Ok(())
+}

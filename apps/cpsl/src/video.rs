@@ -1,0 +1,286 @@
+//! `cpsl layer-video`: a video (or an image sequence) to a sequence of layer sets, organised
+//! in groups of pictures with motion-guided propagation.
+
+use crate::layer::{open_depth_model, read_config, CameraArgs};
+use anyhow::{Context, Result};
+use clap::{Args, ValueEnum};
+use cpsl_core::DepthSource;
+use cpsl_flow::Flow;
+use cpsl_layering::LayeringConfig;
+use cpsl_video::{GopConfig, VideoFrame, VideoLayerer};
+use indicatif::{ProgressBar, ProgressStyle};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// Temporal organisation (the ablation of the paper's Table 2).
+#[derive(ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Temporal {
+    /// Every frame layered on its own.
+    FrameWise,
+    /// I/P propagation with a fixed GOP, no refinement, no adaptive refresh.
+    Propagation,
+    /// I/P propagation, boundary-band moving average, adaptive refresh with hysteresis.
+    Full,
+}
+
+impl Temporal {
+    /// The GOP configuration of this mode with GOP length `gop`.
+    pub fn config(self, gop: usize) -> GopConfig {
+        let base = match self {
+            Temporal::FrameWise => return GopConfig::frame_wise(),
+            Temporal::Propagation => GopConfig::propagation_only(),
+            Temporal::Full => GopConfig::default(),
+        };
+        GopConfig { gop, ..base }
+    }
+}
+
+/// Where P-frame motion comes from.
+#[derive(ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum MotionSource {
+    /// The decoder's motion vectors where the input is H.264 and they cover the frame,
+    /// optical flow otherwise.
+    Auto,
+    /// Always optical flow.
+    Flow,
+}
+
+/// Arguments of `cpsl layer-video`.
+#[derive(Args)]
+pub struct LayerVideoArgs {
+    /// Input: a video file (any container and codec FFmpeg reads) or a folder of PNG/JPEG
+    /// frames (in file-name order).
+    pub input: PathBuf,
+    /// Output folder: one layer set per frame (`frame_000000/`, ...) and `video.json`. Written
+    /// beside it first and moved into place when complete; an existing output of this command
+    /// is replaced, any other folder is left alone.
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Most frames per group of pictures (an I-frame at least this often).
+    #[arg(long, default_value_t = 30, value_parser = clap::value_parser!(u32).range(1..=600))]
+    pub gop: u32,
+    /// Target number of layers K.
+    #[arg(long, default_value_t = 6, value_parser = clap::value_parser!(u32).range(2..=16))]
+    pub layers: u32,
+    /// Depth model: `fastdepth` (default) or an .onnx file described by `<model>.json`.
+    #[arg(long, default_value = "fastdepth")]
+    pub depth_model: String,
+    /// Description of the --depth-model.
+    #[arg(long)]
+    pub model_desc: Option<PathBuf>,
+    /// Estimate depth on P-frames too (by default their depth is carried along the motion).
+    #[arg(long)]
+    pub depth_every_frame: bool,
+    #[command(flatten)]
+    pub camera: CameraArgs,
+    /// Temporal organisation.
+    #[arg(long, value_enum, default_value_t = Temporal::Full)]
+    pub temporal: Temporal,
+    /// Motion source for P-frames.
+    #[arg(long, value_enum, default_value_t = MotionSource::Auto)]
+    pub motion: MotionSource,
+    /// Stop after this many frames.
+    #[arg(long)]
+    pub max_frames: Option<usize>,
+    /// Layering configuration as JSON (as for `cpsl layer`); --layers overrides its K.
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+}
+
+/// What `layer_video` produced, per frame.
+pub struct FrameRecord {
+    /// The layered frame.
+    pub frame: VideoFrame,
+    /// Whether the decoder's motion vectors were used.
+    pub decoder_motion: bool,
+    /// Milliseconds for this frame, depth included.
+    pub ms: f64,
+}
+
+/// Layers every frame of `input` and hands each result to `sink` (frame index, record).
+#[allow(clippy::too_many_arguments)]
+pub fn layer_video(
+    input: &Path,
+    camera: &CameraArgs,
+    cfg: &LayeringConfig,
+    gop: GopConfig,
+    depth: &mut dyn DepthSource,
+    depth_every_frame: bool,
+    motion: MotionSource,
+    max_frames: Option<usize>,
+    mut sink: impl FnMut(&FrameRecord) -> Result<()>,
+) -> Result<cpsl_media::Info> {
+    let mut src =
+        cpsl_media::open(input).with_context(|| format!("opening {}", input.display()))?;
+    let info = src.info().clone();
+    let cam = camera.camera(info.width, info.height)?;
+    let mut cfg = *cfg;
+    cfg.cues.allow_missing_depth = true;
+    let mut layerer = VideoLayerer::new(cam, cfg, gop)?;
+    let total = match (info.frames, max_frames) {
+        (Some(n), Some(m)) => Some(n.min(m)),
+        (n, m) => n.or(m),
+    };
+    let bar = match total {
+        Some(n) => ProgressBar::new(n as u64).with_style(
+            ProgressStyle::with_template(
+                "{msg:>12} [{bar:30}] {pos}/{len} frames {per_sec} elapsed {elapsed} eta {eta}",
+            )
+            .expect("template")
+            .progress_chars("=> "),
+        ),
+        None => ProgressBar::new_spinner(),
+    };
+    bar.set_message("layering");
+    let mut count = 0;
+    while max_frames.is_none_or(|m| count < m) {
+        let Some(frame) = src
+            .next_frame()
+            .with_context(|| format!("decoding {}", input.display()))?
+        else {
+            break;
+        };
+        let t = Instant::now();
+        let intra = layerer.next_is_intra();
+        let z = if intra || depth_every_frame {
+            Some(depth.depth(&frame.rgb, info.width, info.height)?)
+        } else {
+            None
+        };
+        let given = match motion {
+            MotionSource::Auto => frame.motion.map(|m| Flow {
+                width: m.width,
+                height: m.height,
+                data: m.data,
+            }),
+            MotionSource::Flow => None,
+        };
+        let decoder_motion = given.is_some() && !intra;
+        let out = layerer
+            .push_with_motion(&frame.rgb, z.as_deref(), given)
+            .with_context(|| format!("frame {}", frame.index))?;
+        let rec = FrameRecord {
+            frame: out,
+            decoder_motion,
+            ms: t.elapsed().as_secs_f64() * 1e3,
+        };
+        sink(&rec)?;
+        count += 1;
+        bar.set_message(if rec.frame.refresh.is_some() {
+            "I-frame"
+        } else {
+            "P-frame"
+        });
+        bar.inc(1);
+    }
+    bar.finish_and_clear();
+    anyhow::ensure!(count > 0, "{}: no frames", input.display());
+    Ok(info)
+}
+
+/// The staging folder beside `output`.
+fn staging(output: &Path) -> PathBuf {
+    let name = output
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_else(|| "out".into());
+    output.with_file_name(format!(".{name}.partial"))
+}
+
+/// Runs `cpsl layer-video`.
+pub fn run(a: LayerVideoArgs) -> Result<()> {
+    if a.output.exists() && !a.output.join("video.json").is_file() {
+        anyhow::bail!(
+            "{} exists and is not the output of cpsl layer-video; not replacing it",
+            a.output.display()
+        );
+    }
+    let mut cfg = match &a.config {
+        Some(p) => read_config(p)?,
+        None => LayeringConfig::default(),
+    };
+    cfg.layers = a.layers as usize;
+    let gop = a.temporal.config(a.gop as usize);
+    let mut depth = open_depth_model(&a.depth_model, a.model_desc.as_deref())?;
+    let stage = staging(&a.output);
+    if stage.exists() {
+        std::fs::remove_dir_all(&stage)
+            .with_context(|| format!("removing the stale {}", stage.display()))?;
+    }
+    std::fs::create_dir_all(&stage).with_context(|| format!("creating {}", stage.display()))?;
+    let mut records = Vec::new();
+    let t = Instant::now();
+    let info = match layer_video(
+        &a.input,
+        &a.camera,
+        &cfg,
+        gop,
+        &mut depth,
+        a.depth_every_frame,
+        a.motion,
+        a.max_frames,
+        |r| {
+            let f = &r.frame;
+            let dir = format!("frame_{:06}", f.index);
+            let edc = f.edc.encode();
+            cpsl_io::write_layer_set(
+                &stage.join(&dir),
+                &f.set,
+                &[(cpsl_io::EDC_FILE, edc.as_slice())],
+            )?;
+            records.push(serde_json::json!({
+                "index": f.index,
+                "dir": dir,
+                "kind": if f.refresh.is_some() { "I" } else { "P" },
+                "refresh": f.refresh,
+                "tracks": f.set.layers().iter().map(|l| l.meta.track).collect::<Vec<_>>(),
+                "confidence": f.confidence,
+                "crack": f.crack,
+                "depth": if f.depth_propagated { "propagated" } else { "estimated" },
+                "motion": if f.refresh.is_some() { "none" } else if r.decoder_motion { "decoder" } else { "flow" },
+                "ms": r.ms,
+                "timings_ms": f.timings.iter().map(|(s, t)| serde_json::json!({"stage": s, "ms": t})).collect::<Vec<_>>(),
+            }));
+            Ok(())
+        },
+    ) {
+        Ok(info) => info,
+        Err(e) => {
+            // Nothing half-written stays behind.
+            let _ = std::fs::remove_dir_all(&stage);
+            return Err(e);
+        }
+    };
+    let seconds = t.elapsed().as_secs_f64();
+    let n = records.len();
+    let intra = records.iter().filter(|r| r["kind"] == "I").count();
+    let manifest = serde_json::json!({
+        "format": "cpsl-video-layers",
+        "version": 1,
+        "input": a.input.display().to_string(),
+        "codec": info.codec,
+        "fps": info.fps,
+        "width": info.width,
+        "height": info.height,
+        "depth": depth.name(),
+        "gop": gop,
+        "layering": cfg,
+        "frames": records,
+    });
+    std::fs::write(
+        stage.join("video.json"),
+        serde_json::to_vec_pretty(&manifest)?,
+    )?;
+    if a.output.exists() {
+        std::fs::remove_dir_all(&a.output)
+            .with_context(|| format!("replacing {}", a.output.display()))?;
+    }
+    std::fs::rename(&stage, &a.output)
+        .with_context(|| format!("moving {} into place", stage.display()))?;
+    println!(
+        "wrote {n} frames ({intra} I-frames) to {} in {seconds:.1} s ({:.1} frames/s)",
+        a.output.display(),
+        n as f64 / seconds
+    );
+    Ok(())
+}

@@ -1,0 +1,111 @@
+//! `cpsl layer-video` end to end on a short clip, and its errors.
+
+mod common;
+use common::{cpsl, models_present, ok, s};
+use std::process::Command;
+
+#[test]
+fn layers_a_clip_and_refuses_bad_input() {
+    if !models_present(&["fastdepth_7.onnx"]) {
+        eprintln!("skipped: FastDepth not in the model cache (scripts/setup-models.sh)");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let clip = dir.path().join("clip.mp4");
+    let status = Command::new("ffmpeg")
+        .args([
+            "-v",
+            "error",
+            "-y",
+            "-f",
+            "lavfi",
+            "-i",
+            "testsrc2=size=192x128:rate=10",
+        ])
+        .args([
+            "-frames:v",
+            "7",
+            "-c:v",
+            "libx264",
+            "-bf",
+            "0",
+            "-pix_fmt",
+            "yuv420p",
+        ])
+        .arg(&clip)
+        .status()
+        .expect("the ffmpeg tool (scripts/setup-system.sh)");
+    assert!(status.success());
+    let out = dir.path().join("layers");
+    let msg = ok(&[
+        "layer-video",
+        s(&clip),
+        "-o",
+        s(&out),
+        "--gop",
+        "4",
+        "--layers",
+        "4",
+    ]);
+    assert!(msg.contains("wrote 7 frames"), "{msg}");
+    let v: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("video.json")).unwrap()).unwrap();
+    let frames = v["frames"].as_array().unwrap();
+    assert_eq!(frames.len(), 7);
+    assert_eq!(frames[0]["kind"], "I");
+    assert_eq!(frames[4]["kind"], "I", "GOP 4");
+    assert!(frames.iter().any(|f| f["motion"] == "decoder"));
+    for f in frames {
+        assert!(out
+            .join(f["dir"].as_str().unwrap())
+            .join("manifest.json")
+            .is_file());
+    }
+    // Rendering a frame works like any layer set.
+    ok(&[
+        "render",
+        s(&out.join("frame_000003")),
+        "--pose",
+        "0.02,0,0,0,0,0",
+        "-o",
+        s(&dir.path().join("v.png")),
+    ]);
+    // Running again replaces its own output.
+    ok(&["layer-video", s(&clip), "-o", s(&out), "--max-frames", "2"]);
+    // Bad input: clear errors, nothing written.
+    let junk = dir.path().join("junk.mp4");
+    std::fs::write(&junk, b"not a video").unwrap();
+    let empty = dir.path().join("empty");
+    std::fs::create_dir(&empty).unwrap();
+    let other = dir.path().join("other");
+    std::fs::create_dir(&other).unwrap();
+    std::fs::write(other.join("keep.txt"), "mine").unwrap();
+    for (input, output, expect) in [
+        (
+            dir.path().join("missing.mp4"),
+            dir.path().join("o1"),
+            "cannot read",
+        ),
+        (junk.clone(), dir.path().join("o2"), "cannot read"),
+        (empty.clone(), dir.path().join("o3"), "no frames"),
+        (clip.clone(), other.clone(), "not replacing"),
+    ] {
+        let o = cpsl(&["layer-video", s(&input), "-o", s(&output)]);
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(
+            !o.status.success() && err.contains(expect),
+            "{input:?}: {err}"
+        );
+        assert!(output == other || !output.exists(), "{output:?} written");
+        let leftovers: Vec<_> = std::fs::read_dir(dir.path())
+            .unwrap()
+            .filter_map(|e| e.ok())
+            .filter(|e| e.file_name().to_string_lossy().ends_with(".partial"))
+            .collect();
+        assert!(leftovers.is_empty(), "staging left behind: {leftovers:?}");
+    }
+    assert_eq!(
+        std::fs::read_to_string(other.join("keep.txt")).unwrap(),
+        "mine"
+    );
+}

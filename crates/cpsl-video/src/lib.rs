@@ -1,0 +1,924 @@
+//! Layering a video (paper §4.1 and the temporal parts of §3.2).
+//!
+//! Frames are organised in groups of pictures. An **I-frame** is layered from scratch
+//! ([`cpsl_layering::layer_frame`]). A **P-frame** carries the I-frame's layers along the
+//! motion: dense optical flow from the new frame to the previous one ([`cpsl_flow`], on a
+//! `flow_side` grid; or the decoder's motion vectors) is split per layer, each layer keeping the
+//! flow of its own interior (grid cells whose match lies inside the layer) and filling the rest
+//! by push-pull, so motion never bleeds across a layer boundary; each layer's map into the
+//! I-frame is composed with its flow, and the layer's premultiplied colour and alpha are
+//! sampled from the I-frame through that map (one resampling per frame, no accumulated blur).
+//! Content the I-frame hid behind a nearer layer (extension and fill) that nothing covers any
+//! more is dropped, so the layers behind show. Layer depths follow the new depth map (the
+//! median over each layer's pixels), or the previous depth carried along the motion when depth
+//! estimation is skipped on P-frames.
+//!
+//! With **refinement** on, the pixels a layer shows fully opaque and unoccluded take the new
+//! frame's colour (so that lighting and texture stay current), layer depths are an exponential
+//! moving average (`depth_ema`), and I-frame refresh is adaptive with hysteresis (below).
+//!
+//! **Temporal confidence** `c_k` of layer `k` is an exponential moving average of the mean of
+//! two agreements between the propagated mask and the new depth, each relative to its value at
+//! the last I-frame: *mask overlap* (the share of the mask whose depth lies within `depth_tolerance`
+//! of the layer's, in `ln z`) and *boundary similarity* (the share of the mask's boundary
+//! pixels within one pixel of a boundary of that depth-consistent region). The **crack rate** is
+//! the share of 4-neighbour pairs across layer boundaries whose depth order contradicts the
+//! layer order by more than 2 % (the nearer layer's pixel lies behind the farther one's: such a
+//! boundary opens a crack or an overlap when the viewer moves), above its I-frame value.
+//! A refresh (new I-frame) happens when the GOP is full, or, with adaptive refresh, when the
+//! mean confidence falls below `refresh_confidence` or the crack rate rises above
+//! `refresh_crack` on `hysteresis` consecutive frames and at least `min_gap` frames after the
+//! last I-frame.
+//!
+//! **Association**: at a refresh the new layers inherit the track ids of the propagated
+//! layers they overlap most (IoU at least `min_iou`), so a layer's identity
+//! ([`cpsl_core::LayerMeta::track`]) survives refreshes even when depth order changes its index.
+
+use cpsl_core::{Camera, Edc, LayerSet, Limits, NoProgress, PremulImage};
+use cpsl_flow::{Flow, FlowConfig, Grey};
+use cpsl_layering::matte::edge_depth_cache_from;
+use cpsl_layering::{layer_frame, LayeringConfig, LayeringError};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+use std::time::Instant;
+use thiserror::Error;
+
+/// Errors of video layering.
+#[derive(Debug, Error)]
+pub enum VideoError {
+    /// Layering failed.
+    #[error(transparent)]
+    Layering(#[from] LayeringError),
+    /// A frame's size differs from the first frame's.
+    #[error("frame {frame} is {found:?} pixels, the video is {expected:?}")]
+    FrameSize {
+        /// Frame index.
+        frame: usize,
+        /// Its size.
+        found: (u32, u32),
+        /// The video's.
+        expected: (u32, u32),
+    },
+    /// An I-frame needs depth.
+    #[error("frame {frame} is an I-frame and needs a depth map")]
+    NeedDepth {
+        /// Frame index.
+        frame: usize,
+    },
+    /// Bad configuration.
+    #[error("GOP configuration: {0}")]
+    Config(String),
+    /// Rebuilding a layer set failed.
+    #[error(transparent)]
+    Core(#[from] cpsl_core::CoreError),
+}
+
+/// Temporal organisation. The defaults are the full pipeline; [`GopConfig::frame_wise`] and
+/// [`GopConfig::propagation_only`] are the ablations.
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct GopConfig {
+    /// Most frames in a group of pictures (1: every frame is an I-frame).
+    pub gop: usize,
+    /// Long side of the grid the flow runs on.
+    pub flow_side: usize,
+    /// Refinement: colour refresh of unoccluded opaque pixels, moving average of layer depths.
+    pub refine: bool,
+    /// Adaptive I-frame refresh from temporal confidence and crack rate.
+    pub adaptive_refresh: bool,
+    /// Weight of the previous frame in the moving average of layer depths.
+    pub depth_ema: f32,
+    /// `|ln z - ln z_k|` within which a pixel agrees with layer `k`.
+    pub depth_tolerance: f32,
+    /// Weight of the past in the temporal confidence.
+    pub confidence_ema: f32,
+    /// Refresh when the mean temporal confidence falls below this.
+    pub refresh_confidence: f32,
+    /// Refresh when the crack rate rises above this.
+    pub refresh_crack: f32,
+    /// Consecutive frames a refresh condition must hold.
+    pub hysteresis: usize,
+    /// Fewest frames between an I-frame and an adaptive refresh.
+    pub min_gap: usize,
+    /// Least IoU for a new layer to inherit a track.
+    pub min_iou: f32,
+}
+
+impl Default for GopConfig {
+    fn default() -> Self {
+        Self {
+            gop: 30,
+            flow_side: 320,
+            refine: true,
+            adaptive_refresh: true,
+            depth_ema: 0.7,
+            depth_tolerance: 0.05,
+            confidence_ema: 0.7,
+            refresh_confidence: 0.75,
+            refresh_crack: 0.05,
+            hysteresis: 2,
+            min_gap: 4,
+            min_iou: 0.3,
+        }
+    }
+}
+
+impl GopConfig {
+    /// Ablation: every frame layered on its own.
+    pub fn frame_wise() -> Self {
+        Self {
+            gop: 1,
+            refine: false,
+            adaptive_refresh: false,
+            ..Self::default()
+        }
+    }
+
+    /// Ablation: I/P propagation with a fixed GOP, no refinement, no adaptive refresh.
+    pub fn propagation_only() -> Self {
+        Self {
+            refine: false,
+            adaptive_refresh: false,
+            ..Self::default()
+        }
+    }
+
+    /// Checks ranges.
+    pub fn validate(&self) -> Result<(), VideoError> {
+        let bad = |what: &str| Err(VideoError::Config(what.to_string()));
+        if self.gop == 0 {
+            return bad("gop must be at least 1");
+        }
+        if !(16..=4096).contains(&self.flow_side) {
+            return bad("flow_side must be in 16..=4096");
+        }
+        for (name, v) in [
+            ("depth_ema", self.depth_ema),
+            ("confidence_ema", self.confidence_ema),
+            ("refresh_confidence", self.refresh_confidence),
+            ("refresh_crack", self.refresh_crack),
+            ("min_iou", self.min_iou),
+        ] {
+            if !(0.0..=1.0).contains(&v) {
+                return bad(&format!("{name} must be in [0, 1], not {v}"));
+            }
+        }
+        if !(self.depth_tolerance.is_finite() && self.depth_tolerance >= 0.0) {
+            return bad("depth_tolerance must be finite and >= 0");
+        }
+        Ok(())
+    }
+}
+
+/// Why a frame is an I-frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Refresh {
+    /// The first frame.
+    First,
+    /// The GOP was full.
+    Gop,
+    /// Mean temporal confidence stayed low.
+    Confidence,
+    /// The crack rate stayed high.
+    Crack,
+}
+
+/// One layered frame of the video.
+#[derive(Debug, Clone)]
+pub struct VideoFrame {
+    /// Frame index.
+    pub index: usize,
+    /// `Some(reason)` for an I-frame, `None` for a P-frame.
+    pub refresh: Option<Refresh>,
+    /// The layers (tracks in their metadata).
+    pub set: LayerSet,
+    /// The Edge-Depth Cache.
+    pub edc: Edc,
+    /// Layer index per pixel.
+    pub owner: Vec<u8>,
+    /// Temporal confidence per layer (1 on I-frames).
+    pub confidence: Vec<f32>,
+    /// Crack rate above the last I-frame's.
+    pub crack: f32,
+    /// Whether the depth was carried along the flow instead of estimated.
+    pub depth_propagated: bool,
+    /// Wall time per stage in milliseconds.
+    pub timings: Vec<(&'static str, f64)>,
+}
+
+/// What the next frame needs from the previous ones.
+struct State {
+    grey: Grey,
+    /// The previous frame's depth and owner.
+    depth: Vec<f32>,
+    owner: Vec<u8>,
+    /// The last I-frame's layers and owner.
+    key: LayerSet,
+    key_owner: Vec<u8>,
+    /// Per layer, on the flow grid: where each grid pixel's point of the previous frame lies
+    /// in the I-frame (full-resolution pixels, x and y interleaved).
+    maps: Vec<Vec<f32>>,
+    /// The previous frame's layer depths.
+    depths: Vec<f64>,
+    tracks: Vec<u32>,
+    /// Per layer: (overlap, boundary similarity) at the last I-frame.
+    base: Vec<(f32, f32)>,
+    base_crack: f32,
+    confidence: Vec<f32>,
+    since_i: usize,
+    run: usize,
+    pending: Option<Refresh>,
+}
+
+/// Layers a video frame by frame (see the crate documentation).
+pub struct VideoLayerer {
+    camera: Camera,
+    layering: LayeringConfig,
+    gop: GopConfig,
+    flow: FlowConfig,
+    state: Option<State>,
+    next_track: u32,
+    frames: usize,
+}
+
+impl VideoLayerer {
+    /// A layerer for frames seen by `camera`.
+    pub fn new(
+        camera: Camera,
+        layering: LayeringConfig,
+        gop: GopConfig,
+    ) -> Result<Self, VideoError> {
+        layering.validate()?;
+        gop.validate()?;
+        camera.validate().map_err(LayeringError::from)?;
+        Ok(Self {
+            camera,
+            layering,
+            gop,
+            flow: FlowConfig::default(),
+            state: None,
+            next_track: 0,
+            frames: 0,
+        })
+    }
+
+    /// Whether the next frame will be an I-frame (callers may skip depth estimation when it
+    /// is not).
+    pub fn next_is_intra(&self) -> bool {
+        match &self.state {
+            None => true,
+            Some(s) => s.since_i + 1 >= self.gop.gop || s.pending.is_some(),
+        }
+    }
+
+    /// Layers the next frame: `rgb` 3 bytes per pixel, `depth` its z-depth (required on
+    /// I-frames, see [`VideoLayerer::next_is_intra`]; on P-frames `None` carries the previous
+    /// depth along the flow).
+    pub fn push(&mut self, rgb: &[u8], depth: Option<&[f32]>) -> Result<VideoFrame, VideoError> {
+        self.push_with_motion(rgb, depth, None)
+    }
+
+    /// [`VideoLayerer::push`] with the motion from this frame to the previous one already
+    /// known (for example from the decoder's motion vectors; full resolution, the
+    /// [`cpsl_flow`] convention); `None` estimates it with optical flow.
+    pub fn push_with_motion(
+        &mut self,
+        rgb: &[u8],
+        depth: Option<&[f32]>,
+        motion: Option<Flow>,
+    ) -> Result<VideoFrame, VideoError> {
+        let (w, h) = (self.camera.width as usize, self.camera.height as usize);
+        let index = self.frames;
+        if rgb.len() != w * h * 3 || depth.is_some_and(|d| d.len() != w * h) {
+            return Err(VideoError::FrameSize {
+                frame: index,
+                found: ((rgb.len() / 3 / h.max(1)) as u32, h as u32),
+                expected: (w as u32, h as u32),
+            });
+        }
+        let mut timings = Vec::new();
+        let t = Instant::now();
+        let grey = Grey::from_rgb8_scaled(rgb, w, h, self.gop.flow_side);
+        // Motion from this frame to the previous one, on the grid (and at full resolution when
+        // the decoder gave it).
+        let given = motion.filter(|m| (m.width, m.height) == (w, h) && self.state.is_some());
+        let grid = match &given {
+            Some(m) => self
+                .state
+                .as_ref()
+                .map(|_| shrink_flow(m, grey.width, grey.height)),
+            None => self
+                .state
+                .as_ref()
+                .map(|s| cpsl_flow::flow(&grey, &s.grey, &self.flow).expect("same-size grids")),
+        };
+        let motion = grid.map(|grid| Motion { grid, full: given });
+        if motion.is_some() {
+            timings.push(("motion", ms(t)));
+        }
+        let refresh = match &self.state {
+            None => Some(Refresh::First),
+            Some(s) if s.since_i + 1 >= self.gop.gop => Some(Refresh::Gop),
+            Some(s) => s.pending,
+        };
+        let frame = match refresh {
+            Some(reason) => {
+                let depth = depth.ok_or(VideoError::NeedDepth { frame: index })?;
+                self.intra(rgb, depth, grey, motion, reason, timings)?
+            }
+            None => self.predicted(rgb, depth, grey, motion.expect("P-frame"), timings)?,
+        };
+        self.frames += 1;
+        Ok(frame)
+    }
+
+    fn intra(
+        &mut self,
+        rgb: &[u8],
+        depth: &[f32],
+        grey: Grey,
+        motion: Option<Motion>,
+        reason: Refresh,
+        mut timings: Vec<(&'static str, f64)>,
+    ) -> Result<VideoFrame, VideoError> {
+        let (w, h) = (self.camera.width as usize, self.camera.height as usize);
+        let (cues, layered) = layer_frame(rgb, depth, self.camera, &self.layering, &NoProgress)?;
+        timings.extend(layered.timings.iter().copied());
+        let k = layered.set.len();
+        // Association: inherit the tracks of the propagated previous layers.
+        let t = Instant::now();
+        let mut tracks = vec![u32::MAX; k];
+        if let (Some(s), Some(m)) = (&self.state, motion) {
+            let predicted = warp_labels(&s.owner, &m.at_full(w, h), w, h);
+            let kp = s.tracks.len();
+            let mut inter = vec![0u32; k * kp];
+            let (mut area_new, mut area_old) = (vec![0u32; k], vec![0u32; kp]);
+            for (&a, &b) in layered.owner.iter().zip(&predicted) {
+                inter[a as usize * kp + b as usize] += 1;
+                area_new[a as usize] += 1;
+                area_old[b as usize] += 1;
+            }
+            let mut pairs: Vec<(f32, usize, usize)> = (0..k)
+                .flat_map(|a| (0..kp).map(move |b| (a, b)))
+                .filter_map(|(a, b)| {
+                    let i = inter[a * kp + b] as f32;
+                    let u = (area_new[a] + area_old[b]) as f32 - i;
+                    (u > 0.0 && i / u >= self.gop.min_iou).then_some((i / u, a, b))
+                })
+                .collect();
+            pairs.sort_by(|x, y| y.0.total_cmp(&x.0));
+            let mut used = vec![false; kp];
+            for (_, a, b) in pairs {
+                if tracks[a] == u32::MAX && !used[b] {
+                    tracks[a] = s.tracks[b];
+                    used[b] = true;
+                }
+            }
+        }
+        for t in tracks.iter_mut().filter(|t| **t == u32::MAX) {
+            *t = self.next_track;
+            self.next_track += 1;
+        }
+        let set = with_tracks(layered.set, &tracks)?;
+        let lz = layer_log_depths(&set);
+        let base: Vec<(f32, f32)> = (0..k)
+            .map(|l| agreement(&layered.owner, &cues.depth, &lz, l, w, h, &self.gop))
+            .collect();
+        let base_crack = crack_rate(&layered.owner, &cues.depth, w, h);
+        timings.push(("association", ms(t)));
+        let maps = vec![identity_map(w, h, grey.width, grey.height); k];
+        self.state = Some(State {
+            grey,
+            depth: cues.depth,
+            owner: layered.owner.clone(),
+            key: set.clone(),
+            key_owner: layered.owner.clone(),
+            maps,
+            depths: set.layers().iter().map(|l| l.depth).collect(),
+            tracks,
+            base,
+            base_crack,
+            confidence: vec![1.0; k],
+            since_i: 0,
+            run: 0,
+            pending: None,
+        });
+        Ok(VideoFrame {
+            index: self.frames,
+            refresh: Some(reason),
+            set,
+            edc: layered.edc,
+            owner: layered.owner,
+            confidence: vec![1.0; k],
+            crack: 0.0,
+            depth_propagated: false,
+            timings,
+        })
+    }
+
+    fn predicted(
+        &mut self,
+        rgb: &[u8],
+        depth: Option<&[f32]>,
+        grey: Grey,
+        motion: Motion,
+        mut timings: Vec<(&'static str, f64)>,
+    ) -> Result<VideoFrame, VideoError> {
+        let (w, h) = (self.camera.width as usize, self.camera.height as usize);
+        let (gw, gh) = (grey.width, grey.height);
+        let g = self.gop;
+        let s = self.state.as_mut().expect("P-frames follow a frame");
+        let t = Instant::now();
+        let k = s.key.len();
+        // Each layer moves with the flow of its own interior, filled in elsewhere, so that
+        // motion never bleeds across a layer boundary; its map into the I-frame follows.
+        let flows = layer_flows(&s.owner, &motion.grid, w, h, k);
+        let maps: Vec<Vec<f32>> = flows
+            .par_iter()
+            .zip(&s.maps)
+            .map(|(f, m)| compose(m, f, gw, gh))
+            .collect();
+        let depth_propagated = depth.is_none();
+        let carried = warp_values(&s.depth, &motion.at_full(w, h), w, h);
+        // A model may leave pixels without depth: they keep the depth carried along.
+        let depth: Vec<f32> = match depth {
+            Some(d) => d
+                .iter()
+                .zip(&carried)
+                .map(|(&z, &c)| if z.is_finite() && z > 0.0 { z } else { c })
+                .collect(),
+            None => carried,
+        };
+        timings.push(("propagation", ms(t)));
+        // The I-frame's layers carried along their motions, each pixel marked where it
+        // carries content the I-frame hid behind a nearer layer (extension and fill).
+        let t = Instant::now();
+        let (mut layers, hidden): (Vec<cpsl_core::Layer>, Vec<Vec<bool>>) = s
+            .key
+            .layers()
+            .par_iter()
+            .zip(&maps)
+            .enumerate()
+            .map(|(l, (key, m))| {
+                let (image, hidden) = warp_image(&key.image, m, gw, gh, &s.key_owner, l);
+                let layer = cpsl_core::Layer {
+                    image,
+                    depth: key.depth,
+                    meta: key.meta.clone(),
+                };
+                (layer, hidden)
+            })
+            .unzip();
+        // Hidden content that nothing covers any more was never seen: drop it so that the
+        // layers behind show (the back layer is opaque everywhere and stays).
+        {
+            let mut px: Vec<&mut [u8]> = layers[..k - 1]
+                .iter_mut()
+                .map(|l| l.image.as_bytes_mut())
+                .collect();
+            for p in 0..w * h {
+                let mut cover = 0f32;
+                for (l, img) in px.iter_mut().enumerate() {
+                    let a = img[p * 4 + 3] as f32 / 255.0;
+                    if a == 0.0 {
+                        continue;
+                    }
+                    if hidden[l][p] && cover < 0.5 {
+                        img[p * 4..p * 4 + 4].fill(0);
+                    } else {
+                        cover += (1.0 - cover) * a;
+                    }
+                }
+            }
+        }
+        // Owner: the nearest layer with alpha >= 1/2. With refinement, the pixels a layer
+        // shows fully opaque and unoccluded take the new frame's colour.
+        let owner: Vec<u8> = (0..w * h)
+            .into_par_iter()
+            .map(|p| {
+                layers
+                    .iter()
+                    .position(|l| l.image.as_bytes()[p * 4 + 3] >= 128)
+                    .unwrap_or(k - 1) as u8
+            })
+            .collect();
+        if g.refine {
+            layers.par_iter_mut().enumerate().for_each(|(l, layer)| {
+                let px = layer.image.as_bytes_mut();
+                for p in 0..w * h {
+                    if owner[p] as usize == l && px[p * 4 + 3] == 255 {
+                        px[p * 4..p * 4 + 3].copy_from_slice(&rgb[p * 3..p * 3 + 3]);
+                    }
+                }
+            });
+        }
+        // Layer depths from the new depth: the median over each layer's pixels, smoothed
+        // over time with refinement, kept in order.
+        let medians = median_depths(&owner, &depth, k);
+        let mut prev = 0.0f64;
+        for (l, layer) in layers.iter_mut().enumerate() {
+            let fresh = medians[l].unwrap_or(s.depths[l]);
+            let z = if g.refine {
+                g.depth_ema as f64 * s.depths[l] + (1.0 - g.depth_ema as f64) * fresh
+            } else {
+                fresh
+            };
+            layer.depth = z.max(prev * (1.0 + 1e-6));
+            prev = layer.depth;
+        }
+        let set = LayerSet::new(*s.key.camera(), layers, &Limits::default())?;
+        let edc = edge_depth_cache_from(&depth, w, h, &owner, &set, &self.layering.matte);
+        timings.push(("layers", ms(t)));
+        // Temporal confidence and crack rate.
+        let t = Instant::now();
+        let lz = layer_log_depths(&set);
+        for l in 0..k {
+            let (o, b) = agreement(&owner, &depth, &lz, l, w, h, &g);
+            let (o0, b0) = s.base[l];
+            let rel = |v: f32, v0: f32| if v0 > 0.0 { (v / v0).min(1.0) } else { 1.0 };
+            let now = 0.5 * (rel(o, o0) + rel(b, b0));
+            s.confidence[l] = g.confidence_ema * s.confidence[l] + (1.0 - g.confidence_ema) * now;
+        }
+        let present: Vec<f32> = (0..k)
+            .filter(|&l| medians[l].is_some())
+            .map(|l| s.confidence[l])
+            .collect();
+        let mean_conf = present.iter().sum::<f32>() / present.len().max(1) as f32;
+        let crack = (crack_rate(&owner, &depth, w, h) - s.base_crack).max(0.0);
+        timings.push(("confidence", ms(t)));
+        // Hysteresis: a condition must hold on `hysteresis` consecutive frames.
+        s.since_i += 1;
+        let cause = if mean_conf < g.refresh_confidence {
+            Some(Refresh::Confidence)
+        } else if crack > g.refresh_crack {
+            Some(Refresh::Crack)
+        } else {
+            None
+        };
+        s.run = if cause.is_some() { s.run + 1 } else { 0 };
+        s.pending = cause.filter(|_| {
+            g.adaptive_refresh && s.run >= g.hysteresis.max(1) && s.since_i + 1 >= g.min_gap
+        });
+        let confidence = s.confidence.clone();
+        s.grey = grey;
+        s.depth = depth;
+        s.owner = owner.clone();
+        s.maps = maps;
+        s.depths = set.layers().iter().map(|l| l.depth).collect();
+        Ok(VideoFrame {
+            index: self.frames,
+            refresh: None,
+            set,
+            edc,
+            owner,
+            confidence,
+            crack,
+            depth_propagated,
+            timings,
+        })
+    }
+}
+
+fn ms(t: Instant) -> f64 {
+    t.elapsed().as_secs_f64() * 1e3
+}
+
+/// The pixel of the previous frame that `(x, y)` of this frame shows.
+#[inline]
+fn source(flow: &Flow, x: usize, y: usize, w: usize, h: usize) -> usize {
+    let (u, v) = flow.at(x, y);
+    let sx = (x as f32 + u).round().clamp(0.0, (w - 1) as f32) as usize;
+    let sy = (y as f32 + v).round().clamp(0.0, (h - 1) as f32) as usize;
+    sy * w + sx
+}
+
+/// Carries labels of the previous frame to this one (nearest).
+pub fn warp_labels(prev: &[u8], flow: &Flow, w: usize, h: usize) -> Vec<u8> {
+    (0..w * h)
+        .into_par_iter()
+        .map(|p| prev[source(flow, p % w, p / w, w, h)])
+        .collect()
+}
+
+/// Carries per-pixel values of the previous frame to this one (nearest, so depth is never
+/// mixed across an edge).
+pub fn warp_values(prev: &[f32], flow: &Flow, w: usize, h: usize) -> Vec<f32> {
+    (0..w * h)
+        .into_par_iter()
+        .map(|p| prev[source(flow, p % w, p / w, w, h)])
+        .collect()
+}
+
+fn with_tracks(set: LayerSet, tracks: &[u32]) -> Result<LayerSet, VideoError> {
+    let (camera, mut layers) = set.into_parts();
+    for (l, &t) in layers.iter_mut().zip(tracks) {
+        l.meta.track = Some(t);
+    }
+    Ok(LayerSet::new(camera, layers, &Limits::default())?)
+}
+
+fn layer_log_depths(set: &LayerSet) -> Vec<f32> {
+    set.layers().iter().map(|l| l.depth.ln() as f32).collect()
+}
+
+/// Whether `p` lies on the boundary of the region where `inside` holds (4-neighbourhood).
+fn on_boundary(inside: &impl Fn(usize) -> bool, p: usize, w: usize, h: usize) -> bool {
+    let (x, y) = (p % w, p / w);
+    let me = inside(p);
+    (x > 0 && inside(p - 1) != me)
+        || (x + 1 < w && inside(p + 1) != me)
+        || (y > 0 && inside(p - w) != me)
+        || (y + 1 < h && inside(p + w) != me)
+}
+
+/// Mask overlap and boundary similarity of layer `l`'s mask with the region whose depth fits
+/// the layer (see the crate documentation).
+fn agreement(
+    owner: &[u8],
+    depth: &[f32],
+    lz: &[f32],
+    l: usize,
+    w: usize,
+    h: usize,
+    g: &GopConfig,
+) -> (f32, f32) {
+    let mask = |p: usize| owner[p] as usize == l;
+    let fits = |p: usize| (depth[p].ln() - lz[l]).abs() <= g.depth_tolerance;
+    let (mut area, mut agree, mut edge, mut near) = (0u32, 0u32, 0u32, 0u32);
+    for p in 0..w * h {
+        if !mask(p) {
+            continue;
+        }
+        area += 1;
+        agree += fits(p) as u32;
+        if on_boundary(&mask, p, w, h) {
+            edge += 1;
+            let (x, y) = (p % w, p / w);
+            let hit = (y.saturating_sub(1)..(y + 2).min(h)).any(|yy| {
+                (x.saturating_sub(1)..(x + 2).min(w))
+                    .any(|xx| on_boundary(&fits, yy * w + xx, w, h))
+            });
+            near += hit as u32;
+        }
+    }
+    let ratio = |a: u32, b: u32| if b > 0 { a as f32 / b as f32 } else { 1.0 };
+    (ratio(agree, area), ratio(near, edge))
+}
+
+/// Share of 4-neighbour pairs across layer boundaries whose depth order contradicts the layer
+/// order by more than 2 %.
+fn crack_rate(owner: &[u8], depth: &[f32], w: usize, h: usize) -> f32 {
+    let (mut pairs, mut bad) = (0u32, 0u32);
+    for y in 0..h {
+        for x in 0..w {
+            let p = y * w + x;
+            for q in [(x + 1 < w).then(|| p + 1), (y + 1 < h).then(|| p + w)]
+                .into_iter()
+                .flatten()
+            {
+                if owner[p] == owner[q] {
+                    continue;
+                }
+                pairs += 1;
+                let (near, far) = if owner[p] < owner[q] { (p, q) } else { (q, p) };
+                bad += (depth[near] > depth[far] * 1.02) as u32;
+            }
+        }
+    }
+    if pairs == 0 {
+        0.0
+    } else {
+        bad as f32 / pairs as f32
+    }
+}
+
+/// Motion from a frame to the previous one: on the flow grid, and at full resolution when
+/// given.
+struct Motion {
+    grid: Flow,
+    full: Option<Flow>,
+}
+
+impl Motion {
+    fn at_full(&self, w: usize, h: usize) -> Flow {
+        match &self.full {
+            Some(f) => f.clone(),
+            None => self.grid.resize(w, h),
+        }
+    }
+}
+
+/// A full-resolution flow on a `gw x gh` grid (nearest sample at each grid pixel's centre,
+/// vectors in grid pixels).
+fn shrink_flow(f: &Flow, gw: usize, gh: usize) -> Flow {
+    let (sx, sy) = (f.width as f32 / gw as f32, f.height as f32 / gh as f32);
+    let mut data = vec![0f32; gw * gh * 2];
+    for gy in 0..gh {
+        for gx in 0..gw {
+            let x = (((gx as f32 + 0.5) * sx) as usize).min(f.width - 1);
+            let y = (((gy as f32 + 0.5) * sy) as usize).min(f.height - 1);
+            let (u, v) = f.at(x, y);
+            data[(gy * gw + gx) * 2] = u / sx;
+            data[(gy * gw + gx) * 2 + 1] = v / sy;
+        }
+    }
+    Flow {
+        width: gw,
+        height: gh,
+        data,
+    }
+}
+
+/// Full-resolution position of the centre of grid pixel `(gx, gy)`.
+#[inline]
+fn grid_to_full(g: f32, scale: f32) -> f32 {
+    (g + 0.5) * scale - 0.5
+}
+
+/// The map of a frame onto itself, on the grid.
+fn identity_map(w: usize, h: usize, gw: usize, gh: usize) -> Vec<f32> {
+    let (sx, sy) = (w as f32 / gw as f32, h as f32 / gh as f32);
+    (0..gw * gh)
+        .flat_map(|g| {
+            [
+                grid_to_full((g % gw) as f32, sx),
+                grid_to_full((g / gw) as f32, sy),
+            ]
+        })
+        .collect()
+}
+
+/// Bilinear sample of channel `c` of a 2-channel grid at `(x, y)` (clamped).
+#[inline]
+fn sample2(d: &[f32], gw: usize, gh: usize, x: f32, y: f32, c: usize) -> f32 {
+    let x = x.clamp(0.0, (gw - 1) as f32);
+    let y = y.clamp(0.0, (gh - 1) as f32);
+    let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+    let (x1, y1) = ((x0 + 1).min(gw - 1), (y0 + 1).min(gh - 1));
+    let (fx, fy) = (x - x0 as f32, y - y0 as f32);
+    let at = |xx: usize, yy: usize| d[(yy * gw + xx) * 2 + c];
+    (at(x0, y0) * (1.0 - fx) + at(x1, y0) * fx) * (1.0 - fy)
+        + (at(x0, y1) * (1.0 - fx) + at(x1, y1) * fx) * fy
+}
+
+/// Per layer, the grid flow of its own interior: grid pixels whose match in the previous
+/// frame lies inside the layer (one grid pixel from any other layer) keep their flow, and
+/// push-pull fills the rest, so each layer moves with its own content; a layer without such
+/// pixels stays where it is.
+fn layer_flows(prev_owner: &[u8], flow: &Flow, w: usize, h: usize, k: usize) -> Vec<Flow> {
+    let (gw, gh) = (flow.width, flow.height);
+    let (sx, sy) = (w as f32 / gw as f32, h as f32 / gh as f32);
+    // The previous owner on the grid: a layer index, or 255 where the cell is mixed.
+    let cell: Vec<u8> = (0..gw * gh)
+        .map(|g| {
+            let x = (grid_to_full((g % gw) as f32, sx).round() as usize).min(w - 1);
+            let y = (grid_to_full((g / gw) as f32, sy).round() as usize).min(h - 1);
+            prev_owner[y * w + x]
+        })
+        .collect();
+    let lo = min_filter(&cell, gw, gh, 1);
+    let hi = max_filter(&cell, gw, gh, 1);
+    (0..k)
+        .into_par_iter()
+        .map(|l| {
+            let mut data = vec![0f32; gw * gh * 2];
+            let mut weight = vec![0f32; gw * gh];
+            for g in 0..gw * gh {
+                let (u, v) = flow.at(g % gw, g / gw);
+                let qx = ((g % gw) as f32 + u).round();
+                let qy = ((g / gw) as f32 + v).round();
+                if qx < 0.0 || qy < 0.0 || qx >= gw as f32 || qy >= gh as f32 {
+                    continue;
+                }
+                let q = qy as usize * gw + qx as usize;
+                if lo[q] as usize == l && hi[q] as usize == l {
+                    data[g * 2] = u;
+                    data[g * 2 + 1] = v;
+                    weight[g] = 1.0;
+                }
+            }
+            if !cpsl_layering::fill::push_pull(&mut data, &weight, gw, gh, 2) {
+                data.fill(0.0);
+            }
+            Flow {
+                width: gw,
+                height: gh,
+                data,
+            }
+        })
+        .collect()
+}
+
+/// A layer's new map: the previous map sampled at each grid pixel's match.
+fn compose(map: &[f32], flow: &Flow, gw: usize, gh: usize) -> Vec<f32> {
+    (0..gw * gh)
+        .flat_map(|g| {
+            let (u, v) = flow.at(g % gw, g / gw);
+            let (x, y) = ((g % gw) as f32 + u, (g / gw) as f32 + v);
+            [sample2(map, gw, gh, x, y, 0), sample2(map, gw, gh, x, y, 1)]
+        })
+        .collect()
+}
+
+/// Layer `l` of the I-frame (`img`) sampled (bilinear) where `map` (on a `gw x gh` grid,
+/// bilinearly interpolated) sends every pixel, transparent outside the image; and per pixel
+/// whether that position was hidden behind a nearer layer in the I-frame (`owner < l`).
+fn warp_image(
+    img: &PremulImage,
+    map: &[f32],
+    gw: usize,
+    gh: usize,
+    owner: &[u8],
+    l: usize,
+) -> (PremulImage, Vec<bool>) {
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    let (sx, sy) = (gw as f32 / w as f32, gh as f32 / h as f32);
+    let src = img.as_bytes();
+    let mut out = PremulImage::new(w as u32, h as u32);
+    let mut hidden = vec![false; w * h];
+    out.as_bytes_mut()
+        .par_chunks_mut(w * 4)
+        .zip(hidden.par_chunks_mut(w))
+        .enumerate()
+        .for_each(|(y, (row, hid))| {
+            let gy = (y as f32 + 0.5) * sy - 0.5;
+            for x in 0..w {
+                let gx = (x as f32 + 0.5) * sx - 0.5;
+                let px = sample2(map, gw, gh, gx, gy, 0);
+                let py = sample2(map, gw, gh, gx, gy, 1);
+                if px < -0.5 || py < -0.5 || px > w as f32 - 0.5 || py > h as f32 - 0.5 {
+                    continue;
+                }
+                let (px, py) = (px.clamp(0.0, (w - 1) as f32), py.clamp(0.0, (h - 1) as f32));
+                let (x0, y0) = (px.floor() as usize, py.floor() as usize);
+                let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
+                let (fx, fy) = (px - x0 as f32, py - y0 as f32);
+                let taps = [
+                    ((y0 * w + x0) * 4, (1.0 - fx) * (1.0 - fy)),
+                    ((y0 * w + x1) * 4, fx * (1.0 - fy)),
+                    ((y1 * w + x0) * 4, (1.0 - fx) * fy),
+                    ((y1 * w + x1) * 4, fx * fy),
+                ];
+                if taps.iter().all(|&(q, _)| src[q + 3] == 0) {
+                    continue;
+                }
+                for c in 0..4 {
+                    let v: f32 = taps.iter().map(|&(q, wt)| src[q + c] as f32 * wt).sum();
+                    row[x * 4 + c] = v.round() as u8;
+                }
+                hid[x] = (owner[py.round() as usize * w + px.round() as usize] as usize) < l;
+            }
+        });
+    (out, hidden)
+}
+
+/// Median depth of each label's pixels (`None` for a label without pixels).
+fn median_depths(owner: &[u8], depth: &[f32], k: usize) -> Vec<Option<f64>> {
+    let mut per: Vec<Vec<f32>> = vec![Vec::new(); k];
+    for (&o, &z) in owner.iter().zip(depth) {
+        per[o as usize].push(z);
+    }
+    per.into_iter()
+        .map(|mut v| {
+            if v.is_empty() {
+                return None;
+            }
+            let m = v.len() / 2;
+            Some(*v.select_nth_unstable_by(m, f32::total_cmp).1 as f64)
+        })
+        .collect()
+}
+
+/// Minimum of `v` over the `(2r+1)^2` window around every pixel, separably.
+fn min_filter(v: &[u8], w: usize, h: usize, r: usize) -> Vec<u8> {
+    let mut tmp = vec![0u8; w * h];
+    tmp.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        let src = &v[y * w..(y + 1) * w];
+        for (x, o) in row.iter_mut().enumerate() {
+            *o = *src[x.saturating_sub(r)..(x + r + 1).min(w)]
+                .iter()
+                .min()
+                .expect("window");
+        }
+    });
+    let mut out = vec![0u8; w * h];
+    out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
+        for (x, o) in row.iter_mut().enumerate() {
+            *o = (y.saturating_sub(r)..(y + r + 1).min(h))
+                .map(|yy| tmp[yy * w + x])
+                .min()
+                .expect("window");
+        }
+    });
+    out
+}
+
+/// Maximum of `v` over the `(2r+1)^2` window around every pixel.
+fn max_filter(v: &[u8], w: usize, h: usize, r: usize) -> Vec<u8> {
+    let inv: Vec<u8> = v.iter().map(|&x| 255 - x).collect();
+    min_filter(&inv, w, h, r)
+        .into_iter()
+        .map(|x| 255 - x)
+        .collect()
+}

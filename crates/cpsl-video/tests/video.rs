@@ -1,0 +1,289 @@
+//! Video layering on the synthetic scene with moving objects, where the true motion and object
+//! partition are known.
+
+use cpsl_core::Pose;
+use cpsl_eval::temporal::{alpha_owner, boundary_variance, Motion};
+use cpsl_flow::Flow;
+use cpsl_layering::LayeringConfig;
+use cpsl_synth::Scene;
+use cpsl_video::{GopConfig, Refresh, VideoError, VideoFrame, VideoLayerer};
+
+const W: u32 = 320;
+const H: u32 = 240;
+/// Seconds between frames.
+const DT: f64 = 0.1;
+
+struct Clip {
+    scene: Scene,
+    rgb: Vec<Vec<u8>>,
+    depth: Vec<Vec<f32>>,
+    object: Vec<Vec<u16>>,
+}
+
+fn clip(frames: usize) -> Clip {
+    let scene = Scene::default_scene(W, H);
+    let (mut rgb, mut depth, mut object) = (Vec::new(), Vec::new(), Vec::new());
+    for t in 0..frames {
+        let v = scene.render(&scene.camera, &Pose::IDENTITY, t as f64 * DT, 2);
+        rgb.push(v.rgb);
+        depth.push(v.depth);
+        object.push(v.object);
+    }
+    Clip {
+        scene,
+        rgb,
+        depth,
+        object,
+    }
+}
+
+/// The true motion of the clip: every pixel of frame `t + 1` traced back along its object's
+/// velocity; visible in both frames where frame `t` shows the same object there.
+fn true_motion(c: &Clip) -> Motion {
+    let (w, h) = (W as usize, H as usize);
+    let cam = c.scene.camera;
+    let (mut back, mut valid) = (Vec::new(), Vec::new());
+    for t in 0..c.rgb.len() - 1 {
+        let mut data = vec![0f32; w * h * 2];
+        let mut ok = vec![false; w * h];
+        for p in 0..w * h {
+            let o = c.object[t + 1][p];
+            if o == u16::MAX {
+                continue;
+            }
+            let (x, y) = ((p % w) as f64, (p / w) as f64);
+            let at = cam.unproject(x, y, c.depth[t + 1][p] as f64);
+            let before = at - c.scene.objects[o as usize].velocity * DT;
+            let Some((sx, sy)) = cam.project(before) else {
+                continue;
+            };
+            data[p * 2] = (sx - x) as f32;
+            data[p * 2 + 1] = (sy - y) as f32;
+            let (qx, qy) = (sx.round(), sy.round());
+            if qx >= 0.0 && qy >= 0.0 && qx < w as f64 && qy < h as f64 {
+                ok[p] = c.object[t][qy as usize * w + qx as usize] == o;
+            }
+        }
+        back.push(Flow {
+            width: w,
+            height: h,
+            data,
+        });
+        valid.push(ok);
+    }
+    Motion {
+        width: w,
+        height: h,
+        back,
+        valid,
+    }
+}
+
+fn run(c: &Clip, gop: GopConfig) -> Vec<VideoFrame> {
+    let mut v = VideoLayerer::new(c.scene.camera, LayeringConfig::default(), gop).unwrap();
+    (0..c.rgb.len())
+        .map(|t| v.push(&c.rgb[t], Some(&c.depth[t])).unwrap())
+        .collect()
+}
+
+#[test]
+fn propagation_steadies_boundaries_and_keeps_tracks() {
+    let c = clip(10);
+    let motion = true_motion(&c);
+    let estimated = Motion::estimate(&c.rgb, W as usize, H as usize);
+    let mut scores = Vec::new();
+    for (name, gop) in [
+        ("frame-wise", GopConfig::frame_wise()),
+        ("I/P", GopConfig::propagation_only()),
+        ("I/P + refinement + hysteresis", GopConfig::default()),
+    ] {
+        let frames = run(&c, gop);
+        let owners: Vec<Vec<u8>> = frames.iter().map(|f| alpha_owner(&f.set)).collect();
+        let bv = boundary_variance(&owners, &motion);
+        let bve = boundary_variance(&owners, &estimated);
+        let kinds: String = frames
+            .iter()
+            .map(|f| if f.refresh.is_some() { 'I' } else { 'P' })
+            .collect();
+        eprintln!("{name}: boundary variance {bv:.3} (estimated motion {bve:.3}), frames {kinds}");
+        scores.push(bv);
+        if name != "frame-wise" {
+            assert_eq!(&kinds, "IPPPPPPPPP", "{name}");
+            // The board (object 2) stays on one track.
+            let board: Vec<u32> = frames
+                .iter()
+                .zip(&c.object)
+                .map(|(f, obj)| {
+                    let mut count = vec![0usize; f.set.len()];
+                    for (&o, &l) in obj.iter().zip(&f.owner) {
+                        if o == 2 {
+                            count[l as usize] += 1;
+                        }
+                    }
+                    let l = (0..count.len()).max_by_key(|&l| count[l]).unwrap();
+                    f.set.layers()[l].meta.track.unwrap()
+                })
+                .collect();
+            assert!(board.windows(2).all(|p| p[0] == p[1]), "{name}: {board:?}");
+        }
+    }
+    assert!(scores[1] < scores[0], "propagation beats frame-wise");
+    assert!(scores[2] <= scores[1] * 1.05, "refinement does not undo it");
+}
+
+#[test]
+fn a_scene_cut_triggers_a_refresh_once_with_hysteresis() {
+    let c = clip(4);
+    let scene = &c.scene;
+    // The same scene mirrored left to right: nothing lines up with the layers any more.
+    let mirror = |v: &[u8]| -> Vec<u8> {
+        (0..(W * H) as usize)
+            .flat_map(|p| {
+                let (x, y) = (p % W as usize, p / W as usize);
+                let q = y * W as usize + (W as usize - 1 - x);
+                v[q * 3..q * 3 + 3].to_vec()
+            })
+            .collect()
+    };
+    let mirror_depth = |v: &[f32]| -> Vec<f32> {
+        (0..(W * H) as usize)
+            .map(|p| {
+                let (x, y) = (p % W as usize, p / W as usize);
+                v[y * W as usize + (W as usize - 1 - x)]
+            })
+            .collect()
+    };
+    let (cut_rgb, cut_depth) = (mirror(&c.rgb[3]), mirror_depth(&c.depth[3]));
+    let cfg = GopConfig {
+        min_gap: 2,
+        ..GopConfig::default()
+    };
+    let mut v = VideoLayerer::new(scene.camera, LayeringConfig::default(), cfg).unwrap();
+    let mut kinds = Vec::new();
+    for t in 0..3 {
+        kinds.push(v.push(&c.rgb[t], Some(&c.depth[t])).unwrap().refresh);
+    }
+    for _ in 0..5 {
+        kinds.push(v.push(&cut_rgb, Some(&cut_depth)).unwrap().refresh);
+    }
+    eprintln!("{kinds:?}");
+    assert_eq!(kinds[0], Some(Refresh::First));
+    let adaptive: Vec<usize> = (1..kinds.len())
+        .filter(|&i| matches!(kinds[i], Some(Refresh::Confidence | Refresh::Crack)))
+        .collect();
+    // Two low-confidence frames after the cut (hysteresis 2), then one refresh.
+    assert_eq!(adaptive.len(), 1, "{kinds:?}");
+    assert!(adaptive[0] >= 5, "{kinds:?}");
+}
+
+#[test]
+fn clear_errors() {
+    let c = clip(1);
+    let mut v = VideoLayerer::new(
+        c.scene.camera,
+        LayeringConfig::default(),
+        GopConfig::default(),
+    )
+    .unwrap();
+    assert!(v.next_is_intra());
+    assert!(matches!(
+        v.push(&c.rgb[0], None),
+        Err(VideoError::NeedDepth { frame: 0 })
+    ));
+    assert!(matches!(
+        v.push(&c.rgb[0][..300], Some(&c.depth[0])),
+        Err(VideoError::FrameSize { frame: 0, .. })
+    ));
+    let bad = GopConfig {
+        gop: 0,
+        ..GopConfig::default()
+    };
+    assert!(VideoLayerer::new(c.scene.camera, LayeringConfig::default(), bad).is_err());
+    // P-frames may skip depth: it is carried along the flow.
+    v.push(&c.rgb[0], Some(&c.depth[0])).unwrap();
+    assert!(!v.next_is_intra());
+    let p = v.push(&c.rgb[0], None).unwrap();
+    assert!(p.refresh.is_none() && p.depth_propagated);
+}
+
+#[test]
+fn a_still_clip_keeps_its_layers() {
+    let c = clip(1);
+    let mut v = VideoLayerer::new(
+        c.scene.camera,
+        LayeringConfig::default(),
+        GopConfig::default(),
+    )
+    .unwrap();
+    let first = v.push(&c.rgb[0], Some(&c.depth[0])).unwrap();
+    for _ in 0..3 {
+        let p = v.push(&c.rgb[0], Some(&c.depth[0])).unwrap();
+        assert!(p.refresh.is_none());
+        for (a, b) in first.set.layers().iter().zip(p.set.layers()) {
+            let diff = a
+                .image
+                .as_bytes()
+                .iter()
+                .zip(b.image.as_bytes())
+                .filter(|(x, y)| x.abs_diff(**y) > 2)
+                .count();
+            assert!(diff < 100, "{diff} bytes changed");
+        }
+    }
+}
+
+#[test]
+fn layers_follow_a_known_translation() {
+    // The scene's first frame shifted right by 3 px per frame, with that motion given.
+    let c = clip(1);
+    let (w, h) = (W as usize, H as usize);
+    let shift = |v: &[u8], d: usize| -> Vec<u8> {
+        (0..w * h)
+            .flat_map(|p| {
+                let (x, y) = (p % w, p / w);
+                let q = y * w + x.saturating_sub(d);
+                v[q * 3..q * 3 + 3].to_vec()
+            })
+            .collect()
+    };
+    let shift_z = |v: &[f32], d: usize| -> Vec<f32> {
+        (0..w * h)
+            .map(|p| v[(p / w) * w + (p % w).saturating_sub(d)])
+            .collect()
+    };
+    let back = Flow {
+        width: w,
+        height: h,
+        data: (0..w * h).flat_map(|_| [-3.0f32, 0.0]).collect(),
+    };
+    let mut v = VideoLayerer::new(
+        c.scene.camera,
+        LayeringConfig::default(),
+        GopConfig::default(),
+    )
+    .unwrap();
+    let first = v.push(&c.rgb[0], Some(&c.depth[0])).unwrap();
+    for t in 1..4 {
+        let d = 3 * t;
+        let p = v
+            .push_with_motion(
+                &shift(&c.rgb[0], d),
+                Some(&shift_z(&c.depth[0], d)),
+                Some(back.clone()),
+            )
+            .unwrap();
+        assert!(p.refresh.is_none());
+        // Every layer is the first frame's layer shifted by d (away from the left border).
+        for (a, b) in first.set.layers().iter().zip(p.set.layers()) {
+            let (a, b) = (a.image.as_bytes(), b.image.as_bytes());
+            let mut bad = 0;
+            for y in 0..h {
+                for x in d + 2..w - 2 {
+                    let (pa, pb) = ((y * w + x - d) * 4 + 3, (y * w + x) * 4 + 3);
+                    bad += (a[pa].abs_diff(b[pb]) > 8) as usize;
+                }
+            }
+            assert!(bad < 50, "frame {t}: {bad} alpha values off");
+        }
+    }
+}

@@ -104,45 +104,29 @@ fn synthetic() -> ClipData {
     let scene = cpsl_synth::Scene::default_scene(480, 360);
     let dt = 0.1;
     let novel = Pose::from_translation(Vec3::new(0.15, 0.0, 0.0));
-    let (mut frames, mut depth, mut truth, mut object) = (vec![], vec![], vec![], vec![]);
+    let (mut views, mut truth) = (vec![], vec![]);
     for t in 0..16 {
-        let v = scene.render(&scene.camera, &Pose::IDENTITY, t as f64 * dt, 2);
-        frames.push(v.rgb);
-        depth.push(v.depth);
-        object.push(v.object);
+        views.push(scene.render(&scene.camera, &Pose::IDENTITY, t as f64 * dt, 2));
         truth.push(scene.render(&scene.camera, &novel, t as f64 * dt, 2).rgb);
     }
-    // True motion: every pixel traced back along its object's velocity.
     let cam = scene.camera;
     let (w, h) = (cam.width as usize, cam.height as usize);
-    let (mut back, mut valid) = (vec![], vec![]);
-    for t in 0..frames.len() - 1 {
-        let mut data = vec![0f32; w * h * 2];
-        let mut ok = vec![false; w * h];
-        for p in 0..w * h {
-            let o = object[t + 1][p];
-            if o == u16::MAX {
-                continue;
-            }
-            let (x, y) = ((p % w) as f64, (p / w) as f64);
-            let at = cam.unproject(x, y, depth[t + 1][p] as f64);
-            let Some((sx, sy)) = cam.project(at - scene.objects[o as usize].velocity * dt) else {
-                continue;
-            };
-            data[p * 2] = (sx - x) as f32;
-            data[p * 2 + 1] = (sy - y) as f32;
-            let (qx, qy) = (sx.round(), sy.round());
-            if qx >= 0.0 && qy >= 0.0 && qx < w as f64 && qy < h as f64 {
-                ok[p] = object[t][qy as usize * w + qx as usize] == o;
-            }
-        }
-        back.push(Flow {
-            width: w,
-            height: h,
-            data,
-        });
-        valid.push(ok);
-    }
+    let (back, valid): (Vec<Flow>, Vec<Vec<bool>>) = views
+        .windows(2)
+        .map(|v| {
+            let (data, seen) = scene.backward_motion(&v[0], &v[1], dt);
+            (
+                Flow {
+                    width: w,
+                    height: h,
+                    data,
+                },
+                seen,
+            )
+        })
+        .unzip();
+    let (frames, depth): (Vec<Vec<u8>>, Vec<Vec<f32>>) =
+        views.into_iter().map(|v| (v.rgb, v.depth)).unzip();
     ClipData {
         name: "synthetic",
         camera: cam,

@@ -10,5 +10,5 @@ pub mod layers;
 pub mod scene;
 pub mod texture;
 
-pub use scene::{Frame, Object, Scene, Shape};
+pub use scene::{Frame, Object, Scene, Shape, View};
 pub use texture::Texture;

@@ -276,6 +276,35 @@ impl Scene {
         }
     }
 
+    /// The true motion between two views from the reference camera at the identity pose,
+    /// `dt` seconds apart: for every pixel of the later view (`later`), where the surface it
+    /// shows was in the earlier one (`dx, dy` interleaved, pixels), and whether the earlier
+    /// view shows that surface there (the same object at the rounded position).
+    pub fn backward_motion(&self, earlier: &View, later: &View, dt: f64) -> (Vec<f32>, Vec<bool>) {
+        let cam = self.camera;
+        let (w, h) = (later.width as usize, later.height as usize);
+        let mut flow = vec![0f32; w * h * 2];
+        let mut seen = vec![false; w * h];
+        for p in 0..w * h {
+            let o = later.object[p];
+            if o == u16::MAX {
+                continue;
+            }
+            let (x, y) = ((p % w) as f64, (p / w) as f64);
+            let at = cam.unproject(x, y, later.depth[p] as f64);
+            let Some((sx, sy)) = cam.project(at - self.objects[o as usize].velocity * dt) else {
+                continue;
+            };
+            flow[p * 2] = (sx - x) as f32;
+            flow[p * 2 + 1] = (sy - y) as f32;
+            let (qx, qy) = (sx.round(), sy.round());
+            if qx >= 0.0 && qy >= 0.0 && qx < w as f64 && qy < h as f64 {
+                seen[p] = earlier.object[qy as usize * w + qx as usize] == o;
+            }
+        }
+        (flow, seen)
+    }
+
     /// Poses of the ground-truth novel views written by `cpsl synth`: a horizontal sweep, a
     /// vertical sweep, a dolly and small rotations.
     pub fn default_views() -> Vec<(String, Pose)> {

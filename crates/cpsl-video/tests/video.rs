@@ -5,7 +5,7 @@ use cpsl_core::Pose;
 use cpsl_eval::temporal::{alpha_owner, boundary_variance, Motion};
 use cpsl_flow::Flow;
 use cpsl_layering::LayeringConfig;
-use cpsl_synth::Scene;
+use cpsl_synth::{Scene, View};
 use cpsl_video::{GopConfig, Refresh, VideoError, VideoFrame, VideoLayerer};
 
 const W: u32 = 320;
@@ -15,6 +15,7 @@ const DT: f64 = 0.1;
 
 struct Clip {
     scene: Scene,
+    views: Vec<View>,
     rgb: Vec<Vec<u8>>,
     depth: Vec<Vec<f32>>,
     object: Vec<Vec<u16>>,
@@ -22,55 +23,36 @@ struct Clip {
 
 fn clip(frames: usize) -> Clip {
     let scene = Scene::default_scene(W, H);
-    let (mut rgb, mut depth, mut object) = (Vec::new(), Vec::new(), Vec::new());
-    for t in 0..frames {
-        let v = scene.render(&scene.camera, &Pose::IDENTITY, t as f64 * DT, 2);
-        rgb.push(v.rgb);
-        depth.push(v.depth);
-        object.push(v.object);
-    }
+    let views: Vec<View> = (0..frames)
+        .map(|t| scene.render(&scene.camera, &Pose::IDENTITY, t as f64 * DT, 2))
+        .collect();
     Clip {
+        rgb: views.iter().map(|v| v.rgb.clone()).collect(),
+        depth: views.iter().map(|v| v.depth.clone()).collect(),
+        object: views.iter().map(|v| v.object.clone()).collect(),
         scene,
-        rgb,
-        depth,
-        object,
+        views,
     }
 }
 
-/// The true motion of the clip: every pixel of frame `t + 1` traced back along its object's
-/// velocity; visible in both frames where frame `t` shows the same object there.
+/// The true motion of the clip (see `Scene::backward_motion`).
 fn true_motion(c: &Clip) -> Motion {
     let (w, h) = (W as usize, H as usize);
-    let cam = c.scene.camera;
-    let (mut back, mut valid) = (Vec::new(), Vec::new());
-    for t in 0..c.rgb.len() - 1 {
-        let mut data = vec![0f32; w * h * 2];
-        let mut ok = vec![false; w * h];
-        for p in 0..w * h {
-            let o = c.object[t + 1][p];
-            if o == u16::MAX {
-                continue;
-            }
-            let (x, y) = ((p % w) as f64, (p / w) as f64);
-            let at = cam.unproject(x, y, c.depth[t + 1][p] as f64);
-            let before = at - c.scene.objects[o as usize].velocity * DT;
-            let Some((sx, sy)) = cam.project(before) else {
-                continue;
-            };
-            data[p * 2] = (sx - x) as f32;
-            data[p * 2 + 1] = (sy - y) as f32;
-            let (qx, qy) = (sx.round(), sy.round());
-            if qx >= 0.0 && qy >= 0.0 && qx < w as f64 && qy < h as f64 {
-                ok[p] = c.object[t][qy as usize * w + qx as usize] == o;
-            }
-        }
-        back.push(Flow {
-            width: w,
-            height: h,
-            data,
-        });
-        valid.push(ok);
-    }
+    let (back, valid) = c
+        .views
+        .windows(2)
+        .map(|v| {
+            let (data, seen) = c.scene.backward_motion(&v[0], &v[1], DT);
+            (
+                Flow {
+                    width: w,
+                    height: h,
+                    data,
+                },
+                seen,
+            )
+        })
+        .unzip();
     Motion {
         width: w,
         height: h,

@@ -211,26 +211,6 @@ fn hci_row(data: &Path) -> Result<ClipData> {
     })
 }
 
-/// Area-average downscaling by an integer factor.
-fn shrink(rgb: &[u8], w: usize, h: usize, s: usize) -> Vec<u8> {
-    let (nw, nh) = (w / s, h / s);
-    let mut out = vec![0u8; nw * nh * 3];
-    for y in 0..nh {
-        for x in 0..nw {
-            for c in 0..3 {
-                let mut sum = 0u32;
-                for yy in 0..s {
-                    for xx in 0..s {
-                        sum += rgb[((y * s + yy) * w + x * s + xx) * 3 + c] as u32;
-                    }
-                }
-                out[(y * nw + x) * 3 + c] = (sum / (s * s) as u32) as u8;
-            }
-        }
-    }
-    out
-}
-
 fn estimated(
     name: &'static str,
     files: Vec<PathBuf>,
@@ -242,7 +222,12 @@ fn estimated(
     for f in &files {
         let img = cpsl_io::images::read_rgb8(f, &Limits::default())
             .with_context(|| format!("reading {}", f.display()))?;
-        let rgb = shrink(&img.data, img.width as usize, img.height as usize, scale);
+        let (rgb, _, _) = crate::util::downscale_rgb(
+            &img.data,
+            img.width as usize,
+            img.height as usize,
+            img.width as usize / scale,
+        );
         let z = model.depth(&rgb, camera.width, camera.height)?;
         frames.push(rgb);
         depth.push(z);

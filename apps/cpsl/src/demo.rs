@@ -2,7 +2,7 @@
 
 use crate::layer::{layer_image, write_output, InstanceMode};
 use crate::progress::Bars;
-use crate::render::{render_sweep, Sweep};
+use crate::render::{render_sweep, Source, Sweep};
 use crate::synth::{depth_list, estimate_depth, synthesise, SynthArgs};
 use crate::util::{self, Output};
 use anyhow::{Context, Result};
@@ -121,11 +121,13 @@ pub fn run(a: DemoArgs) -> Result<()> {
         layer_dir.display()
     );
 
-    let prepared = PreparedLayers::new(&set).with_edc(&run.layered.edc);
+    let mut source = Source::Still(Box::new(
+        PreparedLayers::new(&set).with_edc(&run.layered.edc),
+    ));
     let sweep_dir = a.output.join("sweep");
     let sweep = Sweep::parse("tx:-0.3:0.3:61").expect("valid sweep");
     render_sweep(
-        &prepared,
+        &mut source,
         true,
         &sweep.poses(),
         &sweep_dir,
@@ -144,10 +146,11 @@ pub fn run(a: DemoArgs) -> Result<()> {
         }
     );
 
+    let prepared = source.at(0)?;
     let mut scores = Vec::new();
     for (entry, truth) in &synth.views {
         let mut img = cpsl_core::PremulImage::new(set.camera().width, set.camera().height);
-        crate::render::render_pose(&prepared, true, &entry.pose_matrix, set.camera(), &mut img);
+        crate::render::render_pose(prepared, true, &entry.pose_matrix, set.camera(), &mut img);
         scores.push(Score {
             view: entry.name.clone(),
             pose: entry.pose.clone(),

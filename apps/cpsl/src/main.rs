@@ -3,6 +3,7 @@
 
 mod bench;
 mod demo;
+mod encode;
 mod eval;
 mod eval_video;
 mod layer;
@@ -24,7 +25,7 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Render a layer set from a new viewpoint (--pose) or along a sweep (--sweep).
+    /// Render a layer set or a package from a new viewpoint (--pose) or along a sweep (--sweep).
     Render(render::RenderArgs),
     /// Write a synthetic scene: input view, exact depth and ground-truth novel views.
     Synth(synth::SynthArgs),
@@ -34,6 +35,13 @@ enum Command {
     /// Layer a video or an image sequence: groups of pictures, I-frames layered from scratch,
     /// P-frames propagated along the motion, adaptive refresh.
     LayerVideo(video::LayerVideoArgs),
+    /// The whole pipeline from a video to a package: depth, layering, propagation, per-layer
+    /// bitrate allocation and coding (H.264, H.265, AV1 or VP9), segmented by GOP.
+    Encode(encode::EncodeArgs),
+    /// Summarise a package.
+    Info(encode::PackageArgs),
+    /// Check every checksum and reference of a package.
+    Verify(encode::PackageArgs),
     /// Build a layer set from an image and its depth map by depth slicing (a baseline).
     Slice(synth::SliceArgs),
     /// The main job end to end on the built-in scene: synthesise, layer, render a sweep, score.
@@ -50,6 +58,11 @@ enum Command {
 }
 
 fn main() -> ExitCode {
+    // SVT-AV1 prints its configuration unless told otherwise (1 = errors only); set before
+    // any thread starts.
+    if std::env::var_os("SVT_LOG").is_none() {
+        std::env::set_var("SVT_LOG", "1");
+    }
     tracing_subscriber::fmt()
         .with_env_filter(
             tracing_subscriber::EnvFilter::try_from_default_env()
@@ -72,6 +85,9 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Synth(a) => synth::run_synth(a),
         Command::Layer(a) => layer::run(a),
         Command::LayerVideo(a) => video::run(a),
+        Command::Encode(a) => encode::run(a),
+        Command::Info(a) => encode::info(a),
+        Command::Verify(a) => encode::verify(a),
         Command::Slice(a) => synth::run_slice(a),
         Command::Demo(a) => demo::run(a),
         Command::Eval(a) => eval::run(a),

@@ -11,8 +11,12 @@ use std::path::{Path, PathBuf};
 /// Arguments of `cpsl render`.
 #[derive(Args)]
 pub struct RenderArgs {
-    /// Layer-set folder (with manifest.json).
+    /// A layer-set folder (from `cpsl layer`) or a package (from `cpsl encode`, decoded first).
     pub layerset: PathBuf,
+    /// Frame of a package to render with --pose (a --sweep plays the package's frames, one per
+    /// step, looping).
+    #[arg(long, default_value_t = 0)]
+    pub frame: u32,
     /// Viewer pose `tx,ty,tz,rx,ry,rz`: the viewer's position in the reference camera frame
     /// (x right, y down, z forward, scene units) and yaw/pitch/roll in degrees
     /// (R = Ry(ry) Rx(rx) Rz(rz); +ry looks right, +rx looks up).
@@ -101,10 +105,85 @@ impl Sweep {
     }
 }
 
+/// What is rendered: one layer set, or the frames of a package.
+pub enum Source {
+    /// A layer set, prepared.
+    Still(Box<PreparedLayers>),
+    /// A package, decoded one segment at a time.
+    Package(Box<PackagePlayer>),
+}
+
+impl Source {
+    /// Opens a layer-set folder or a package.
+    pub fn open(path: &Path) -> Result<Self> {
+        if cpsl_package::is_package(path) {
+            return Ok(Source::Package(Box::new(PackagePlayer::open(path)?)));
+        }
+        let set = util::load_layer_set(path)?;
+        Ok(Source::Still(Box::new(prepare(path, &set)?)))
+    }
+
+    /// The layers to show at step `i` (a package's frame `i` modulo its length).
+    pub fn at(&mut self, i: usize) -> Result<&PreparedLayers> {
+        match self {
+            Source::Still(p) => Ok(p),
+            Source::Package(p) => {
+                let n = p.frames() as usize;
+                p.frame((i % n) as u32)
+            }
+        }
+    }
+}
+
+/// Plays a package: decodes the segment holding the requested frame (keeping one segment).
+pub struct PackagePlayer {
+    pkg: cpsl_package::Package,
+    segment: Option<usize>,
+    frames: Vec<PreparedLayers>,
+}
+
+impl PackagePlayer {
+    /// Opens a package (its manifest checked; files are checked as they are decoded).
+    pub fn open(path: &Path) -> Result<Self> {
+        let pkg = cpsl_package::Package::open(path)
+            .with_context(|| format!("opening the package {}", path.display()))?;
+        Ok(Self {
+            pkg,
+            segment: None,
+            frames: Vec::new(),
+        })
+    }
+
+    /// Number of frames.
+    pub fn frames(&self) -> u32 {
+        self.pkg.manifest().frames
+    }
+
+    /// Frame `f`, decoded and prepared for rendering with its Edge-Depth Cache.
+    pub fn frame(&mut self, f: u32) -> Result<&PreparedLayers> {
+        let m = self.pkg.manifest();
+        let seg = m
+            .segment_of(f)
+            .with_context(|| format!("frame {f}: the package has {} frames", m.frames))?;
+        if self.segment != Some(seg) {
+            let decoded = cpsl_codec::decode_segment(&self.pkg, seg).with_context(|| {
+                format!("decoding segment {seg} of {}", self.pkg.root().display())
+            })?;
+            self.frames = decoded
+                .iter()
+                .map(|d| PreparedLayers::new(&d.set).with_edc(&d.side.edc))
+                .collect();
+            self.segment = Some(seg);
+        }
+        Ok(&self.frames[(f - m.segments[seg].start) as usize])
+    }
+}
+
 /// Renders `poses` into `dir` as `frame_NNN.png`, plus `sheet.png` (five frames side by side)
-/// and, when FFmpeg is present, `sweep.mp4`.
+/// and, when FFmpeg is present, `sweep.mp4`. A package plays along the sweep, one frame per
+/// pose.
 pub fn render_sweep(
-    prepared: &PreparedLayers,
+    source: &mut Source,
     dps: bool,
     poses: &[Pose],
     dir: &Path,
@@ -113,7 +192,7 @@ pub fn render_sweep(
     progress: &dyn Progress,
 ) -> Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    let cam = *prepared.camera();
+    let cam = *source.at(0)?.camera();
     let mut img = PremulImage::new(cam.width, cam.height);
     let n = poses.len();
     let picks: Vec<usize> = if n <= 5 {
@@ -128,7 +207,7 @@ pub fn render_sweep(
         total: Some(poses.len() as u64),
     });
     for (i, pose) in poses.iter().enumerate() {
-        render_pose(prepared, dps, pose, &cam, &mut img);
+        render_pose(source.at(i)?, dps, pose, &cam, &mut img);
         util::write_render(&dir.join(format!("frame_{i:03}.png")), &img, how)?;
         if picks.contains(&i) {
             let (small, w, h) = util::downscale_rgb(
@@ -190,8 +269,7 @@ pub fn prepare(dir: &Path, set: &cpsl_core::LayerSet) -> Result<PreparedLayers> 
 
 /// Runs `cpsl render`.
 pub fn run(a: RenderArgs) -> Result<()> {
-    let set = util::load_layer_set(&a.layerset)?;
-    let prepared = prepare(&a.layerset, &set)?;
+    let mut source = Source::open(&a.layerset)?;
     let dps = !a.no_dps;
     let how = if a.alpha {
         Output::Alpha
@@ -200,15 +278,19 @@ pub fn run(a: RenderArgs) -> Result<()> {
     };
     match (a.pose, a.sweep) {
         (Some(pose), None) => {
+            let prepared = match &mut source {
+                Source::Still(p) => &**p,
+                Source::Package(p) => p.frame(a.frame)?,
+            };
             let cam = *prepared.camera();
             let mut img = PremulImage::new(cam.width, cam.height);
-            render_pose(&prepared, dps, &pose, &cam, &mut img);
+            render_pose(prepared, dps, &pose, &cam, &mut img);
             util::write_render(&a.output, &img, how)?;
             println!("wrote {}", a.output.display());
         }
         (None, Some(sweep)) => {
             render_sweep(
-                &prepared,
+                &mut source,
                 dps,
                 &sweep.poses(),
                 &a.output,

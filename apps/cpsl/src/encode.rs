@@ -1,0 +1,327 @@
+//! `cpsl encode`, `cpsl info` and `cpsl verify`: the whole pipeline from a video to a package
+//! (depth, layering, propagation, coding), and the package's summary and integrity check.
+
+use crate::layer::{open_depth_model, read_config, CameraArgs};
+use crate::video::{layer_video, MotionSource, Temporal};
+use anyhow::{bail, Context, Result};
+use clap::{Args, ValueEnum};
+use cpsl_codec::{CodingOptions, PackageWriter, RateControl, SegmentFrame};
+use cpsl_layering::LayeringConfig;
+use cpsl_package::{Codec, Package, RefreshReason};
+use cpsl_video::Refresh;
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::Arc;
+use std::time::Instant;
+
+/// Codec of the layer streams.
+#[derive(ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum CodecArg {
+    /// H.264 (libx264).
+    H264,
+    /// H.265 (libx265).
+    H265,
+    /// AV1 (SVT-AV1).
+    Av1,
+    /// VP9 (libvpx).
+    Vp9,
+}
+
+impl From<CodecArg> for Codec {
+    fn from(c: CodecArg) -> Self {
+        match c {
+            CodecArg::H264 => Codec::H264,
+            CodecArg::H265 => Codec::H265,
+            CodecArg::Av1 => Codec::Av1,
+            CodecArg::Vp9 => Codec::Vp9,
+        }
+    }
+}
+
+/// Parses a bitrate: `3M`, `800k`, `2.5M`, `1500000` (bits per second).
+pub fn parse_bitrate(s: &str) -> Result<f64, String> {
+    let t = s.trim();
+    let (num, mult) = match t.char_indices().last() {
+        Some((i, 'k' | 'K')) => (&t[..i], 1e3),
+        Some((i, 'm' | 'M')) => (&t[..i], 1e6),
+        Some((i, 'g' | 'G')) => (&t[..i], 1e9),
+        _ => (t, 1.0),
+    };
+    let v: f64 = num
+        .parse()
+        .map_err(|_| format!("\"{s}\" is not a bitrate such as 3M, 800k or 1500000"))?;
+    let bps = v * mult;
+    if bps.is_finite() && (1e3..=1e10).contains(&bps) {
+        Ok(bps)
+    } else {
+        Err(format!("{s}: give 1k to 10G bits per second"))
+    }
+}
+
+/// Arguments of `cpsl encode`.
+#[derive(Args)]
+pub struct EncodeArgs {
+    /// Input: a video file (any container and codec FFmpeg reads), an image, or a folder of
+    /// PNG/JPEG frames.
+    pub input: PathBuf,
+    /// Output package (a folder, by convention `NAME.cpsl`). Written beside it first and moved
+    /// into place when complete; an existing package is replaced, anything else is refused.
+    #[arg(short, long)]
+    pub output: PathBuf,
+    /// Target number of layers K.
+    #[arg(long, default_value_t = 6, value_parser = clap::value_parser!(u32).range(2..=16))]
+    pub layers: u32,
+    /// Most frames per group of pictures (one segment each).
+    #[arg(long, default_value_t = 30, value_parser = clap::value_parser!(u32).range(1..=600))]
+    pub gop: u32,
+    /// Codec of the layer streams.
+    #[arg(long, value_enum, default_value_t = CodecArg::H264)]
+    pub codec: CodecArg,
+    /// Total bitrate budget (`3M`, `800k`), allocated per layer by saliency and edges; without
+    /// it every layer is coded at --quality.
+    #[arg(long, value_parser = parse_bitrate)]
+    pub bitrate: Option<f64>,
+    /// Constant quality (the codec's CRF) when no --bitrate is given; the codec's default when
+    /// omitted (h264 23, h265 28, av1 35, vp9 32).
+    #[arg(long, conflicts_with = "bitrate")]
+    pub quality: Option<f32>,
+    /// Depth model: `fastdepth` (default) or an .onnx file described by `<model>.json`.
+    #[arg(long, default_value = "fastdepth")]
+    pub depth_model: String,
+    /// Description of the --depth-model.
+    #[arg(long)]
+    pub model_desc: Option<PathBuf>,
+    /// Estimate depth on P-frames too (by default their depth is carried along the motion).
+    #[arg(long)]
+    pub depth_every_frame: bool,
+    #[command(flatten)]
+    pub camera: CameraArgs,
+    /// Temporal organisation.
+    #[arg(long, value_enum, default_value_t = Temporal::Full)]
+    pub temporal: Temporal,
+    /// Motion source for P-frames.
+    #[arg(long, value_enum, default_value_t = MotionSource::Auto)]
+    pub motion: MotionSource,
+    /// Stop after this many frames.
+    #[arg(long)]
+    pub max_frames: Option<usize>,
+    /// Layering configuration as JSON (as for `cpsl layer`); --layers overrides its K.
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+}
+
+fn refresh_reason(r: Refresh) -> RefreshReason {
+    match r {
+        Refresh::First => RefreshReason::First,
+        Refresh::Gop => RefreshReason::Gop,
+        Refresh::Confidence => RefreshReason::Confidence,
+        Refresh::Crack => RefreshReason::Crack,
+    }
+}
+
+/// Runs `cpsl encode`.
+pub fn run(a: EncodeArgs) -> Result<()> {
+    let codec = Codec::from(a.codec);
+    if !cpsl_codec::has_encoder(codec) {
+        bail!(
+            "this FFmpeg has no {} encoder (scripts/setup-system.sh installs Debian's, which has all four)",
+            codec.name()
+        );
+    }
+    let (q_min, q_max, q_default) = cpsl_codec::quality_range(codec);
+    let rate = match (a.bitrate, a.quality) {
+        (Some(b), _) => RateControl::Budget(b),
+        (None, Some(q)) if (q_min..=q_max).contains(&q) => RateControl::Quality(q),
+        (None, Some(q)) => bail!("--quality {q}: {} takes {q_min} to {q_max}", codec.name()),
+        (None, None) => RateControl::Quality(q_default),
+    };
+    if a.output.exists() && !cpsl_package::is_package(&a.output) {
+        bail!(
+            "{} exists and is not a CPSL package; not replacing it",
+            a.output.display()
+        );
+    }
+    let fps = cpsl_media::open(&a.input)
+        .with_context(|| format!("opening {}", a.input.display()))?
+        .info()
+        .fps;
+    let mut cfg = match &a.config {
+        Some(p) => read_config(p)?,
+        None => LayeringConfig::default(),
+    };
+    cfg.layers = a.layers as usize;
+    let gop = a.temporal.config(a.gop as usize);
+    let mut depth = open_depth_model(&a.depth_model, a.model_desc.as_deref())?;
+    // Ctrl-C stops after the current frame; the staging folder is removed, nothing is left
+    // half-written.
+    let stop = Arc::new(AtomicBool::new(false));
+    {
+        let stop = stop.clone();
+        ctrlc::set_handler(move || stop.store(true, Ordering::SeqCst))
+            .context("installing the Ctrl-C handler")?;
+    }
+    let opts = CodingOptions { codec, rate, fps };
+    let mut writer: Option<PackageWriter> = None;
+    let mut pending: Vec<SegmentFrame> = Vec::new();
+    let mut reports = Vec::new();
+    let mut flush = |writer: &mut PackageWriter, pending: &mut Vec<SegmentFrame>| -> Result<()> {
+        if !pending.is_empty() {
+            let r = writer
+                .push_segment(pending)
+                .with_context(|| format!("coding the segment from frame {}", pending[0].index))?;
+            if !r.feasible {
+                tracing::warn!(
+                    "segment at frame {}: the budget is below what the lowest quality needs ({:.0} bits spent of {:.0})",
+                    pending[0].index,
+                    r.bits,
+                    r.budget_bits.unwrap_or(0.0)
+                );
+            }
+            reports.push(r);
+            pending.clear();
+        }
+        Ok(())
+    };
+    let t = Instant::now();
+    layer_video(
+        &a.input,
+        &a.camera,
+        &cfg,
+        gop,
+        &mut depth,
+        a.depth_every_frame,
+        a.motion,
+        a.max_frames,
+        |r| {
+            if stop.load(Ordering::SeqCst) {
+                bail!("interrupted; no package written");
+            }
+            let f = &r.frame;
+            let w = match &mut writer {
+                Some(w) => w,
+                None => writer.insert(PackageWriter::create(
+                    &a.output,
+                    *f.set.camera(),
+                    a.layers,
+                    opts,
+                )?),
+            };
+            if f.refresh.is_some() {
+                flush(w, &mut pending)?;
+            }
+            pending.push(SegmentFrame {
+                index: f.index as u32,
+                refresh: f.refresh.map(refresh_reason),
+                set: f.set.clone(),
+                edc: f.edc.clone(),
+                confidence: f.confidence.clone(),
+            });
+            Ok(())
+        },
+    )?;
+    let mut writer = writer.context("no frames")?;
+    flush(&mut writer, &mut pending)?;
+    if stop.load(Ordering::SeqCst) {
+        bail!("interrupted; no package written");
+    }
+    let m = writer.finish()?;
+    let secs = t.elapsed().as_secs_f64();
+    println!(
+        "wrote {} ({} frames, {} segments, {} at {:.0} kbit/s{}) in {secs:.1} s ({:.1} frames/s)",
+        a.output.display(),
+        m.frames,
+        m.segments.len(),
+        codec.name(),
+        m.bitrate() / 1e3,
+        match m.budget {
+            Some(b) => format!(" for a budget of {:.0} kbit/s", b as f64 / 1e3),
+            None => String::new(),
+        },
+        m.frames as f64 / secs
+    );
+    Ok(())
+}
+
+/// Arguments of `cpsl info` and `cpsl verify`.
+#[derive(Args)]
+pub struct PackageArgs {
+    /// The package folder.
+    pub package: PathBuf,
+}
+
+/// Runs `cpsl info`.
+pub fn info(a: PackageArgs) -> Result<()> {
+    let pkg = Package::open(&a.package)?;
+    let m = pkg.manifest();
+    let c = &m.camera;
+    println!("{}: {} v{}", a.package.display(), m.format, m.version);
+    println!(
+        "  {}x{} at {:.3} fps, {} frames ({:.2} s), camera fx {:.1} fy {:.1} cx {:.1} cy {:.1}",
+        c.width,
+        c.height,
+        m.frame_rate,
+        m.frames,
+        m.frames as f64 / m.frame_rate,
+        c.fx,
+        c.fy,
+        c.cx,
+        c.cy
+    );
+    println!(
+        "  codec {} ({}), {} {}x{} pictures, {} {} range, target K {}",
+        m.codec.name(),
+        m.codec.mime_codec(),
+        m.layout.kind,
+        m.layout.coded_width,
+        2 * m.layout.coded_height,
+        m.layout.matrix,
+        m.layout.range,
+        m.layers
+    );
+    println!(
+        "  {:.1} kB, {:.0} kbit/s{}",
+        m.payload_bytes() as f64 / 1e3,
+        m.bitrate() / 1e3,
+        match m.budget {
+            Some(b) => format!(" (budget {:.0} kbit/s)", b as f64 / 1e3),
+            None => " (constant quality)".into(),
+        }
+    );
+    println!("  segment  frames      streams  kbit/s  quality per stream");
+    for (i, s) in m.segments.iter().enumerate() {
+        let kbps: f64 = s.streams.iter().map(|t| t.bitrate as f64).sum::<f64>() / 1e3;
+        let q: Vec<String> = s
+            .streams
+            .iter()
+            .map(|t| format!("{:.0}", t.quality))
+            .collect();
+        println!(
+            "  {i:>7}  {:>5}-{:<5}  {:>7}  {kbps:>6.0}  {}",
+            s.start,
+            s.start + s.frames - 1,
+            s.streams.len(),
+            q.join(" ")
+        );
+    }
+    Ok(())
+}
+
+/// Runs `cpsl verify`.
+pub fn verify(a: PackageArgs) -> Result<()> {
+    let pkg = Package::open(&a.package)?;
+    let problems = pkg.verify();
+    let files = pkg.manifest().files().count() + 1;
+    if problems.is_empty() {
+        println!("{}: ok ({files} files checked)", a.package.display());
+        Ok(())
+    } else {
+        for p in &problems {
+            eprintln!("{p}");
+        }
+        bail!(
+            "{}: {} of {files} files damaged or missing",
+            a.package.display(),
+            problems.len()
+        )
+    }
+}

@@ -1,0 +1,600 @@
+//! Layer streams of a CPSL package: coding a segment (a group of pictures of layer sets) into
+//! one standard video stream per layer plus a side stream, with the per-layer bitrate
+//! allocation, and decoding a segment back into layer sets.
+//!
+//! **Layout.** Each layer of a segment is one MP4 file of 8-bit 4:2:0 pictures twice the frame
+//! height: premultiplied colour on top, alpha as grey below ([`yuv`]), tagged BT.709 limited
+//! range. Per-layer streams keep per-layer rate control exact; a segment's streams hold the
+//! same frames and start with a key frame, so a player decodes them in lock-step (the browser
+//! player with WebCodecs). The side stream (`side.bin`, see `cpsl-package`) maps each frame's
+//! layers to streams and carries depths, confidence, refresh flags and the Edge-Depth Cache.
+
+pub mod alloc;
+mod stream;
+pub mod yuv;
+
+pub use stream::{decode_stream, encode_stream, has_encoder, quality_range};
+
+use cpsl_core::{Edc, Layer, LayerSet, Limits, PremulImage};
+use cpsl_package::{
+    file_entry, segment_dir, Codec, Package, PackageError, RefreshReason, Segment, SideFrame,
+    SideLayer, SideStream, StreamEntry,
+};
+use rayon::prelude::*;
+use std::path::{Path, PathBuf};
+use thiserror::Error;
+
+/// Errors of coding layer streams.
+#[derive(Debug, Error)]
+pub enum CodecError {
+    /// FFmpeg failed.
+    #[error("FFmpeg: {0}")]
+    Ffmpeg(String),
+    /// The FFmpeg build lacks an encoder.
+    #[error("this FFmpeg has no {0} encoder")]
+    MissingEncoder(&'static str),
+    /// Nothing to code.
+    #[error("no pictures to code")]
+    Empty,
+    /// Pictures of different sizes.
+    #[error("picture of {found:?} pixels in a stream of {expected:?}")]
+    Size {
+        /// The stream's size.
+        expected: (u32, u32),
+        /// The odd picture's.
+        found: (u32, u32),
+    },
+    /// The layers of a frame do not map onto the segment's streams.
+    #[error("frame {frame}: {reason}")]
+    Tracks {
+        /// Frame index.
+        frame: u32,
+        /// What is wrong.
+        reason: String,
+    },
+    /// A layer stream cannot be decoded or does not fit its segment.
+    #[error("{path}: {reason}")]
+    Stream {
+        /// The stream file.
+        path: PathBuf,
+        /// What is wrong.
+        reason: String,
+    },
+    /// A file operation failed.
+    #[error("{path}: {source}")]
+    Io {
+        /// The file.
+        path: PathBuf,
+        /// The cause.
+        source: std::io::Error,
+    },
+    /// The package is damaged.
+    #[error(transparent)]
+    Package(#[from] PackageError),
+    /// A decoded layer set is invalid.
+    #[error("decoded frame {frame}: {reason}")]
+    Layers {
+        /// Frame index.
+        frame: u32,
+        /// What is wrong.
+        reason: String,
+    },
+}
+
+/// One layered frame to code.
+#[derive(Debug, Clone)]
+pub struct SegmentFrame {
+    /// Frame index in the video.
+    pub index: u32,
+    /// Why it is an I-frame (`None` for P-frames; only a segment's first frame is one).
+    pub refresh: Option<RefreshReason>,
+    /// Its layers (tracks in their metadata).
+    pub set: LayerSet,
+    /// Its Edge-Depth Cache.
+    pub edc: Edc,
+    /// Temporal confidence per layer.
+    pub confidence: Vec<f32>,
+}
+
+/// How a segment's bits are spent.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum RateControl {
+    /// Every stream at this quality (CRF).
+    Quality(f32),
+    /// A total budget in bits per second for layer and side streams, allocated per layer.
+    Budget(f64),
+}
+
+/// Coding options.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CodingOptions {
+    /// The codec of the layer streams.
+    pub codec: Codec,
+    /// Rate control.
+    pub rate: RateControl,
+    /// Frames per second.
+    pub fps: f64,
+}
+
+/// What coding one segment did.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SegmentReport {
+    /// The budget of the segment in bits (`None` at constant quality).
+    pub budget_bits: Option<f64>,
+    /// Bits written (layer streams and side stream).
+    pub bits: f64,
+    /// Quality chosen per stream.
+    pub quality: Vec<f32>,
+    /// Whether the budget could be met.
+    pub feasible: bool,
+    /// Encodes run (trials, final and corrections), over all streams.
+    pub encodes: usize,
+}
+
+/// Assigns every layer of every frame to a stream: stream `k` carries the track of the first
+/// frame's layer `k`; later frames' layers follow their track (or their index where layers
+/// have no tracks).
+fn stream_map(frames: &[SegmentFrame]) -> Result<Vec<Vec<u8>>, CodecError> {
+    let first = &frames[0].set;
+    let tracks: Vec<Option<u32>> = first.layers().iter().map(|l| l.meta.track).collect();
+    frames
+        .iter()
+        .map(|f| {
+            let bad = |reason: String| CodecError::Tracks {
+                frame: f.index,
+                reason,
+            };
+            let mut used = vec![false; tracks.len()];
+            f.set
+                .layers()
+                .iter()
+                .enumerate()
+                .map(|(i, l)| {
+                    let s = match l.meta.track {
+                        Some(t) => tracks.iter().position(|&u| u == Some(t)),
+                        None => (i < tracks.len() && tracks[i].is_none()).then_some(i),
+                    }
+                    .ok_or_else(|| {
+                        bad(format!(
+                            "layer {i} (track {:?}) is not in the segment's first frame",
+                            l.meta.track
+                        ))
+                    })?;
+                    if std::mem::replace(&mut used[s], true) {
+                        return Err(bad(format!("two layers map to stream {s}")));
+                    }
+                    Ok(s as u8)
+                })
+                .collect()
+        })
+        .collect()
+}
+
+/// Codes one segment into `root/seg_NNNNNN/` (layer streams and side stream) and returns its
+/// manifest entry. The first frame must be an I-frame, the others P-frames of the same layers.
+pub fn encode_segment(
+    root: &Path,
+    number: usize,
+    frames: &[SegmentFrame],
+    opts: &CodingOptions,
+) -> Result<(Segment, SegmentReport), CodecError> {
+    let first = frames.first().ok_or(CodecError::Empty)?;
+    let (w, h) = (first.set.camera().width, first.set.camera().height);
+    let map = stream_map(frames)?;
+    let n_streams = first.set.len();
+    // Per stream, per frame: the layer's picture (transparent where the frame lacks it).
+    let blank = PremulImage::new(w, h);
+    let mut pictures: Vec<Vec<&PremulImage>> = vec![vec![&blank; frames.len()]; n_streams];
+    for (fi, (f, m)) in frames.iter().zip(&map).enumerate() {
+        for (l, &s) in f.set.layers().iter().zip(m) {
+            pictures[s as usize][fi] = &l.image;
+        }
+    }
+    let dir_name = segment_dir(number);
+    let dir = root.join(&dir_name);
+    std::fs::create_dir_all(&dir).map_err(|source| CodecError::Io {
+        path: dir.clone(),
+        source,
+    })?;
+    // The side stream.
+    let side = SideStream {
+        segment: number as u32,
+        start: first.index,
+        streams: n_streams as u16,
+        width: w,
+        height: h,
+        frames: frames
+            .iter()
+            .zip(&map)
+            .enumerate()
+            .map(|(i, (f, m))| SideFrame {
+                index: f.index,
+                intra: i == 0,
+                refresh: if i == 0 {
+                    Some(f.refresh.unwrap_or(RefreshReason::Gop))
+                } else {
+                    None
+                },
+                layers: f
+                    .set
+                    .layers()
+                    .iter()
+                    .zip(m)
+                    .enumerate()
+                    .map(|(k, (l, &s))| SideLayer {
+                        stream: s,
+                        depth: l.depth as f32,
+                        confidence: f.confidence.get(k).copied().unwrap_or(1.0).clamp(0.0, 1.0),
+                        track: l.meta.track,
+                    })
+                    .collect(),
+                edc: cpsl_package::sparse_edc(&f.edc, cpsl_package::EDC_SAMPLES_PER_PAIR),
+            })
+            .collect(),
+    };
+    let side_rel = format!("{dir_name}/side.bin");
+    let side_bytes = side.encode();
+    let side_path = root.join(&side_rel);
+    std::fs::write(&side_path, &side_bytes).map_err(|source| CodecError::Io {
+        path: side_path,
+        source,
+    })?;
+    // Weights from the I-frame: saliency and share of depth-edge samples.
+    let mut edges = vec![0usize; n_streams];
+    for s in &first.edc.samples {
+        for k in [s.front, s.back] {
+            if let Some(e) = edges.get_mut(k as usize) {
+                *e += 1;
+            }
+        }
+    }
+    let max_edges = edges.iter().copied().max().unwrap_or(0);
+    let weights: Vec<f32> = first
+        .set
+        .layers()
+        .iter()
+        .zip(&edges)
+        .map(|(l, &e)| alloc::weight(l.meta.saliency.unwrap_or(0.0), e, max_edges))
+        .collect();
+    let stream_rel = |k: usize| format!("{dir_name}/layer_{k:02}.mp4");
+    let encode_all = |qualities: &[f32], suffix: &str| -> Result<Vec<u64>, CodecError> {
+        (0..n_streams)
+            .into_par_iter()
+            .map(|k| {
+                let path = root.join(format!("{}{suffix}", stream_rel(k)));
+                encode_stream(&path, &pictures[k], opts.codec, qualities[k], opts.fps)
+            })
+            .collect()
+    };
+    let seconds = frames.len() as f64 / opts.fps;
+    let (q_min, q_max, _) = quality_range(opts.codec);
+    let mut encodes = 0;
+    let (quality, feasible, budget) = match opts.rate {
+        RateControl::Quality(q) => (vec![q.clamp(q_min, q_max); n_streams], true, None),
+        RateControl::Budget(bps) => {
+            let budget = bps * seconds - side_bytes.len() as f64 * 8.0;
+            let models = trial_models(root, &stream_rel, &pictures, frames, &map, opts)?;
+            encodes += 2 * n_streams;
+            let a = alloc::allocate(&models, &weights, budget, q_min, q_max);
+            (a.quality, a.feasible, Some((bps * seconds, models)))
+        }
+    };
+    let budget_bits = budget.as_ref().map(|b| b.0);
+    let mut quality = quality;
+    let mut sizes = encode_all(&quality, "")?;
+    encodes += n_streams;
+    let mut feasible = feasible;
+    // A correction pass when the model was too optimistic: scale the budget by the miss.
+    if let Some((total, mut models)) = budget {
+        let spent = |s: &[u64]| s.iter().sum::<u64>() as f64 * 8.0 + side_bytes.len() as f64 * 8.0;
+        for _ in 0..2 {
+            if spent(&sizes) <= total * 1.02 || quality.iter().all(|&q| q >= q_max) {
+                break;
+            }
+            // Keep the fitted slopes, move each rate line through the measured point.
+            for ((m, &s), &q) in models.iter_mut().zip(&sizes).zip(&quality) {
+                m.anchor_rate(q, s as f64 * 8.0);
+            }
+            let budget = total - side_bytes.len() as f64 * 8.0;
+            let a = alloc::allocate(&models, &weights, budget, q_min, q_max);
+            feasible &= a.feasible;
+            let changed: Vec<usize> = (0..n_streams)
+                .filter(|&k| a.quality[k] != quality[k])
+                .collect();
+            if changed.is_empty() {
+                break;
+            }
+            quality = a.quality;
+            let redo: Vec<(usize, u64)> = changed
+                .par_iter()
+                .map(|&k| {
+                    let path = root.join(stream_rel(k));
+                    encode_stream(&path, &pictures[k], opts.codec, quality[k], opts.fps)
+                        .map(|s| (k, s))
+                })
+                .collect::<Result<_, _>>()?;
+            encodes += redo.len();
+            for (k, s) in redo {
+                sizes[k] = s;
+            }
+        }
+        feasible &= spent(&sizes) <= total * 1.1;
+    }
+    let mut streams = Vec::with_capacity(n_streams);
+    for k in 0..n_streams {
+        streams.push(StreamEntry {
+            file: file_entry(root, &stream_rel(k))?,
+            track: first.set.layers()[k].meta.track,
+            bitrate: (sizes[k] as f64 * 8.0 / seconds).round() as u64,
+            quality: quality[k],
+            weight: weights[k],
+        });
+    }
+    let bits = (sizes.iter().sum::<u64>() + side_bytes.len() as u64) as f64 * 8.0;
+    Ok((
+        Segment {
+            start: first.index,
+            frames: frames.len() as u32,
+            streams,
+            side: file_entry(root, &side_rel)?,
+        },
+        SegmentReport {
+            budget_bits,
+            bits,
+            quality,
+            feasible,
+            encodes,
+        },
+    ))
+}
+
+/// Two trial encodes per stream (at a quarter and three fifths of the quality range), each
+/// decoded and scored with the proxy distortion on up to 8 evenly spaced frames.
+fn trial_models(
+    root: &Path,
+    stream_rel: &(dyn Fn(usize) -> String + Sync),
+    pictures: &[Vec<&PremulImage>],
+    frames: &[SegmentFrame],
+    map: &[Vec<u8>],
+    opts: &CodingOptions,
+) -> Result<Vec<alloc::RdModel>, CodecError> {
+    let (q_min, q_max, _) = quality_range(opts.codec);
+    let trials = [
+        (q_min + 0.25 * (q_max - q_min)).round(),
+        (q_min + 0.6 * (q_max - q_min)).round(),
+    ];
+    let step = frames.len().div_ceil(8).max(1);
+    let sampled: Vec<usize> = (0..frames.len()).step_by(step).collect();
+    let (w, h) = (frames[0].set.camera().width, frames[0].set.camera().height);
+    // Visibility of each stream's layer in the sampled frames.
+    let n_streams = pictures.len();
+    let mut vis: Vec<Vec<Vec<u8>>> = vec![Vec::new(); n_streams];
+    for &fi in &sampled {
+        let layers = frames[fi].set.layers();
+        let mut seen = vec![false; n_streams];
+        for (k, &s) in map[fi].iter().enumerate() {
+            let front: Vec<&PremulImage> = layers[..k].iter().map(|l| &l.image).collect();
+            vis[s as usize].push(alloc::visibility(&front, w, h));
+            seen[s as usize] = true;
+        }
+        for (s, v) in vis.iter_mut().enumerate() {
+            if !seen[s] {
+                v.push(vec![0; (w * h) as usize]);
+            }
+        }
+    }
+    (0..n_streams)
+        .into_par_iter()
+        .map(|k| {
+            let mut points = Vec::new();
+            for (t, &q) in trials.iter().enumerate() {
+                let path = root.join(stream_rel(k).replace(".mp4", &format!(".trial{t}.mp4")));
+                let bytes = encode_stream(&path, &pictures[k], opts.codec, q, opts.fps);
+                let decoded = bytes.and_then(|b| decode_stream(&path, w, h).map(|d| (b, d)));
+                let _ = std::fs::remove_file(&path);
+                let (bytes, decoded) = decoded?;
+                // Summed, not averaged per stream: a layer's share of the picture's error.
+                let mut e = 0.0;
+                for (j, &fi) in sampled.iter().enumerate() {
+                    let dec = decoded.get(fi).ok_or_else(|| CodecError::Stream {
+                        path: path.clone(),
+                        reason: format!("{} pictures, {} expected", decoded.len(), frames.len()),
+                    })?;
+                    e += alloc::distortion(pictures[k][fi], dec, &vis[k][j]);
+                }
+                let norm = 4.0 * (w * h) as f64 * sampled.len() as f64;
+                points.push((q, bytes as f64 * 8.0, e / norm));
+            }
+            Ok(alloc::RdModel::fit(points[0], points[1]))
+        })
+        .collect()
+}
+
+/// One decoded frame of a package.
+#[derive(Debug, Clone)]
+pub struct DecodedFrame {
+    /// Its side information.
+    pub side: SideFrame,
+    /// Its layers.
+    pub set: LayerSet,
+}
+
+/// Decodes segment `i` of a package: every layer stream (checked against the manifest) and
+/// the side stream, into one layer set per frame.
+pub fn decode_segment(pkg: &Package, i: usize) -> Result<Vec<DecodedFrame>, CodecError> {
+    let m = pkg.manifest();
+    let seg = &m.segments[i];
+    let side = pkg.side_stream(i)?;
+    let cam = m.camera;
+    let streams: Vec<Vec<PremulImage>> = seg
+        .streams
+        .par_iter()
+        .map(|s| {
+            pkg.read(&s.file)?;
+            let path = pkg.path_of(&s.file);
+            let d = decode_stream(&path, cam.width, cam.height)?;
+            if d.len() != seg.frames as usize {
+                return Err(CodecError::Stream {
+                    path,
+                    reason: format!(
+                        "{} pictures, the segment has {} frames",
+                        d.len(),
+                        seg.frames
+                    ),
+                });
+            }
+            Ok(d)
+        })
+        .collect::<Result<_, _>>()?;
+    side.frames
+        .into_iter()
+        .enumerate()
+        .map(|(fi, f)| {
+            let layers = f
+                .layers
+                .iter()
+                .map(|l| {
+                    let mut layer =
+                        Layer::new(streams[l.stream as usize][fi].clone(), l.depth as f64);
+                    layer.meta.track = l.track;
+                    layer
+                })
+                .collect();
+            let set =
+                LayerSet::new(cam, layers, &Limits::default()).map_err(|e| CodecError::Layers {
+                    frame: f.index,
+                    reason: e.to_string(),
+                })?;
+            Ok(DecodedFrame { side: f, set })
+        })
+        .collect()
+}
+
+/// Writes a package: segments are coded into a hidden staging folder beside the output, and
+/// the finished package is moved into place by [`PackageWriter::finish`]. Dropping an
+/// unfinished writer removes the staging folder, so an interrupted run never leaves a
+/// half-written package; an existing package at the output is replaced only when the new
+/// one is complete, and anything else there is never replaced.
+pub struct PackageWriter {
+    out: PathBuf,
+    stage: PathBuf,
+    camera: cpsl_core::Camera,
+    layers: u32,
+    opts: CodingOptions,
+    segments: Vec<Segment>,
+    frames: u32,
+    done: bool,
+}
+
+impl PackageWriter {
+    /// Starts a package at `out` for frames of `camera` layered with target K `layers`.
+    pub fn create(
+        out: &Path,
+        camera: cpsl_core::Camera,
+        layers: u32,
+        opts: CodingOptions,
+    ) -> Result<Self, CodecError> {
+        let io = |path: &Path| {
+            let path = path.to_path_buf();
+            move |source| CodecError::Io { path, source }
+        };
+        if out.exists() && !cpsl_package::is_package(out) {
+            return Err(CodecError::Io {
+                path: out.to_path_buf(),
+                source: std::io::Error::new(
+                    std::io::ErrorKind::AlreadyExists,
+                    "exists and is not a CPSL package; not replacing it",
+                ),
+            });
+        }
+        let name = out
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .unwrap_or_else(|| "package".into());
+        let stage = out.with_file_name(format!(".{name}.partial"));
+        if stage.exists() {
+            std::fs::remove_dir_all(&stage).map_err(io(&stage))?;
+        }
+        std::fs::create_dir_all(&stage).map_err(io(&stage))?;
+        Ok(Self {
+            out: out.to_path_buf(),
+            stage,
+            camera,
+            layers,
+            opts,
+            segments: Vec::new(),
+            frames: 0,
+            done: false,
+        })
+    }
+
+    /// Codes the next segment (its first frame must follow the previous segment's last).
+    pub fn push_segment(&mut self, frames: &[SegmentFrame]) -> Result<SegmentReport, CodecError> {
+        if frames.first().map(|f| f.index) != Some(self.frames) {
+            return Err(CodecError::Tracks {
+                frame: frames.first().map_or(0, |f| f.index),
+                reason: format!(
+                    "segments must be contiguous; frame {} expected",
+                    self.frames
+                ),
+            });
+        }
+        let (seg, report) = encode_segment(&self.stage, self.segments.len(), frames, &self.opts)?;
+        self.frames += seg.frames;
+        self.segments.push(seg);
+        Ok(report)
+    }
+
+    /// Writes the manifest and moves the package into place.
+    pub fn finish(mut self) -> Result<cpsl_package::PackageManifest, CodecError> {
+        if self.segments.is_empty() {
+            return Err(CodecError::Empty);
+        }
+        let (cw, ch) = yuv::coded_size(self.camera.width, self.camera.height);
+        let m = cpsl_package::PackageManifest {
+            format: cpsl_package::PACKAGE_FORMAT.into(),
+            version: cpsl_package::PACKAGE_VERSION,
+            camera: self.camera,
+            frame_rate: self.opts.fps,
+            frames: self.frames,
+            layers: self.layers,
+            codec: self.opts.codec,
+            layout: cpsl_package::Layout {
+                kind: "colour-over-alpha".into(),
+                coded_width: cw as u32,
+                coded_height: ch as u32,
+                pixel_format: "yuv420p".into(),
+                matrix: "bt709".into(),
+                range: "limited".into(),
+            },
+            budget: match self.opts.rate {
+                RateControl::Budget(b) => Some(b.round() as u64),
+                RateControl::Quality(_) => None,
+            },
+            segments: std::mem::take(&mut self.segments),
+            checksum: String::new(),
+        };
+        let path = self.stage.join(cpsl_package::MANIFEST_FILE);
+        std::fs::write(&path, m.to_json()).map_err(|source| CodecError::Io { path, source })?;
+        if self.out.exists() {
+            std::fs::remove_dir_all(&self.out).map_err(|source| CodecError::Io {
+                path: self.out.clone(),
+                source,
+            })?;
+        }
+        std::fs::rename(&self.stage, &self.out).map_err(|source| CodecError::Io {
+            path: self.out.clone(),
+            source,
+        })?;
+        self.done = true;
+        Ok(m)
+    }
+}
+
+impl Drop for PackageWriter {
+    fn drop(&mut self) {
+        if !self.done {
+            let _ = std::fs::remove_dir_all(&self.stage);
+        }
+    }
+}

@@ -1,0 +1,275 @@
+//! Coding one layer stream: a sequence of colour-over-alpha pictures written as an MP4 file
+//! whose first picture is a key frame, and read back.
+
+use crate::yuv::{stack, unstack, Yuv420};
+use crate::CodecError;
+use cpsl_core::PremulImage;
+use cpsl_package::Codec;
+use ffmpeg_next as ffmpeg;
+use std::path::Path;
+
+/// The encoder's quality scale (CRF) for a codec: (lowest, highest, default). Lower is better.
+pub fn quality_range(codec: Codec) -> (f32, f32, f32) {
+    match codec {
+        Codec::H264 => (10.0, 51.0, 23.0),
+        Codec::H265 => (10.0, 51.0, 28.0),
+        Codec::Av1 => (10.0, 63.0, 35.0),
+        Codec::Vp9 => (10.0, 63.0, 32.0),
+    }
+}
+
+fn encoder_name(codec: Codec) -> &'static str {
+    match codec {
+        Codec::H264 => "libx264",
+        Codec::H265 => "libx265",
+        Codec::Av1 => "libsvtav1",
+        Codec::Vp9 => "libvpx-vp9",
+    }
+}
+
+/// Whether this FFmpeg build has the encoder of `codec`.
+pub fn has_encoder(codec: Codec) -> bool {
+    init().is_ok() && ffmpeg::encoder::find_by_name(encoder_name(codec)).is_some()
+}
+
+pub(crate) fn init() -> Result<(), CodecError> {
+    ffmpeg::init().map_err(|e| CodecError::Ffmpeg(e.to_string()))?;
+    ffmpeg::util::log::set_level(ffmpeg::util::log::Level::Fatal);
+    Ok(())
+}
+
+/// Encoder options: one key frame at the start, no scene-cut key frames, a speed preset fit for
+/// 2 cores, constant quality `crf`.
+fn options(codec: Codec, crf: f32, frames: usize) -> ffmpeg::Dictionary<'static> {
+    let mut o = ffmpeg::Dictionary::new();
+    let n = frames.max(1);
+    match codec {
+        Codec::H264 => {
+            o.set("preset", "veryfast");
+            o.set("crf", &format!("{crf:.1}"));
+            o.set(
+                "x264-params",
+                &format!("keyint={n}:min-keyint={n}:scenecut=0"),
+            );
+        }
+        Codec::H265 => {
+            o.set("preset", "ultrafast");
+            o.set("crf", &format!("{crf:.1}"));
+            o.set(
+                "x265-params",
+                &format!("log-level=error:keyint={n}:min-keyint={n}:scenecut=0"),
+            );
+        }
+        Codec::Av1 => {
+            o.set("preset", "10");
+            o.set("crf", &format!("{}", crf.round() as i32));
+        }
+        Codec::Vp9 => {
+            o.set("deadline", "realtime");
+            o.set("cpu-used", "8");
+            o.set("crf", &format!("{}", crf.round() as i32));
+            o.set("b", "0");
+            o.set("row-mt", "1");
+        }
+    }
+    o.set("threads", "1");
+    o
+}
+
+fn ff(what: &'static str) -> impl Fn(ffmpeg::Error) -> CodecError {
+    move |e| CodecError::Ffmpeg(format!("{what}: {e}"))
+}
+
+/// Encodes `layers` (one stream's pictures, all the same size) at quality `crf` into the MP4
+/// file `path`, tagged BT.709 limited range. Returns the file size in bytes.
+pub fn encode_stream(
+    path: &Path,
+    layers: &[&PremulImage],
+    codec: Codec,
+    crf: f32,
+    fps: f64,
+) -> Result<u64, CodecError> {
+    init()?;
+    let first = layers.first().ok_or(CodecError::Empty)?;
+    let (w, h) = (first.width(), first.height());
+    if let Some(l) = layers.iter().find(|l| (l.width(), l.height()) != (w, h)) {
+        return Err(CodecError::Size {
+            expected: (w, h),
+            found: (l.width(), l.height()),
+        });
+    }
+    let name = encoder_name(codec);
+    let enc_codec = ffmpeg::encoder::find_by_name(name).ok_or(CodecError::MissingEncoder(name))?;
+    let mut octx = ffmpeg::format::output(&path).map_err(ff("creating the output"))?;
+    let global = octx
+        .format()
+        .flags()
+        .contains(ffmpeg::format::Flags::GLOBAL_HEADER);
+    let mut ost = octx.add_stream(enc_codec).map_err(ff("adding a stream"))?;
+    let mut enc = ffmpeg::codec::context::Context::new_with_codec(enc_codec)
+        .encoder()
+        .video()
+        .map_err(ff("creating the encoder"))?;
+    let pic = stack(first);
+    let rate = ffmpeg::Rational::from(fps);
+    enc.set_width(pic.width as u32);
+    enc.set_height(pic.height as u32);
+    enc.set_format(ffmpeg::format::Pixel::YUV420P);
+    enc.set_time_base(rate.invert());
+    enc.set_frame_rate(Some(rate));
+    enc.set_gop(layers.len() as u32);
+    enc.set_colorspace(ffmpeg::color::Space::BT709);
+    enc.set_color_range(ffmpeg::color::Range::MPEG);
+    enc.set_color_primaries(ffmpeg::color::Primaries::BT709);
+    enc.set_color_transfer_characteristic(ffmpeg::color::TransferCharacteristic::BT709);
+    if global {
+        enc.set_flags(ffmpeg::codec::Flags::GLOBAL_HEADER);
+    }
+    let mut enc = enc
+        .open_as_with(enc_codec, options(codec, crf, layers.len()))
+        .map_err(ff("opening the encoder"))?;
+    ost.set_parameters(&enc);
+    ost.set_time_base(rate.invert());
+    let mut mux_opts = ffmpeg::Dictionary::new();
+    mux_opts.set("movflags", "+faststart");
+    octx.write_header_with(mux_opts)
+        .map_err(ff("writing the header"))?;
+    let ost_tb = octx.stream(0).expect("stream 0").time_base();
+    let enc_tb = rate.invert();
+    let drain = |enc: &mut ffmpeg::encoder::Video,
+                 octx: &mut ffmpeg::format::context::Output|
+     -> Result<(), CodecError> {
+        let mut packet = ffmpeg::Packet::empty();
+        while enc.receive_packet(&mut packet).is_ok() {
+            packet.set_stream(0);
+            // One frame long: without a duration the MP4 edit list cuts the last frame.
+            packet.set_duration(1);
+            packet.rescale_ts(enc_tb, ost_tb);
+            packet
+                .write_interleaved(octx)
+                .map_err(ff("writing a packet"))?;
+        }
+        Ok(())
+    };
+    let mut frame = ffmpeg::frame::Video::new(
+        ffmpeg::format::Pixel::YUV420P,
+        pic.width as u32,
+        pic.height as u32,
+    );
+    frame.set_color_space(ffmpeg::color::Space::BT709);
+    frame.set_color_range(ffmpeg::color::Range::MPEG);
+    frame.set_color_primaries(ffmpeg::color::Primaries::BT709);
+    frame.set_color_transfer_characteristic(ffmpeg::color::TransferCharacteristic::BT709);
+    for (i, l) in layers.iter().enumerate() {
+        let pic = if i == 0 { pic.clone() } else { stack(l) };
+        fill_frame(&mut frame, &pic);
+        frame.set_pts(Some(i as i64));
+        frame.set_kind(if i == 0 {
+            ffmpeg::picture::Type::I
+        } else {
+            ffmpeg::picture::Type::None
+        });
+        enc.send_frame(&frame).map_err(ff("encoding"))?;
+        drain(&mut enc, &mut octx)?;
+    }
+    enc.send_eof().map_err(ff("flushing the encoder"))?;
+    drain(&mut enc, &mut octx)?;
+    octx.write_trailer().map_err(ff("writing the trailer"))?;
+    drop(octx);
+    std::fs::metadata(path)
+        .map(|m| m.len())
+        .map_err(|e| CodecError::Io {
+            path: path.to_path_buf(),
+            source: e,
+        })
+}
+
+fn fill_frame(frame: &mut ffmpeg::frame::Video, pic: &Yuv420) {
+    let planes = [
+        (&pic.y, pic.width, pic.height),
+        (&pic.u, pic.width / 2, pic.height / 2),
+        (&pic.v, pic.width / 2, pic.height / 2),
+    ];
+    for (i, (src, w, h)) in planes.into_iter().enumerate() {
+        let stride = frame.stride(i);
+        let dst = frame.data_mut(i);
+        for y in 0..h {
+            dst[y * stride..y * stride + w].copy_from_slice(&src[y * w..(y + 1) * w]);
+        }
+    }
+}
+
+fn read_frame(frame: &ffmpeg::frame::Video) -> Yuv420 {
+    let (w, h) = (frame.width() as usize, frame.height() as usize);
+    let plane = |i: usize, pw: usize, ph: usize| {
+        let stride = frame.stride(i);
+        let d = frame.data(i);
+        let mut out = Vec::with_capacity(pw * ph);
+        for y in 0..ph {
+            out.extend_from_slice(&d[y * stride..y * stride + pw]);
+        }
+        out
+    };
+    Yuv420 {
+        width: w,
+        height: h,
+        y: plane(0, w, h),
+        u: plane(1, w / 2, h / 2),
+        v: plane(2, w / 2, h / 2),
+    }
+}
+
+/// Decodes a layer stream written by [`encode_stream`] (or any 8-bit 4:2:0 stream of the same
+/// layout) into `width x height` layers, one per picture.
+pub fn decode_stream(path: &Path, width: u32, height: u32) -> Result<Vec<PremulImage>, CodecError> {
+    init()?;
+    let bad = |reason: String| CodecError::Stream {
+        path: path.to_path_buf(),
+        reason,
+    };
+    let mut input = ffmpeg::format::input(&path).map_err(|e| bad(e.to_string()))?;
+    let st = input
+        .streams()
+        .best(ffmpeg::media::Type::Video)
+        .ok_or_else(|| bad("no video stream".into()))?;
+    let index = st.index();
+    let ctx = ffmpeg::codec::context::Context::from_parameters(st.parameters())
+        .map_err(|e| bad(e.to_string()))?;
+    let mut dec = ctx.decoder().video().map_err(|e| bad(e.to_string()))?;
+    let (cw, ch) = crate::yuv::coded_size(width, height);
+    if (dec.width() as usize, dec.height() as usize) != (cw, 2 * ch) {
+        return Err(bad(format!(
+            "pictures are {}x{}, a {width}x{height} layer needs {cw}x{}",
+            dec.width(),
+            dec.height(),
+            2 * ch
+        )));
+    }
+    let mut out = Vec::new();
+    let mut frame = ffmpeg::frame::Video::empty();
+    let mut take = |dec: &mut ffmpeg::decoder::Video, out: &mut Vec<PremulImage>| {
+        while dec.receive_frame(&mut frame).is_ok() {
+            if frame.format() != ffmpeg::format::Pixel::YUV420P {
+                return Err(bad(format!(
+                    "pixel format {:?}, yuv420p expected",
+                    frame.format()
+                )));
+            }
+            out.push(unstack(&read_frame(&frame), width, height));
+        }
+        Ok(())
+    };
+    for (s, packet) in input.packets() {
+        if s.index() != index {
+            continue;
+        }
+        dec.send_packet(&packet).map_err(|e| bad(e.to_string()))?;
+        take(&mut dec, &mut out)?;
+    }
+    dec.send_eof().map_err(|e| bad(e.to_string()))?;
+    take(&mut dec, &mut out)?;
+    if out.is_empty() {
+        return Err(bad("no pictures".into()));
+    }
+    Ok(out)
+}

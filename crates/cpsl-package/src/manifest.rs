@@ -1,0 +1,368 @@
+//! The package manifest (`manifest.json`), format `cpsl-package` version 1.
+//!
+//! The manifest names every file of the package with its size and SHA-256, so that a reader
+//! (or `cpsl verify`) can check each part, and carries its own checksum: the SHA-256 of the
+//! manifest's bytes with the 64 hex digits of its `checksum` field replaced by `0`s. Paths are
+//! relative, made of `[A-Za-z0-9._-]` components separated by `/`, never `..`.
+
+use cpsl_core::Camera;
+use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
+use thiserror::Error;
+
+/// Format name written in every package manifest.
+pub const PACKAGE_FORMAT: &str = "cpsl-package";
+/// Newest package version this build reads and writes.
+pub const PACKAGE_VERSION: u32 = 1;
+/// File name of the manifest inside a package.
+pub const MANIFEST_FILE: &str = "manifest.json";
+const CHECKSUM_KEY: &str = "\"checksum\": \"";
+
+/// The video codec of the layer streams.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Codec {
+    /// H.264 / AVC (libx264).
+    H264,
+    /// H.265 / HEVC (libx265).
+    H265,
+    /// AV1 (SVT-AV1).
+    Av1,
+    /// VP9 (libvpx).
+    Vp9,
+}
+
+impl Codec {
+    /// Every codec.
+    pub const ALL: [Codec; 4] = [Codec::H264, Codec::H265, Codec::Av1, Codec::Vp9];
+
+    /// The lower-case name used in manifests and on the command line.
+    pub fn name(self) -> &'static str {
+        match self {
+            Codec::H264 => "h264",
+            Codec::H265 => "h265",
+            Codec::Av1 => "av1",
+            Codec::Vp9 => "vp9",
+        }
+    }
+
+    /// The codec string a browser's `VideoDecoder` / `MediaSource` understands for our streams
+    /// (8-bit 4:2:0).
+    pub fn mime_codec(self) -> &'static str {
+        match self {
+            Codec::H264 => "avc1.640028",
+            Codec::H265 => "hev1.1.6.L120.90",
+            Codec::Av1 => "av01.0.08M.08",
+            Codec::Vp9 => "vp09.00.40.08",
+        }
+    }
+}
+
+/// How each layer is laid out in its stream.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Layout {
+    /// Always `colour-over-alpha`: the premultiplied colour in the top half of each picture, the
+    /// alpha as grey (Y only, chroma neutral) in the bottom half.
+    pub kind: String,
+    /// Width of the coded pictures (the frame width rounded up to even).
+    pub coded_width: u32,
+    /// Height of each half (the frame height rounded up to even); pictures are twice as high.
+    pub coded_height: u32,
+    /// Pixel format of the coded pictures (`yuv420p`).
+    pub pixel_format: String,
+    /// Colour matrix, also tagged in the streams (`bt709`).
+    pub matrix: String,
+    /// Range, also tagged in the streams (`limited`).
+    pub range: String,
+}
+
+/// One file of the package.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FileEntry {
+    /// Path relative to the package root.
+    pub path: String,
+    /// Size in bytes.
+    pub bytes: u64,
+    /// SHA-256 of the content, lower-case hex.
+    pub sha256: String,
+}
+
+/// One layer stream of a segment.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct StreamEntry {
+    /// The coded stream (an MP4 file).
+    pub file: FileEntry,
+    /// The track of the layer it carries.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub track: Option<u32>,
+    /// Bits per second it spends.
+    pub bitrate: u64,
+    /// The encoder's quality setting (CRF) it was coded with.
+    pub quality: f32,
+    /// Its weight `w_k` in the bitrate allocation.
+    pub weight: f32,
+}
+
+/// One segment: a group of pictures starting with an I-frame, independently decodable.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Segment {
+    /// Index of its first frame.
+    pub start: u32,
+    /// Its number of frames.
+    pub frames: u32,
+    /// Its layer streams (the side stream says which stream holds which layer per frame).
+    pub streams: Vec<StreamEntry>,
+    /// Its side stream.
+    pub side: FileEntry,
+}
+
+/// The parsed package manifest.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PackageManifest {
+    /// Always [`PACKAGE_FORMAT`].
+    pub format: String,
+    /// Format version, at most [`PACKAGE_VERSION`].
+    pub version: u32,
+    /// Reference camera (also the frame size).
+    pub camera: Camera,
+    /// Frames per second.
+    pub frame_rate: f64,
+    /// Number of frames.
+    pub frames: u32,
+    /// Target number of layers K of the layering.
+    pub layers: u32,
+    /// The codec of every layer stream.
+    pub codec: Codec,
+    /// The layout of the layer streams.
+    pub layout: Layout,
+    /// The total bitrate budget in bits per second, when one was given.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub budget: Option<u64>,
+    /// Segments in frame order.
+    pub segments: Vec<Segment>,
+    /// SHA-256 of this file with this field's digits zeroed (see the module documentation).
+    pub checksum: String,
+}
+
+/// Why a manifest was rejected.
+#[derive(Debug, Error, Clone, PartialEq)]
+pub enum ManifestError {
+    /// Not valid JSON, or not the expected shape.
+    #[error("invalid JSON: {0}")]
+    Json(String),
+    /// The `format` field is not `cpsl-package`.
+    #[error("field `format`: expected \"{PACKAGE_FORMAT}\", found \"{0}\"")]
+    Format(String),
+    /// The version is newer than this build understands (or zero).
+    #[error("field `version`: this build reads versions 1..={PACKAGE_VERSION}, found {0}")]
+    Version(u32),
+    /// The manifest's own checksum does not match its bytes.
+    #[error("manifest checksum mismatch (the manifest was modified or damaged)")]
+    Checksum,
+    /// A field is inconsistent.
+    #[error("field `{field}`: {reason}")]
+    Field {
+        /// The field.
+        field: String,
+        /// What is wrong.
+        reason: String,
+    },
+}
+
+fn field(field: impl Into<String>, reason: impl Into<String>) -> ManifestError {
+    ManifestError::Field {
+        field: field.into(),
+        reason: reason.into(),
+    }
+}
+
+/// Lower-case hex SHA-256 of `bytes`.
+pub fn sha256_hex(bytes: &[u8]) -> String {
+    Sha256::digest(bytes)
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect()
+}
+
+/// Why a package path is unsafe, if it is.
+pub fn unsafe_path(path: &str) -> Option<&'static str> {
+    if path.is_empty() || path.len() > 255 {
+        return Some("must have 1 to 255 characters");
+    }
+    for c in path.split('/') {
+        if c.is_empty() || c == "." || c == ".." {
+            return Some("must be relative, without empty, `.` or `..` components");
+        }
+        if !c
+            .bytes()
+            .all(|b| b.is_ascii_alphanumeric() || b == b'.' || b == b'_' || b == b'-')
+        {
+            return Some("may only use A-Z a-z 0-9 . _ - and /");
+        }
+    }
+    None
+}
+
+/// The manifest's bytes with the checksum's digits zeroed, and the checksum found, if the
+/// `checksum` key occurs exactly once followed by 64 characters and a quote.
+fn split_checksum(bytes: &[u8]) -> Option<(Vec<u8>, String)> {
+    let key = CHECKSUM_KEY.as_bytes();
+    let mut hits = bytes
+        .windows(key.len())
+        .enumerate()
+        .filter(|(_, w)| *w == key);
+    let (at, _) = hits.next()?;
+    if hits.next().is_some() {
+        return None;
+    }
+    let start = at + key.len();
+    let digits = bytes.get(start..start + 64)?;
+    if bytes.get(start + 64) != Some(&b'"') {
+        return None;
+    }
+    let found = String::from_utf8(digits.to_vec()).ok()?;
+    let mut zeroed = bytes.to_vec();
+    zeroed[start..start + 64].fill(b'0');
+    Some((zeroed, found))
+}
+
+impl PackageManifest {
+    /// Parses and checks a manifest: its checksum, shape, format, version, paths and the
+    /// consistency of its numbers (segments contiguous from frame 0 and adding up to `frames`,
+    /// at least one stream per segment, a positive frame rate, a valid camera).
+    pub fn parse(bytes: &[u8]) -> Result<Self, ManifestError> {
+        #[derive(Deserialize)]
+        struct Head {
+            format: Option<String>,
+            version: Option<u32>,
+        }
+        let head: Head =
+            serde_json::from_slice(bytes).map_err(|e| ManifestError::Json(e.to_string()))?;
+        match head.format.as_deref() {
+            Some(PACKAGE_FORMAT) => {}
+            Some(other) => return Err(ManifestError::Format(other.into())),
+            None => return Err(ManifestError::Json("missing field `format`".into())),
+        }
+        match head.version {
+            Some(v) if (1..=PACKAGE_VERSION).contains(&v) => {}
+            Some(v) => return Err(ManifestError::Version(v)),
+            None => return Err(ManifestError::Json("missing field `version`".into())),
+        }
+        let (zeroed, found) = split_checksum(bytes)
+            .ok_or_else(|| field("checksum", "missing, repeated or not 64 characters"))?;
+        if sha256_hex(&zeroed) != found {
+            return Err(ManifestError::Checksum);
+        }
+        let m: PackageManifest =
+            serde_json::from_slice(bytes).map_err(|e| ManifestError::Json(e.to_string()))?;
+        m.check()?;
+        Ok(m)
+    }
+
+    fn check(&self) -> Result<(), ManifestError> {
+        self.camera
+            .validate()
+            .map_err(|e| field("camera", e.to_string()))?;
+        if !(self.frame_rate.is_finite() && self.frame_rate > 0.0 && self.frame_rate <= 1000.0) {
+            return Err(field(
+                "frame_rate",
+                format!("{} is not in (0, 1000]", self.frame_rate),
+            ));
+        }
+        let l = &self.layout;
+        if l.kind != "colour-over-alpha" || l.pixel_format != "yuv420p" {
+            return Err(field("layout", "only colour-over-alpha yuv420p is defined"));
+        }
+        if l.coded_width != self.camera.width.next_multiple_of(2)
+            || l.coded_height != self.camera.height.next_multiple_of(2)
+        {
+            return Err(field(
+                "layout",
+                "coded size is not the frame size rounded up to even",
+            ));
+        }
+        let mut next = 0u64;
+        let mut seen = std::collections::HashSet::new();
+        for (i, s) in self.segments.iter().enumerate() {
+            let at = |f: &str| format!("segments[{i}].{f}");
+            if s.start as u64 != next || s.frames == 0 {
+                return Err(field(
+                    at("start"),
+                    format!("expected {next} and at least one frame"),
+                ));
+            }
+            next += s.frames as u64;
+            if s.streams.is_empty() || s.streams.len() > crate::side::MAX_STREAMS as usize {
+                return Err(field(at("streams"), "1 to 64 streams per segment"));
+            }
+            let files = s.streams.iter().map(|t| &t.file).chain([&s.side]);
+            for f in files {
+                if let Some(reason) = unsafe_path(&f.path) {
+                    return Err(field(at("path"), format!("\"{}\" {reason}", f.path)));
+                }
+                if f.path == MANIFEST_FILE || !seen.insert(f.path.clone()) {
+                    return Err(field(at("path"), format!("\"{}\" is used twice", f.path)));
+                }
+                if f.sha256.len() != 64 || !f.sha256.bytes().all(|b| b.is_ascii_hexdigit()) {
+                    return Err(field(
+                        at("sha256"),
+                        format!("\"{}\" is not a SHA-256", f.sha256),
+                    ));
+                }
+            }
+        }
+        if self.segments.is_empty() || next != self.frames as u64 {
+            return Err(field(
+                "segments",
+                format!("cover {next} frames, the package has {}", self.frames),
+            ));
+        }
+        Ok(())
+    }
+
+    /// Serialises as pretty JSON with a valid checksum (the `checksum` field is overwritten).
+    pub fn to_json(&self) -> Vec<u8> {
+        let mut m = self.clone();
+        m.checksum = "0".repeat(64);
+        let mut bytes = serde_json::to_vec_pretty(&m).expect("manifest serialises");
+        let (zeroed, _) = split_checksum(&bytes).expect("the checksum key occurs once");
+        let sum = sha256_hex(&zeroed);
+        let key = CHECKSUM_KEY.as_bytes();
+        let at = bytes
+            .windows(key.len())
+            .position(|w| w == key)
+            .expect("checksum key")
+            + key.len();
+        bytes[at..at + 64].copy_from_slice(sum.as_bytes());
+        bytes
+    }
+
+    /// Every file the manifest references, in order.
+    pub fn files(&self) -> impl Iterator<Item = &FileEntry> {
+        self.segments
+            .iter()
+            .flat_map(|s| s.streams.iter().map(|t| &t.file).chain([&s.side]))
+    }
+
+    /// Total bytes of the layer streams and side streams.
+    pub fn payload_bytes(&self) -> u64 {
+        self.files().map(|f| f.bytes).sum()
+    }
+
+    /// Mean total bitrate in bits per second.
+    pub fn bitrate(&self) -> f64 {
+        self.payload_bytes() as f64 * 8.0 * self.frame_rate / self.frames.max(1) as f64
+    }
+
+    /// The segment holding frame `frame`.
+    pub fn segment_of(&self, frame: u32) -> Option<usize> {
+        self.segments
+            .iter()
+            .position(|s| (s.start..s.start + s.frames).contains(&frame))
+    }
+}

@@ -1,0 +1,487 @@
+//! The side stream of one segment (`side.bin`): per frame, which layer stream holds each layer,
+//! the layer depths, the temporal confidence, the GOP/refresh flags and the Edge-Depth Cache.
+//!
+//! Layout (little endian), version 1:
+//!
+//! ```text
+//! header   magic "CPSLSIDE" | version u16 | reserved u16 | segment u32 | start u32
+//!          | frames u32 | streams u16 | reserved u16 | width u32 | height u32 | crc32 u32
+//! frame    payload_len u32 | payload | crc32(payload) u32          (repeated `frames` times)
+//! payload  index u32 | flags u8 | refresh u8 | layers u8 | reserved u8
+//!          | layers x (stream u8 | reserved 3 | depth f32 | confidence f32 | track u32)
+//!          | edc_len u32 | compact EDC
+//! compact EDC  layers u16 | step f32 | samples u32 | deflate(planes)
+//! planes   per sample, field by field: y - previous y (u16, wrapping), x - previous x (u16,
+//!          wrapping), front u8, back u8, front offset i8, back offset i8
+//! ```
+//!
+//! Samples come in scan order, so the position deltas are small and the planes deflate well
+//! (the raw `edc.bin` layout costs 8 bytes per sample).
+//!
+//! `flags` bit 0 marks an I-frame. `refresh` says why a frame is an I-frame (0 none, 1 first
+//! frame, 2 full GOP, 3 low temporal confidence, 4 crack rate). Layers are listed nearest first;
+//! `track` is `u32::MAX` where the layer has none. Every field is validated on reading, so a
+//! corrupt or truncated stream is an error, never a panic.
+
+use cpsl_core::{Edc, EdcError};
+use thiserror::Error;
+
+/// Magic bytes at the start of a side stream.
+pub const SIDE_MAGIC: &[u8; 8] = b"CPSLSIDE";
+/// Newest side-stream version this build reads and writes.
+pub const SIDE_VERSION: u16 = 1;
+/// Most frames one segment may hold.
+pub const MAX_SEGMENT_FRAMES: u32 = 100_000;
+/// Most layer streams one segment may hold.
+pub const MAX_STREAMS: u16 = 64;
+const HEADER: usize = 40;
+const LAYER: usize = 16;
+const NO_TRACK: u32 = u32::MAX;
+
+/// Why a side stream was rejected.
+#[derive(Debug, Error, Clone, PartialEq)]
+pub enum SideError {
+    /// The header is malformed.
+    #[error("side stream header: {0}")]
+    Header(String),
+    /// A frame record is malformed.
+    #[error("side stream frame record {record}: {reason}")]
+    Frame {
+        /// Record number within the segment.
+        record: usize,
+        /// What is wrong.
+        reason: String,
+    },
+    /// A frame's Edge-Depth Cache is malformed.
+    #[error("side stream frame record {record}: edge-depth cache: {source}")]
+    Edc {
+        /// Record number within the segment.
+        record: usize,
+        /// The cache's error.
+        source: EdcError,
+    },
+}
+
+/// Why a frame is an I-frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum RefreshReason {
+    /// The first frame of the video.
+    First,
+    /// The GOP was full.
+    Gop,
+    /// Temporal confidence stayed low.
+    Confidence,
+    /// The crack rate stayed high.
+    Crack,
+}
+
+impl RefreshReason {
+    fn code(reason: Option<Self>) -> u8 {
+        match reason {
+            None => 0,
+            Some(Self::First) => 1,
+            Some(Self::Gop) => 2,
+            Some(Self::Confidence) => 3,
+            Some(Self::Crack) => 4,
+        }
+    }
+
+    fn from_code(c: u8) -> Option<Option<Self>> {
+        Some(match c {
+            0 => None,
+            1 => Some(Self::First),
+            2 => Some(Self::Gop),
+            3 => Some(Self::Confidence),
+            4 => Some(Self::Crack),
+            _ => return None,
+        })
+    }
+
+    /// A short name (`first`, `gop`, `confidence`, `crack`).
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::First => "first",
+            Self::Gop => "gop",
+            Self::Confidence => "confidence",
+            Self::Crack => "crack",
+        }
+    }
+}
+
+/// One layer of one frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SideLayer {
+    /// The layer stream (index into the segment's streams) holding its colour and alpha.
+    pub stream: u8,
+    /// Depth of its plane in this frame.
+    pub depth: f32,
+    /// Temporal confidence in [0, 1].
+    pub confidence: f32,
+    /// Track identity across frames.
+    pub track: Option<u32>,
+}
+
+/// One frame's side information.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SideFrame {
+    /// Frame index in the video.
+    pub index: u32,
+    /// Whether the frame is an I-frame.
+    pub intra: bool,
+    /// Why it is an I-frame.
+    pub refresh: Option<RefreshReason>,
+    /// Its layers, nearest first.
+    pub layers: Vec<SideLayer>,
+    /// Its Edge-Depth Cache (layer indices refer to `layers`).
+    pub edc: Edc,
+}
+
+/// The side stream of one segment.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SideStream {
+    /// Segment number.
+    pub segment: u32,
+    /// Index of the segment's first frame.
+    pub start: u32,
+    /// Number of layer streams of the segment.
+    pub streams: u16,
+    /// Frame width.
+    pub width: u32,
+    /// Frame height.
+    pub height: u32,
+    /// The frames, in order.
+    pub frames: Vec<SideFrame>,
+}
+
+fn crc(bytes: &[u8]) -> u32 {
+    crc32fast::hash(bytes)
+}
+
+impl SideStream {
+    /// Serialises to the layout above.
+    pub fn encode(&self) -> Vec<u8> {
+        let mut out = Vec::new();
+        out.extend_from_slice(SIDE_MAGIC);
+        out.extend_from_slice(&SIDE_VERSION.to_le_bytes());
+        out.extend_from_slice(&0u16.to_le_bytes());
+        out.extend_from_slice(&self.segment.to_le_bytes());
+        out.extend_from_slice(&self.start.to_le_bytes());
+        out.extend_from_slice(&(self.frames.len() as u32).to_le_bytes());
+        out.extend_from_slice(&self.streams.to_le_bytes());
+        out.extend_from_slice(&0u16.to_le_bytes());
+        out.extend_from_slice(&self.width.to_le_bytes());
+        out.extend_from_slice(&self.height.to_le_bytes());
+        let c = crc(&out);
+        out.extend_from_slice(&c.to_le_bytes());
+        for f in &self.frames {
+            let mut p = Vec::new();
+            p.extend_from_slice(&f.index.to_le_bytes());
+            p.extend_from_slice(&[
+                f.intra as u8,
+                RefreshReason::code(f.refresh),
+                f.layers.len() as u8,
+                0,
+            ]);
+            for l in &f.layers {
+                p.extend_from_slice(&[l.stream, 0, 0, 0]);
+                p.extend_from_slice(&l.depth.to_le_bytes());
+                p.extend_from_slice(&l.confidence.to_le_bytes());
+                p.extend_from_slice(&l.track.unwrap_or(NO_TRACK).to_le_bytes());
+            }
+            let edc = compact_edc(&f.edc);
+            p.extend_from_slice(&(edc.len() as u32).to_le_bytes());
+            p.extend_from_slice(&edc);
+            out.extend_from_slice(&(p.len() as u32).to_le_bytes());
+            out.extend_from_slice(&p);
+            out.extend_from_slice(&crc(&p).to_le_bytes());
+        }
+        out
+    }
+
+    /// Parses and validates a side stream: checksums, counts, flags, depths (finite, positive,
+    /// strictly increasing), confidences in [0, 1], stream indices, frame indices consecutive
+    /// from `start`, and each frame's Edge-Depth Cache against the frame size and layer count.
+    pub fn decode(bytes: &[u8]) -> Result<Self, SideError> {
+        let head = |s: String| SideError::Header(s);
+        if bytes.len() < HEADER {
+            return Err(head(format!(
+                "{} bytes, at least {HEADER} expected",
+                bytes.len()
+            )));
+        }
+        if &bytes[..8] != SIDE_MAGIC {
+            return Err(head("not a CPSL side stream (bad magic)".into()));
+        }
+        let u16_at = |o: usize| u16::from_le_bytes([bytes[o], bytes[o + 1]]);
+        let u32_at =
+            |o: usize| u32::from_le_bytes([bytes[o], bytes[o + 1], bytes[o + 2], bytes[o + 3]]);
+        let version = u16_at(8);
+        if version == 0 || version > SIDE_VERSION {
+            return Err(head(format!(
+                "version {version}, this build reads 1..={SIDE_VERSION}"
+            )));
+        }
+        if u32_at(HEADER - 4) != crc(&bytes[..HEADER - 4]) {
+            return Err(head("checksum mismatch".into()));
+        }
+        let (segment, start, frames) = (u32_at(12), u32_at(16), u32_at(20));
+        let streams = u16_at(24);
+        let (width, height) = (u32_at(28), u32_at(32));
+        if frames == 0 || frames > MAX_SEGMENT_FRAMES {
+            return Err(head(format!(
+                "{frames} frames, 1..={MAX_SEGMENT_FRAMES} allowed"
+            )));
+        }
+        if streams == 0 || streams > MAX_STREAMS {
+            return Err(head(format!(
+                "{streams} streams, 1..={MAX_STREAMS} allowed"
+            )));
+        }
+        if width == 0 || height == 0 || width > u16::MAX as u32 || height > u16::MAX as u32 {
+            return Err(head(format!("frame size {width}x{height}")));
+        }
+        let mut pos = HEADER;
+        let mut out = Vec::new();
+        for record in 0..frames as usize {
+            let bad = |reason: String| SideError::Frame { record, reason };
+            if bytes.len() < pos + 4 {
+                return Err(bad("truncated before its length".into()));
+            }
+            let len = u32_at(pos) as usize;
+            pos += 4;
+            if len < 12 || bytes.len() - pos < len + 4 {
+                return Err(bad(format!(
+                    "length {len} does not fit the {} bytes left",
+                    bytes.len() - pos
+                )));
+            }
+            let p = &bytes[pos..pos + len];
+            if u32_at(pos + len) != crc(p) {
+                return Err(bad("checksum mismatch".into()));
+            }
+            let frame = Self::decode_frame(p, streams, width, height, record)?;
+            let expected = start as u64 + record as u64;
+            if frame.index as u64 != expected {
+                return Err(bad(format!(
+                    "frame index {}, expected {expected}",
+                    frame.index
+                )));
+            }
+            if (record == 0) != frame.intra {
+                return Err(bad(if record == 0 {
+                    "a segment must start with an I-frame".into()
+                } else {
+                    "an I-frame inside a segment".into()
+                }));
+            }
+            out.push(frame);
+            pos += len + 4;
+        }
+        if pos != bytes.len() {
+            return Err(head(format!(
+                "{} bytes after the last frame record",
+                bytes.len() - pos
+            )));
+        }
+        Ok(Self {
+            segment,
+            start,
+            streams,
+            width,
+            height,
+            frames: out,
+        })
+    }
+
+    fn decode_frame(
+        p: &[u8],
+        streams: u16,
+        width: u32,
+        height: u32,
+        record: usize,
+    ) -> Result<SideFrame, SideError> {
+        let bad = |reason: String| SideError::Frame { record, reason };
+        let u32_at = |o: usize| u32::from_le_bytes([p[o], p[o + 1], p[o + 2], p[o + 3]]);
+        let f32_at = |o: usize| f32::from_le_bytes([p[o], p[o + 1], p[o + 2], p[o + 3]]);
+        let index = u32_at(0);
+        let intra = match p[4] {
+            0 => false,
+            1 => true,
+            f => return Err(bad(format!("unknown flags {f:#04x}"))),
+        };
+        let refresh = RefreshReason::from_code(p[5])
+            .ok_or_else(|| bad(format!("unknown refresh reason {}", p[5])))?;
+        if refresh.is_some() != intra {
+            return Err(bad("refresh reason and I-frame flag disagree".into()));
+        }
+        let n = p[6] as usize;
+        if n == 0 || n > streams as usize {
+            return Err(bad(format!(
+                "{n} layers, the segment has {streams} streams"
+            )));
+        }
+        let edc_at = 8 + n * LAYER;
+        if p.len() < edc_at + 4 {
+            return Err(bad("truncated layer table".into()));
+        }
+        let mut layers = Vec::with_capacity(n);
+        let mut used = vec![false; streams as usize];
+        for i in 0..n {
+            let o = 8 + i * LAYER;
+            let stream = p[o];
+            if stream as usize >= streams as usize || used[stream as usize] {
+                return Err(bad(format!(
+                    "layer {i}: stream {stream} invalid or repeated"
+                )));
+            }
+            used[stream as usize] = true;
+            let depth = f32_at(o + 4);
+            let confidence = f32_at(o + 8);
+            let track = u32_at(o + 12);
+            if !(depth.is_finite() && depth > 0.0) {
+                return Err(bad(format!("layer {i}: depth {depth}")));
+            }
+            if let Some(prev) = layers.last().map(|l: &SideLayer| l.depth) {
+                if depth <= prev {
+                    return Err(bad(format!(
+                        "layer {i}: depth {depth} not behind the previous layer's {prev}"
+                    )));
+                }
+            }
+            if !(0.0..=1.0).contains(&confidence) {
+                return Err(bad(format!("layer {i}: confidence {confidence}")));
+            }
+            layers.push(SideLayer {
+                stream,
+                depth,
+                confidence,
+                track: (track != NO_TRACK).then_some(track),
+            });
+        }
+        let edc_len = u32_at(edc_at) as usize;
+        if p.len() != edc_at + 4 + edc_len {
+            return Err(bad(format!(
+                "edge-depth cache of {edc_len} bytes does not fill the record"
+            )));
+        }
+        let edc = expand_edc(&p[edc_at + 4..], width, height)
+            .map_err(|source| SideError::Edc { record, source })?;
+        if edc.width != width || edc.height != height || edc.layers as usize != n {
+            return Err(bad(format!(
+                "edge-depth cache is {}x{} with {} layers, the frame {width}x{height} with {n}",
+                edc.width, edc.height, edc.layers
+            )));
+        }
+        Ok(SideFrame {
+            index,
+            intra,
+            refresh,
+            layers,
+            edc,
+        })
+    }
+}
+
+/// The compact EDC of a side-stream record (see the module documentation).
+fn compact_edc(edc: &Edc) -> Vec<u8> {
+    let n = edc.samples.len();
+    let mut planes = vec![0u8; n * 8];
+    let (mut px, mut py) = (0u16, 0u16);
+    for (i, s) in edc.samples.iter().enumerate() {
+        let dy = s.y.wrapping_sub(py).to_le_bytes();
+        let dx = s.x.wrapping_sub(px).to_le_bytes();
+        (px, py) = (s.x, s.y);
+        planes[2 * i..2 * i + 2].copy_from_slice(&dy);
+        planes[2 * n + 2 * i..2 * n + 2 * i + 2].copy_from_slice(&dx);
+        planes[4 * n + i] = s.front;
+        planes[5 * n + i] = s.back;
+        planes[6 * n + i] = s.front_offset as u8;
+        planes[7 * n + i] = s.back_offset as u8;
+    }
+    let mut out = Vec::new();
+    out.extend_from_slice(&edc.layers.to_le_bytes());
+    out.extend_from_slice(&edc.step.to_le_bytes());
+    out.extend_from_slice(&(n as u32).to_le_bytes());
+    out.extend_from_slice(&miniz_oxide::deflate::compress_to_vec(&planes, 6));
+    out
+}
+
+/// Reads a compact EDC back and validates it (through the `edc.bin` decoder).
+fn expand_edc(b: &[u8], width: u32, height: u32) -> Result<Edc, EdcError> {
+    let bad = |m: &str| EdcError::Header(m.to_string());
+    if b.len() < 10 {
+        return Err(bad("compact cache shorter than its header"));
+    }
+    let layers = u16::from_le_bytes([b[0], b[1]]);
+    let step = f32::from_le_bytes([b[2], b[3], b[4], b[5]]);
+    let n = u32::from_le_bytes([b[6], b[7], b[8], b[9]]) as usize;
+    // At most one sample per pixel: bounds the inflated size.
+    if n > width as usize * height as usize {
+        return Err(bad("more samples than pixels"));
+    }
+    let planes = miniz_oxide::inflate::decompress_to_vec_with_limit(&b[10..], n * 8)
+        .map_err(|_| bad("compressed samples do not inflate"))?;
+    if planes.len() != n * 8 {
+        return Err(bad("inflated samples have the wrong length"));
+    }
+    let raw = Edc {
+        width,
+        height,
+        layers,
+        step,
+        samples: Vec::new(),
+    }
+    .encode();
+    let mut bytes = raw[..raw.len() - 4].to_vec();
+    bytes.extend_from_slice(&(n as u32).to_le_bytes());
+    let (mut x, mut y) = (0u16, 0u16);
+    for i in 0..n {
+        y = y.wrapping_add(u16::from_le_bytes([planes[2 * i], planes[2 * i + 1]]));
+        x = x.wrapping_add(u16::from_le_bytes([
+            planes[2 * n + 2 * i],
+            planes[2 * n + 2 * i + 1],
+        ]));
+        bytes.extend_from_slice(&x.to_le_bytes());
+        bytes.extend_from_slice(&y.to_le_bytes());
+        bytes.extend_from_slice(&[
+            planes[4 * n + i],
+            planes[5 * n + i],
+            planes[6 * n + i],
+            planes[7 * n + i],
+        ]);
+    }
+    Edc::decode(&bytes)
+}
+
+/// Samples per layer pair a side stream keeps by default (see [`sparse_edc`]).
+pub const EDC_SAMPLES_PER_PAIR: usize = 64;
+
+/// A sparse Edge-Depth Cache for streaming: at most `per_pair` samples of each (front, back)
+/// layer pair, evenly spaced in scan order along that pair's boundary. The renderer reads the
+/// cache per layer pair (mean offsets on both sides), which evenly spaced samples preserve,
+/// while a dense cache at 1080p costs tens of kilobytes per frame.
+pub fn sparse_edc(edc: &Edc, per_pair: usize) -> Edc {
+    let mut count: std::collections::HashMap<(u8, u8), usize> = Default::default();
+    for s in &edc.samples {
+        *count.entry((s.front, s.back)).or_default() += 1;
+    }
+    let mut seen: std::collections::HashMap<(u8, u8), usize> = Default::default();
+    let samples = edc
+        .samples
+        .iter()
+        .filter(|s| {
+            let key = (s.front, s.back);
+            let n = count[&key];
+            let i = seen.entry(key).or_default();
+            let keep =
+                (*i * per_pair.max(1)) / n != ((*i + 1) * per_pair.max(1)) / n || n <= per_pair;
+            *i += 1;
+            keep
+        })
+        .copied()
+        .collect();
+    Edc {
+        samples,
+        ..edc.clone()
+    }
+}

@@ -1,0 +1,198 @@
+//! Side streams and manifests: round trips, and every damaged or truncated input is an error,
+//! never a panic.
+
+use cpsl_core::{Camera, Edc, EdcSample};
+use cpsl_package::*;
+
+fn side() -> SideStream {
+    let edc = |n: u16| Edc {
+        width: 64,
+        height: 48,
+        layers: 2,
+        step: 0.01,
+        samples: (0..n)
+            .map(|i| EdcSample {
+                x: i % 64,
+                y: i / 64,
+                front: 0,
+                back: 1,
+                front_offset: -3,
+                back_offset: 5,
+            })
+            .collect(),
+    };
+    let layer = |stream, depth| SideLayer {
+        stream,
+        depth,
+        confidence: 0.75,
+        track: Some(stream as u32 + 10),
+    };
+    SideStream {
+        segment: 2,
+        start: 30,
+        streams: 2,
+        width: 64,
+        height: 48,
+        frames: (0..3)
+            .map(|i| SideFrame {
+                index: 30 + i,
+                intra: i == 0,
+                refresh: (i == 0).then_some(RefreshReason::Confidence),
+                layers: vec![layer(0, 1.5), layer(1, 4.0 + i as f32)],
+                edc: edc(100 + i as u16),
+            })
+            .collect(),
+    }
+}
+
+#[test]
+fn side_stream_round_trips_and_rejects_damage() {
+    let s = side();
+    let bytes = s.encode();
+    assert_eq!(SideStream::decode(&bytes).unwrap(), s);
+    // The compact EDC is far below 8 bytes per sample.
+    assert!(bytes.len() < 3 * 100 * 3, "{} bytes", bytes.len());
+    for cut in 0..bytes.len() {
+        assert!(
+            SideStream::decode(&bytes[..cut]).is_err(),
+            "truncated at {cut}"
+        );
+    }
+    for at in 0..bytes.len() {
+        let mut bad = bytes.clone();
+        bad[at] ^= 0x01;
+        assert!(SideStream::decode(&bad).is_err(), "flipped bit at {at}");
+    }
+    let mut longer = bytes.clone();
+    longer.push(0);
+    assert!(SideStream::decode(&longer).is_err());
+}
+
+fn manifest() -> PackageManifest {
+    let file = |p: &str| FileEntry {
+        path: p.into(),
+        bytes: 10,
+        sha256: "ab".repeat(32),
+    };
+    PackageManifest {
+        format: PACKAGE_FORMAT.into(),
+        version: PACKAGE_VERSION,
+        camera: Camera::from_fov(64, 48, 60.0),
+        frame_rate: 30.0,
+        frames: 5,
+        layers: 4,
+        codec: Codec::Vp9,
+        layout: Layout {
+            kind: "colour-over-alpha".into(),
+            coded_width: 64,
+            coded_height: 48,
+            pixel_format: "yuv420p".into(),
+            matrix: "bt709".into(),
+            range: "limited".into(),
+        },
+        budget: Some(3_000_000),
+        segments: vec![Segment {
+            start: 0,
+            frames: 5,
+            streams: vec![StreamEntry {
+                file: file("seg_000000/layer_00.mp4"),
+                track: Some(1),
+                bitrate: 1000,
+                quality: 30.0,
+                weight: 1.5,
+            }],
+            side: file("seg_000000/side.bin"),
+        }],
+        checksum: String::new(),
+    }
+}
+
+#[test]
+fn manifest_round_trips_and_checks_itself() {
+    let m = manifest();
+    let bytes = m.to_json();
+    let back = PackageManifest::parse(&bytes).unwrap();
+    assert_eq!(back.segments, m.segments);
+    // Any changed byte (outside insignificant whitespace) is caught.
+    let text = String::from_utf8(bytes.clone()).unwrap();
+    for (at, c) in text.char_indices() {
+        if c.is_whitespace() {
+            continue;
+        }
+        let mut bad = bytes.clone();
+        bad[at] ^= 0x01;
+        assert!(PackageManifest::parse(&bad).is_err(), "flip at {at} ({c})");
+    }
+    // Unsafe paths and inconsistent segments are refused even with a valid checksum.
+    for path in [
+        "../x.mp4",
+        "/abs.mp4",
+        "a//b",
+        "seg/%2e%2e",
+        "manifest.json",
+    ] {
+        let mut m = manifest();
+        m.segments[0].streams[0].file.path = path.into();
+        assert!(PackageManifest::parse(&m.to_json()).is_err(), "{path}");
+    }
+    let mut m2 = manifest();
+    m2.frames = 6;
+    assert!(PackageManifest::parse(&m2.to_json()).is_err());
+    let mut m3 = manifest();
+    m3.version = 99;
+    assert!(matches!(
+        PackageManifest::parse(&m3.to_json()),
+        Err(ManifestError::Version(99))
+    ));
+}
+
+#[test]
+fn sparse_edc_keeps_every_pair_and_its_mean() {
+    let mut samples = Vec::new();
+    for i in 0..1000u16 {
+        samples.push(EdcSample {
+            x: i % 64,
+            y: i / 64 % 48,
+            front: 0,
+            back: 1,
+            front_offset: (i % 7) as i8 - 3,
+            back_offset: 4,
+        });
+    }
+    for i in 0..5u16 {
+        samples.push(EdcSample {
+            x: i,
+            y: 47,
+            front: 1,
+            back: 2,
+            front_offset: 1,
+            back_offset: 2,
+        });
+    }
+    let edc = Edc {
+        width: 64,
+        height: 48,
+        layers: 3,
+        step: 0.01,
+        samples,
+    };
+    let s = sparse_edc(&edc, 64);
+    let pair = |e: &Edc, f: u8| e.samples.iter().filter(|s| s.front == f).count();
+    assert_eq!(pair(&s, 0), 64);
+    assert_eq!(pair(&s, 1), 5);
+    let mean = |e: &Edc| {
+        let v: Vec<f64> = e
+            .samples
+            .iter()
+            .filter(|s| s.front == 0)
+            .map(|s| s.front_offset as f64)
+            .collect();
+        v.iter().sum::<f64>() / v.len() as f64
+    };
+    assert!(
+        (mean(&s) - mean(&edc)).abs() < 0.1,
+        "{} vs {}",
+        mean(&s),
+        mean(&edc)
+    );
+}

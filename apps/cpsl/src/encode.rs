@@ -164,8 +164,10 @@ pub fn run(a: EncodeArgs) -> Result<()> {
     let mut writer: Option<PackageWriter> = None;
     let mut pending: Vec<SegmentFrame> = Vec::new();
     let mut reports = Vec::new();
+    let mut coding = 0.0;
     let mut flush = |writer: &mut PackageWriter, pending: &mut Vec<SegmentFrame>| -> Result<()> {
         if !pending.is_empty() {
+            let t = Instant::now();
             let r = writer
                 .push_segment(pending)
                 .with_context(|| format!("coding the segment from frame {}", pending[0].index))?;
@@ -179,6 +181,7 @@ pub fn run(a: EncodeArgs) -> Result<()> {
             }
             reports.push(r);
             pending.clear();
+            coding += t.elapsed().as_secs_f64();
         }
         Ok(())
     };
@@ -227,7 +230,7 @@ pub fn run(a: EncodeArgs) -> Result<()> {
     let m = writer.finish()?;
     let secs = t.elapsed().as_secs_f64();
     println!(
-        "wrote {} ({} frames, {} segments, {} at {:.0} kbit/s{}) in {secs:.1} s ({:.1} frames/s)",
+        "wrote {} ({} frames, {} segments, {} at {:.0} kbit/s{}) in {secs:.1} s ({:.1} frames/s; coding {coding:.1} s, {:.1} frames/s)",
         a.output.display(),
         m.frames,
         m.segments.len(),
@@ -237,7 +240,8 @@ pub fn run(a: EncodeArgs) -> Result<()> {
             Some(b) => format!(" for a budget of {:.0} kbit/s", b as f64 / 1e3),
             None => String::new(),
         },
-        m.frames as f64 / secs
+        m.frames as f64 / secs,
+        m.frames as f64 / coding.max(1e-9)
     );
     Ok(())
 }

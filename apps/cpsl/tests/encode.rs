@@ -1,0 +1,102 @@
+//! `cpsl encode`, `info`, `verify` and `render` of a package, end to end on a short clip.
+
+mod common;
+use common::{cpsl, models_present, ok, s};
+use std::process::Command;
+
+#[test]
+fn encodes_verifies_and_renders_a_package() {
+    if !models_present(&["fastdepth_7.onnx"]) {
+        eprintln!("skipped: FastDepth not in the model cache (scripts/setup-models.sh)");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let clip = dir.path().join("clip.mp4");
+    let status = Command::new("ffmpeg")
+        .args([
+            "-v",
+            "error",
+            "-y",
+            "-f",
+            "lavfi",
+            "-i",
+            "testsrc2=size=192x128:rate=10",
+        ])
+        .args(["-frames:v", "7", "-c:v", "libx264", "-pix_fmt", "yuv420p"])
+        .arg(&clip)
+        .status()
+        .expect("the ffmpeg tool (scripts/setup-system.sh)");
+    assert!(status.success());
+    let pkg = dir.path().join("clip.cpsl");
+    let args = [
+        "encode",
+        s(&clip),
+        "-o",
+        s(&pkg),
+        "--gop",
+        "4",
+        "--layers",
+        "4",
+    ];
+    let msg = ok(&[&args[..], &["--bitrate", "2M"]].concat());
+    assert!(msg.contains("7 frames, 2 segments"), "{msg}");
+    let info = ok(&["info", s(&pkg)]);
+    assert!(info.contains("192x128") && info.contains("h264"), "{info}");
+    assert!(ok(&["verify", s(&pkg)]).contains("ok"));
+    // Render a frame of the package from a new viewpoint.
+    let png = dir.path().join("view.png");
+    ok(&[
+        "render",
+        s(&pkg),
+        "--frame",
+        "5",
+        "--pose",
+        "0.05,0,0,0,0,0",
+        "-o",
+        s(&png),
+    ]);
+    assert!(png.is_file());
+    let o = cpsl(&[
+        "render",
+        s(&pkg),
+        "--frame",
+        "7",
+        "--pose",
+        "0,0,0,0,0,0",
+        "-o",
+        s(&png),
+    ]);
+    assert!(!o.status.success(), "frame 7 of 7 must be refused");
+    // A damaged segment fails verification with the file named.
+    let side = pkg.join("seg_000001/side.bin");
+    let mut bytes = std::fs::read(&side).unwrap();
+    bytes[50] ^= 0xff;
+    std::fs::write(&side, &bytes).unwrap();
+    let o = cpsl(&["verify", s(&pkg)]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("side.bin"));
+    // Re-encoding replaces the package; a folder that is not a package is never replaced.
+    ok(&[&args[..], &["--codec", "vp9", "--quality", "40"]].concat());
+    assert!(ok(&["info", s(&pkg)]).contains("vp9"));
+    assert!(ok(&["verify", s(&pkg)]).contains("ok"));
+    let other = dir.path().join("keep");
+    std::fs::create_dir(&other).unwrap();
+    std::fs::write(other.join("mine.txt"), "x").unwrap();
+    let o = cpsl(&["encode", s(&clip), "-o", s(&other)]);
+    assert!(!o.status.success());
+    assert!(other.join("mine.txt").is_file());
+    // Bad arguments are refused clearly.
+    let o = cpsl(&["encode", s(&clip), "-o", s(&pkg), "--bitrate", "lots"]);
+    assert!(String::from_utf8_lossy(&o.stderr).contains("not a bitrate"));
+    let o = cpsl(&["encode", s(&clip), "-o", s(&pkg), "--quality", "99"]);
+    assert!(!o.status.success());
+    let o = cpsl(&["info", s(&dir.path().join("nothing"))]);
+    assert!(!o.status.success());
+    // No staging folder is left behind.
+    let left: Vec<_> = std::fs::read_dir(dir.path())
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .filter(|e| e.file_name().to_string_lossy().ends_with(".partial"))
+        .collect();
+    assert!(left.is_empty());
+}

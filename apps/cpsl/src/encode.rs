@@ -1,12 +1,10 @@
 //! `cpsl encode`, `cpsl info` and `cpsl verify`: the whole pipeline from a video to a package
 //! (depth, layering, propagation, coding), and the package's summary and integrity check.
 
-use crate::layer::{open_depth_model, read_config, CameraArgs};
-use crate::video::{layer_video, MotionSource, Temporal};
+use crate::video::{layer_video, VideoLayering};
 use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
 use cpsl_codec::{CodingOptions, PackageWriter, RateControl, SegmentFrame};
-use cpsl_layering::LayeringConfig;
 use cpsl_package::{Codec, Package, RefreshReason};
 use cpsl_video::Refresh;
 use std::path::PathBuf;
@@ -68,12 +66,6 @@ pub struct EncodeArgs {
     /// into place when complete; an existing package is replaced, anything else is refused.
     #[arg(short, long)]
     pub output: PathBuf,
-    /// Target number of layers K.
-    #[arg(long, default_value_t = 6, value_parser = clap::value_parser!(u32).range(2..=16))]
-    pub layers: u32,
-    /// Most frames per group of pictures (one segment each).
-    #[arg(long, default_value_t = 30, value_parser = clap::value_parser!(u32).range(1..=600))]
-    pub gop: u32,
     /// Codec of the layer streams.
     #[arg(long, value_enum, default_value_t = CodecArg::H264)]
     pub codec: CodecArg,
@@ -85,29 +77,8 @@ pub struct EncodeArgs {
     /// omitted (h264 23, h265 28, av1 35, vp9 32).
     #[arg(long, conflicts_with = "bitrate")]
     pub quality: Option<f32>,
-    /// Depth model: `fastdepth` (default) or an .onnx file described by `<model>.json`.
-    #[arg(long, default_value = "fastdepth")]
-    pub depth_model: String,
-    /// Description of the --depth-model.
-    #[arg(long)]
-    pub model_desc: Option<PathBuf>,
-    /// Estimate depth on P-frames too (by default their depth is carried along the motion).
-    #[arg(long)]
-    pub depth_every_frame: bool,
     #[command(flatten)]
-    pub camera: CameraArgs,
-    /// Temporal organisation.
-    #[arg(long, value_enum, default_value_t = Temporal::Full)]
-    pub temporal: Temporal,
-    /// Motion source for P-frames.
-    #[arg(long, value_enum, default_value_t = MotionSource::Auto)]
-    pub motion: MotionSource,
-    /// Stop after this many frames.
-    #[arg(long)]
-    pub max_frames: Option<usize>,
-    /// Layering configuration as JSON (as for `cpsl layer`); --layers overrides its K.
-    #[arg(long)]
-    pub config: Option<PathBuf>,
+    pub layering: VideoLayering,
 }
 
 fn refresh_reason(r: Refresh) -> RefreshReason {
@@ -145,13 +116,7 @@ pub fn run(a: EncodeArgs) -> Result<()> {
         .with_context(|| format!("opening {}", a.input.display()))?
         .info()
         .fps;
-    let mut cfg = match &a.config {
-        Some(p) => read_config(p)?,
-        None => LayeringConfig::default(),
-    };
-    cfg.layers = a.layers as usize;
-    let gop = a.temporal.config(a.gop as usize);
-    let mut depth = open_depth_model(&a.depth_model, a.model_desc.as_deref())?;
+    let (cfg, gop, mut depth) = a.layering.setup()?;
     // Ctrl-C stops after the current frame; the staging folder is removed, nothing is left
     // half-written.
     let stop = Arc::new(AtomicBool::new(false));
@@ -186,42 +151,32 @@ pub fn run(a: EncodeArgs) -> Result<()> {
         Ok(())
     };
     let t = Instant::now();
-    layer_video(
-        &a.input,
-        &a.camera,
-        &cfg,
-        gop,
-        &mut depth,
-        a.depth_every_frame,
-        a.motion,
-        a.max_frames,
-        |r| {
-            if stop.load(Ordering::SeqCst) {
-                bail!("interrupted; no package written");
-            }
-            let f = &r.frame;
-            let w = match &mut writer {
-                Some(w) => w,
-                None => writer.insert(PackageWriter::create(
-                    &a.output,
-                    *f.set.camera(),
-                    a.layers,
-                    opts,
-                )?),
-            };
-            if f.refresh.is_some() {
-                flush(w, &mut pending)?;
-            }
-            pending.push(SegmentFrame {
-                index: f.index as u32,
-                refresh: f.refresh.map(refresh_reason),
-                set: f.set.clone(),
-                edc: f.edc.clone(),
-                confidence: f.confidence.clone(),
-            });
-            Ok(())
-        },
-    )?;
+    layer_video(&a.input, &a.layering, &cfg, gop, &mut depth, |r| {
+        if stop.load(Ordering::SeqCst) {
+            bail!("interrupted; no package written");
+        }
+        let f = &r.frame;
+        let w = match &mut writer {
+            Some(w) => w,
+            None => writer.insert(PackageWriter::create(
+                &a.output,
+                *f.set.camera(),
+                a.layering.layers,
+                opts,
+            )?),
+        };
+        if f.refresh.is_some() {
+            flush(w, &mut pending)?;
+        }
+        pending.push(SegmentFrame {
+            index: f.index as u32,
+            refresh: f.refresh.map(refresh_reason),
+            set: f.set.clone(),
+            edc: f.edc.clone(),
+            confidence: f.confidence.clone(),
+        });
+        Ok(())
+    })?;
     let mut writer = writer.context("no frames")?;
     flush(&mut writer, &mut pending)?;
     if stop.load(Ordering::SeqCst) {

@@ -56,6 +56,13 @@ pub struct LayerVideoArgs {
     /// is replaced, any other folder is left alone.
     #[arg(short, long)]
     pub output: PathBuf,
+    #[command(flatten)]
+    pub layering: VideoLayering,
+}
+
+/// How a video is layered (shared by `cpsl layer-video` and `cpsl encode`).
+#[derive(Args)]
+pub struct VideoLayering {
     /// Most frames per group of pictures (an I-frame at least this often).
     #[arg(long, default_value_t = 30, value_parser = clap::value_parser!(u32).range(1..=600))]
     pub gop: u32,
@@ -87,6 +94,20 @@ pub struct LayerVideoArgs {
     pub config: Option<PathBuf>,
 }
 
+impl VideoLayering {
+    /// The layering configuration, GOP configuration and depth model these arguments name.
+    pub fn setup(&self) -> Result<(LayeringConfig, GopConfig, cpsl_models::OnnxDepth)> {
+        let mut cfg = match &self.config {
+            Some(p) => read_config(p)?,
+            None => LayeringConfig::default(),
+        };
+        cfg.layers = self.layers as usize;
+        let gop = self.temporal.config(self.gop as usize);
+        let depth = open_depth_model(&self.depth_model, self.model_desc.as_deref())?;
+        Ok((cfg, gop, depth))
+    }
+}
+
 /// What `layer_video` produced, per frame.
 pub struct FrameRecord {
     /// The layered frame.
@@ -97,26 +118,24 @@ pub struct FrameRecord {
     pub ms: f64,
 }
 
-/// Layers every frame of `input` and hands each result to `sink` (frame index, record).
-#[allow(clippy::too_many_arguments)]
+/// Layers every frame of `input` as `how` says, with the configurations and depth model of
+/// [`VideoLayering::setup`], and hands each result to `sink`.
 pub fn layer_video(
     input: &Path,
-    camera: &CameraArgs,
+    how: &VideoLayering,
     cfg: &LayeringConfig,
     gop: GopConfig,
     depth: &mut dyn DepthSource,
-    depth_every_frame: bool,
-    motion: MotionSource,
-    max_frames: Option<usize>,
     mut sink: impl FnMut(&FrameRecord) -> Result<()>,
 ) -> Result<cpsl_media::Info> {
     let mut src =
         cpsl_media::open(input).with_context(|| format!("opening {}", input.display()))?;
     let info = src.info().clone();
-    let cam = camera.camera(info.width, info.height)?;
+    let cam = how.camera.camera(info.width, info.height)?;
     let mut cfg = *cfg;
     cfg.cues.allow_missing_depth = true;
     let mut layerer = VideoLayerer::new(cam, cfg, gop)?;
+    let max_frames = how.max_frames;
     let total = match (info.frames, max_frames) {
         (Some(n), Some(m)) => Some(n.min(m)),
         (n, m) => n.or(m),
@@ -142,12 +161,12 @@ pub fn layer_video(
         };
         let t = Instant::now();
         let intra = layerer.next_is_intra();
-        let z = if intra || depth_every_frame {
+        let z = if intra || how.depth_every_frame {
             Some(depth.depth(&frame.rgb, info.width, info.height)?)
         } else {
             None
         };
-        let given = match motion {
+        let given = match how.motion {
             MotionSource::Auto => frame.motion.map(|m| Flow {
                 width: m.width,
                 height: m.height,
@@ -195,13 +214,7 @@ pub fn run(a: LayerVideoArgs) -> Result<()> {
             a.output.display()
         );
     }
-    let mut cfg = match &a.config {
-        Some(p) => read_config(p)?,
-        None => LayeringConfig::default(),
-    };
-    cfg.layers = a.layers as usize;
-    let gop = a.temporal.config(a.gop as usize);
-    let mut depth = open_depth_model(&a.depth_model, a.model_desc.as_deref())?;
+    let (cfg, gop, mut depth) = a.layering.setup()?;
     let stage = staging(&a.output);
     if stage.exists() {
         std::fs::remove_dir_all(&stage)
@@ -210,25 +223,16 @@ pub fn run(a: LayerVideoArgs) -> Result<()> {
     std::fs::create_dir_all(&stage).with_context(|| format!("creating {}", stage.display()))?;
     let mut records = Vec::new();
     let t = Instant::now();
-    let info = match layer_video(
-        &a.input,
-        &a.camera,
-        &cfg,
-        gop,
-        &mut depth,
-        a.depth_every_frame,
-        a.motion,
-        a.max_frames,
-        |r| {
-            let f = &r.frame;
-            let dir = format!("frame_{:06}", f.index);
-            let edc = f.edc.encode();
-            cpsl_io::write_layer_set(
-                &stage.join(&dir),
-                &f.set,
-                &[(cpsl_io::EDC_FILE, edc.as_slice())],
-            )?;
-            records.push(serde_json::json!({
+    let info = match layer_video(&a.input, &a.layering, &cfg, gop, &mut depth, |r| {
+        let f = &r.frame;
+        let dir = format!("frame_{:06}", f.index);
+        let edc = f.edc.encode();
+        cpsl_io::write_layer_set(
+            &stage.join(&dir),
+            &f.set,
+            &[(cpsl_io::EDC_FILE, edc.as_slice())],
+        )?;
+        records.push(serde_json::json!({
                 "index": f.index,
                 "dir": dir,
                 "kind": if f.refresh.is_some() { "I" } else { "P" },
@@ -241,9 +245,8 @@ pub fn run(a: LayerVideoArgs) -> Result<()> {
                 "ms": r.ms,
                 "timings_ms": f.timings.iter().map(|(s, t)| serde_json::json!({"stage": s, "ms": t})).collect::<Vec<_>>(),
             }));
-            Ok(())
-        },
-    ) {
+        Ok(())
+    }) {
         Ok(info) => info,
         Err(e) => {
             // Nothing half-written stays behind.

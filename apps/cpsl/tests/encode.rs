@@ -1,8 +1,7 @@
 //! `cpsl encode`, `info`, `verify` and `render` of a package, end to end on a short clip.
 
 mod common;
-use common::{cpsl, models_present, ok, s};
-use std::process::Command;
+use common::{cpsl, models_present, ok, s, test_clip};
 
 #[test]
 fn encodes_verifies_and_renders_a_package() {
@@ -12,21 +11,7 @@ fn encodes_verifies_and_renders_a_package() {
     }
     let dir = tempfile::tempdir().unwrap();
     let clip = dir.path().join("clip.mp4");
-    let status = Command::new("ffmpeg")
-        .args([
-            "-v",
-            "error",
-            "-y",
-            "-f",
-            "lavfi",
-            "-i",
-            "testsrc2=size=192x128:rate=10",
-        ])
-        .args(["-frames:v", "7", "-c:v", "libx264", "-pix_fmt", "yuv420p"])
-        .arg(&clip)
-        .status()
-        .expect("the ffmpeg tool (scripts/setup-system.sh)");
-    assert!(status.success());
+    test_clip(&clip, &[]);
     let pkg = dir.path().join("clip.cpsl");
     let args = [
         "encode",

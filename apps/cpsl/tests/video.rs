@@ -1,8 +1,7 @@
 //! `cpsl layer-video` end to end on a short clip, and its errors.
 
 mod common;
-use common::{cpsl, models_present, ok, s};
-use std::process::Command;
+use common::{cpsl, models_present, ok, s, test_clip};
 
 #[test]
 fn layers_a_clip_and_refuses_bad_input() {
@@ -12,30 +11,7 @@ fn layers_a_clip_and_refuses_bad_input() {
     }
     let dir = tempfile::tempdir().unwrap();
     let clip = dir.path().join("clip.mp4");
-    let status = Command::new("ffmpeg")
-        .args([
-            "-v",
-            "error",
-            "-y",
-            "-f",
-            "lavfi",
-            "-i",
-            "testsrc2=size=192x128:rate=10",
-        ])
-        .args([
-            "-frames:v",
-            "7",
-            "-c:v",
-            "libx264",
-            "-bf",
-            "0",
-            "-pix_fmt",
-            "yuv420p",
-        ])
-        .arg(&clip)
-        .status()
-        .expect("the ffmpeg tool (scripts/setup-system.sh)");
-    assert!(status.success());
+    test_clip(&clip, &["-bf", "0"]);
     let out = dir.path().join("layers");
     let msg = ok(&[
         "layer-video",

@@ -45,3 +45,17 @@ pub fn models_present(models: &[&str]) -> bool {
     );
     present
 }
+
+/// Writes a 7-frame 192x128 H.264 clip of FFmpeg's `testsrc2` at 10 fps to `path`, with
+/// `extra` encoder arguments.
+pub fn test_clip(path: &Path, extra: &[&str]) {
+    let status = Command::new("ffmpeg")
+        .args(["-v", "error", "-y", "-f", "lavfi", "-i"])
+        .arg("testsrc2=size=192x128:rate=10")
+        .args(["-frames:v", "7", "-c:v", "libx264", "-pix_fmt", "yuv420p"])
+        .args(extra)
+        .arg(path)
+        .status()
+        .expect("the ffmpeg tool (scripts/setup-system.sh)");
+    assert!(status.success());
+}

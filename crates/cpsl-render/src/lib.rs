@@ -18,8 +18,10 @@
 //! After compositing, the Dynamic Pixel Strip ([`PreparedLayers::render_dps_into`]) bridges
 //! thin cracks between independently warped layers, guided by the Edge-Depth Cache.
 //!
-//! Sampling precision: positions are rounded to 1/256 px and each bilinear stage rounds to
-//! 8 bits, so a sample is within 1 LSB of exact bilinear filtering. At the identity pose every
+//! Sampling precision: positions are within 1/256 px of the exact homography on each axis
+//! (1/512 px from linear stepping, 1/512 px from rounding) and each bilinear stage rounds to
+//! 8 bits, so a sample is within 1 LSB of exact bilinear filtering at the rounded position and
+//! within 3 LSB of exact filtering at the exact one. At the identity pose every
 //! sample is exact and the render equals the closed form
 //! ([`cpsl_core::LayerSet::composite_reference`]) up to `f32` rounding.
 

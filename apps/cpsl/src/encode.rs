@@ -77,6 +77,9 @@ pub struct EncodeArgs {
     /// omitted (h264 23, h265 28, av1 35, vp9 32).
     #[arg(long, conflicts_with = "bitrate")]
     pub quality: Option<f32>,
+    /// Frame rate of the package; the input's by default (30 for image folders).
+    #[arg(long)]
+    pub fps: Option<f64>,
     #[command(flatten)]
     pub layering: VideoLayering,
 }
@@ -112,10 +115,16 @@ pub fn run(a: EncodeArgs) -> Result<()> {
             a.output.display()
         );
     }
-    let fps = cpsl_media::open(&a.input)
-        .with_context(|| format!("opening {}", a.input.display()))?
-        .info()
-        .fps;
+    let fps = match a.fps {
+        Some(f) if f.is_finite() && (0.1..=1000.0).contains(&f) => f,
+        Some(f) => bail!("--fps {f}: give 0.1 to 1000 frames per second"),
+        None => {
+            cpsl_media::open(&a.input)
+                .with_context(|| format!("opening {}", a.input.display()))?
+                .info()
+                .fps
+        }
+    };
     let (cfg, gop, mut depth) = a.layering.setup()?;
     // Ctrl-C stops after the current frame; the staging folder is removed, nothing is left
     // half-written.

@@ -75,6 +75,13 @@ pub struct VideoLayering {
     /// Description of the --depth-model.
     #[arg(long)]
     pub model_desc: Option<PathBuf>,
+    /// Depth maps instead of a model: a folder with one map per frame in file-name order
+    /// (PFM in scene units, 16-bit PNG or .npy as for `cpsl layer --depth`).
+    #[arg(long, conflicts_with_all = ["depth_model", "model_desc"])]
+    pub depth_frames: Option<PathBuf>,
+    /// Scene units per integer step of 16-bit PNG / uint16 .npy --depth-frames.
+    #[arg(long, default_value_t = 0.001)]
+    pub depth_scale: f32,
     /// Estimate depth on P-frames too (by default their depth is carried along the motion).
     #[arg(long)]
     pub depth_every_frame: bool,
@@ -94,16 +101,62 @@ pub struct VideoLayering {
     pub config: Option<PathBuf>,
 }
 
+/// Where a video's depth comes from.
+pub enum VideoDepth {
+    /// A monocular depth model run on the frames.
+    Model(Box<dyn DepthSource>),
+    /// One depth map per frame.
+    Frames(cpsl_io::depth::DepthSequence),
+}
+
+impl VideoDepth {
+    /// Depth of frame `index`.
+    fn depth(&mut self, index: usize, rgb: &[u8], width: u32, height: u32) -> Result<Vec<f32>> {
+        Ok(match self {
+            VideoDepth::Model(m) => m.depth(rgb, width, height)?,
+            VideoDepth::Frames(s) => s.depth_at(index, width, height)?,
+        })
+    }
+
+    /// A short description, saved with the output.
+    pub fn name(&self) -> String {
+        match self {
+            VideoDepth::Model(m) => m.name(),
+            VideoDepth::Frames(s) => format!("depth maps in {}", s.dir.display()),
+        }
+    }
+}
+
 impl VideoLayering {
-    /// The layering configuration, GOP configuration and depth model these arguments name.
-    pub fn setup(&self) -> Result<(LayeringConfig, GopConfig, cpsl_models::OnnxDepth)> {
+    /// The layering configuration, GOP configuration and depth source these arguments name.
+    pub fn setup(&self) -> Result<(LayeringConfig, GopConfig, VideoDepth)> {
         let mut cfg = match &self.config {
             Some(p) => read_config(p)?,
             None => LayeringConfig::default(),
         };
         cfg.layers = self.layers as usize;
         let gop = self.temporal.config(self.gop as usize);
-        let depth = open_depth_model(&self.depth_model, self.model_desc.as_deref())?;
+        let depth = match &self.depth_frames {
+            Some(dir) => {
+                anyhow::ensure!(
+                    self.depth_scale.is_finite() && self.depth_scale > 0.0,
+                    "--depth-scale must be finite and > 0, found {}",
+                    self.depth_scale
+                );
+                let units = cpsl_io::depth::DepthUnits {
+                    scale: self.depth_scale,
+                };
+                VideoDepth::Frames(cpsl_io::depth::DepthSequence::open(
+                    dir,
+                    units,
+                    cpsl_core::Limits::default(),
+                )?)
+            }
+            None => VideoDepth::Model(Box::new(open_depth_model(
+                &self.depth_model,
+                self.model_desc.as_deref(),
+            )?)),
+        };
         Ok((cfg, gop, depth))
     }
 }
@@ -125,7 +178,7 @@ pub fn layer_video(
     how: &VideoLayering,
     cfg: &LayeringConfig,
     gop: GopConfig,
-    depth: &mut dyn DepthSource,
+    depth: &mut VideoDepth,
     mut sink: impl FnMut(&FrameRecord) -> Result<()>,
 ) -> Result<cpsl_media::Info> {
     let mut src =
@@ -162,7 +215,7 @@ pub fn layer_video(
         let t = Instant::now();
         let intra = layerer.next_is_intra();
         let z = if intra || how.depth_every_frame {
-            Some(depth.depth(&frame.rgb, info.width, info.height)?)
+            Some(depth.depth(frame.index, &frame.rgb, info.width, info.height)?)
         } else {
             None
         };

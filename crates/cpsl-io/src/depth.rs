@@ -65,6 +65,74 @@ impl cpsl_core::DepthSource for DepthFile {
     }
 }
 
+/// A folder of depth maps for a frame sequence, one per frame in file-name order (`.pfm`,
+/// 16-bit `.png`, `.npy`; other files are ignored).
+#[derive(Debug, Clone)]
+pub struct DepthSequence {
+    /// The folder.
+    pub dir: std::path::PathBuf,
+    /// The maps, sorted by file name.
+    pub files: Vec<std::path::PathBuf>,
+    /// Units of integer formats.
+    pub units: DepthUnits,
+    /// Size limits.
+    pub limits: Limits,
+}
+
+impl DepthSequence {
+    /// Lists the depth maps of `dir`; an error when it has none.
+    pub fn open(dir: &Path, units: DepthUnits, limits: Limits) -> Result<Self, IoError> {
+        let mut files: Vec<std::path::PathBuf> = std::fs::read_dir(dir)
+            .map_err(|e| IoError::io(dir, e))?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| {
+                p.is_file()
+                    && p.extension().is_some_and(|e| {
+                        matches!(
+                            e.to_string_lossy().to_ascii_lowercase().as_str(),
+                            "pfm" | "png" | "npy"
+                        )
+                    })
+            })
+            .collect();
+        if files.is_empty() {
+            return Err(IoError::Depth {
+                path: dir.into(),
+                reason: "no depth maps (.pfm, .png, .npy) in this folder".into(),
+            });
+        }
+        files.sort();
+        Ok(Self {
+            dir: dir.into(),
+            files,
+            units,
+            limits,
+        })
+    }
+
+    /// The depth of frame `index`, checked against the frame's size.
+    pub fn depth_at(&self, index: usize, width: u32, height: u32) -> Result<Vec<f32>, IoError> {
+        let path = self.files.get(index).ok_or_else(|| IoError::Depth {
+            path: self.dir.clone(),
+            reason: format!(
+                "frame {index} has no depth map: the folder holds {} maps",
+                self.files.len()
+            ),
+        })?;
+        let d = read_depth(path, self.units, &self.limits)?;
+        if (d.width, d.height) != (width, height) {
+            return Err(IoError::Depth {
+                path: path.clone(),
+                reason: format!(
+                    "depth is {}x{} but the frame is {width}x{height}",
+                    d.width, d.height
+                ),
+            });
+        }
+        Ok(d.data)
+    }
+}
+
 /// Reads a depth map (`.pfm`, `.png`, `.npy`).
 pub fn read_depth(path: &Path, units: DepthUnits, limits: &Limits) -> Result<FloatImage, IoError> {
     let ext = path
@@ -336,5 +404,29 @@ mod tests {
         .unwrap_err()
         .to_string();
         assert!(e.contains("unknown depth format"), "{e}");
+    }
+
+    #[test]
+    fn depth_sequence_in_name_order_with_clear_errors() {
+        let d = tempfile::tempdir().unwrap();
+        let err = DepthSequence::open(d.path(), DepthUnits::default(), Limits::default());
+        assert!(err.unwrap_err().to_string().contains("no depth maps"));
+        for (name, v) in [("b_0001.pfm", 2.0), ("a_0000.pfm", 1.0)] {
+            let img = FloatImage {
+                width: 3,
+                height: 2,
+                data: vec![v; 6],
+            };
+            crate::pfm::write_pfm(&d.path().join(name), &img).unwrap();
+        }
+        std::fs::write(d.path().join("notes.txt"), "not depth").unwrap();
+        let seq = DepthSequence::open(d.path(), DepthUnits::default(), Limits::default()).unwrap();
+        assert_eq!(seq.files.len(), 2);
+        assert_eq!(seq.depth_at(0, 3, 2).unwrap(), vec![1.0; 6]);
+        assert_eq!(seq.depth_at(1, 3, 2).unwrap(), vec![2.0; 6]);
+        let e = seq.depth_at(2, 3, 2).unwrap_err().to_string();
+        assert!(e.contains("frame 2 has no depth map"), "{e}");
+        let e = seq.depth_at(0, 4, 2).unwrap_err().to_string();
+        assert!(e.contains("3x2 but the frame is 4x2"), "{e}");
     }
 }

@@ -84,7 +84,7 @@ pub struct EncodeArgs {
     pub layering: VideoLayering,
 }
 
-fn refresh_reason(r: Refresh) -> RefreshReason {
+pub(crate) fn refresh_reason(r: Refresh) -> RefreshReason {
     match r {
         Refresh::First => RefreshReason::First,
         Refresh::Gop => RefreshReason::Gop,

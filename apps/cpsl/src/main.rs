@@ -5,6 +5,7 @@ mod bench;
 mod demo;
 mod encode;
 mod eval;
+mod eval_rd;
 mod eval_video;
 mod layer;
 mod progress;
@@ -52,6 +53,9 @@ enum Command {
     /// propagation with and without refinement (boundary variance, F-SSIM, warping error,
     /// flicker, novel-view PSNR).
     EvalVideo(eval_video::EvalVideoArgs),
+    /// Rate-distortion curves on a synthetic moving clip: CPSL packages under budgets against
+    /// DIBR streaming (colour + depth) and a uniform MPI coded with the same codec.
+    EvalRd(eval_rd::EvalRdArgs),
     /// Benchmarks.
     #[command(subcommand)]
     Bench(bench::BenchCommand),
@@ -92,6 +96,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Demo(a) => demo::run(a),
         Command::Eval(a) => eval::run(a),
         Command::EvalVideo(a) => eval_video::run(a),
+        Command::EvalRd(a) => eval_rd::run(a),
         Command::Bench(b) => bench::run(b),
     }
 }

@@ -432,3 +432,67 @@ fn demo_end_to_end_small() {
     let bits = scores["bitrate_bps"].as_f64().unwrap();
     assert!(bits <= 2e6 * 1.1, "budget kept: {bits}");
 }
+
+/// `cpsl eval-rd` on a tiny clip: three curves, coded rates that follow the settings, and its
+/// errors.
+#[test]
+fn eval_rd_small() {
+    let d = tempfile::tempdir().unwrap();
+    let json = d.path().join("rd.json");
+    let base = [
+        "eval-rd",
+        "--width",
+        "96",
+        "--height",
+        "64",
+        "--frames",
+        "6",
+        "--mpi-planes",
+        "4",
+        "--score-every",
+        "3",
+        "--no-lpips",
+    ];
+    let mut args = base.to_vec();
+    args.extend([
+        "--bitrates",
+        "200k,2M",
+        "--qualities",
+        "18,44",
+        "--json",
+        s(&json),
+    ]);
+    let out = ok(&args);
+    assert!(out.contains("| cpsl | uncompressed |"), "{out}");
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    let curves = v["curves"].as_array().unwrap();
+    let names: Vec<&str> = curves
+        .iter()
+        .map(|c| c["method"].as_str().unwrap())
+        .collect();
+    assert_eq!(names, ["cpsl", "dibr", "mpi"]);
+    for c in curves {
+        let p = c["points"].as_array().unwrap();
+        assert_eq!(p.len(), 2, "{c}");
+        let rate = |i: usize| p[i]["bitrate"].as_f64().unwrap();
+        let psnr = |i: usize| p[i]["psnr"].as_f64().unwrap();
+        // The first setting is the richer one (2 Mbit/s, CRF 18) for every method.
+        assert!(rate(0) < rate(1) || c["method"] != "cpsl", "{c}");
+        assert!(rate(0) > rate(1) || c["method"] == "cpsl", "{c}");
+        let (hi, lo) = if c["method"] == "cpsl" {
+            (1, 0)
+        } else {
+            (0, 1)
+        };
+        assert!(psnr(hi) >= psnr(lo) - 0.2, "more bits, no worse: {c}");
+        let un = c["uncompressed"]["psnr"].as_f64().unwrap();
+        assert!(psnr(hi) <= un + 0.5, "coding adds no quality: {c}");
+        assert!(un > 15.0, "{c}");
+    }
+    assert!(v["summary"]["dibr_rate_ratio"].is_array());
+    let mut bad = base.to_vec();
+    bad.extend(["--qualities", "99"]);
+    let o = cpsl(&bad);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("--qualities 99"));
+}

@@ -13,7 +13,9 @@ pub mod alloc;
 mod stream;
 pub mod yuv;
 
-pub use stream::{decode_stream, encode_stream, has_encoder, quality_range};
+pub use stream::{
+    decode_pictures, decode_stream, encode_pictures, encode_stream, has_encoder, quality_range,
+};
 
 use cpsl_core::{Edc, Layer, LayerSet, Limits, PremulImage};
 use cpsl_package::{
@@ -228,7 +230,7 @@ pub fn encode_segment(
                         track: l.meta.track,
                     })
                     .collect(),
-                edc: cpsl_package::sparse_edc(&f.edc, cpsl_package::EDC_SAMPLES_PER_PAIR),
+                edc: cpsl_package::summarise_edc(&f.edc),
             })
             .collect(),
     };
@@ -426,7 +428,9 @@ pub fn decode_segment(pkg: &Package, i: usize) -> Result<Vec<DecodedFrame>, Code
     let seg = &m.segments[i];
     let side = pkg.side_stream(i)?;
     let cam = m.camera;
-    let streams: Vec<Vec<PremulImage>> = seg
+    // Each picture moves into the one layer that uses it (the side stream maps layers to
+    // streams one to one, which `SideStream::decode` checks).
+    let mut streams: Vec<Vec<Option<PremulImage>>> = seg
         .streams
         .par_iter()
         .map(|s| {
@@ -443,7 +447,7 @@ pub fn decode_segment(pkg: &Package, i: usize) -> Result<Vec<DecodedFrame>, Code
                     ),
                 });
             }
-            Ok(d)
+            Ok(d.into_iter().map(Some).collect())
         })
         .collect::<Result<_, _>>()?;
     side.frames
@@ -454,12 +458,19 @@ pub fn decode_segment(pkg: &Package, i: usize) -> Result<Vec<DecodedFrame>, Code
                 .layers
                 .iter()
                 .map(|l| {
-                    let mut layer =
-                        Layer::new(streams[l.stream as usize][fi].clone(), l.depth as f64);
+                    let image = streams
+                        .get_mut(l.stream as usize)
+                        .and_then(|s| s.get_mut(fi))
+                        .and_then(Option::take)
+                        .ok_or_else(|| CodecError::Layers {
+                            frame: f.index,
+                            reason: format!("stream {} missing or used twice", l.stream),
+                        })?;
+                    let mut layer = Layer::new(image, l.depth as f64);
                     layer.meta.track = l.track;
-                    layer
+                    Ok(layer)
                 })
-                .collect();
+                .collect::<Result<_, CodecError>>()?;
             let set =
                 LayerSet::new(cam, layers, &Limits::default()).map_err(|e| CodecError::Layers {
                     frame: f.index,

@@ -89,7 +89,6 @@ pub fn encode_stream(
     crf: f32,
     fps: f64,
 ) -> Result<u64, CodecError> {
-    init()?;
     let first = layers.first().ok_or(CodecError::Empty)?;
     let (w, h) = (first.width(), first.height());
     if let Some(l) = layers.iter().find(|l| (l.width(), l.height()) != (w, h)) {
@@ -97,6 +96,23 @@ pub fn encode_stream(
             expected: (w, h),
             found: (l.width(), l.height()),
         });
+    }
+    encode_pictures(path, layers.len(), &|i| stack(layers[i]), codec, crf, fps)
+}
+
+/// Encodes `count` pictures of the same even size, picture `i` made by `picture(i)`, at quality
+/// `crf` into the MP4 file `path`, tagged BT.709 limited range. Returns the file size in bytes.
+pub fn encode_pictures(
+    path: &Path,
+    count: usize,
+    picture: &dyn Fn(usize) -> Yuv420,
+    codec: Codec,
+    crf: f32,
+    fps: f64,
+) -> Result<u64, CodecError> {
+    init()?;
+    if count == 0 {
+        return Err(CodecError::Empty);
     }
     let name = encoder_name(codec);
     let enc_codec = ffmpeg::encoder::find_by_name(name).ok_or(CodecError::MissingEncoder(name))?;
@@ -110,14 +126,14 @@ pub fn encode_stream(
         .encoder()
         .video()
         .map_err(ff("creating the encoder"))?;
-    let pic = stack(first);
+    let pic = picture(0);
     let rate = ffmpeg::Rational::from(fps);
     enc.set_width(pic.width as u32);
     enc.set_height(pic.height as u32);
     enc.set_format(ffmpeg::format::Pixel::YUV420P);
     enc.set_time_base(rate.invert());
     enc.set_frame_rate(Some(rate));
-    enc.set_gop(layers.len() as u32);
+    enc.set_gop(count as u32);
     enc.set_colorspace(ffmpeg::color::Space::BT709);
     enc.set_color_range(ffmpeg::color::Range::MPEG);
     enc.set_color_primaries(ffmpeg::color::Primaries::BT709);
@@ -126,7 +142,7 @@ pub fn encode_stream(
         enc.set_flags(ffmpeg::codec::Flags::GLOBAL_HEADER);
     }
     let mut enc = enc
-        .open_as_with(enc_codec, options(codec, crf, layers.len()))
+        .open_as_with(enc_codec, options(codec, crf, count))
         .map_err(ff("opening the encoder"))?;
     ost.set_parameters(&enc);
     ost.set_time_base(rate.invert());
@@ -160,9 +176,16 @@ pub fn encode_stream(
     frame.set_color_range(ffmpeg::color::Range::MPEG);
     frame.set_color_primaries(ffmpeg::color::Primaries::BT709);
     frame.set_color_transfer_characteristic(ffmpeg::color::TransferCharacteristic::BT709);
-    for (i, l) in layers.iter().enumerate() {
-        let pic = if i == 0 { pic.clone() } else { stack(l) };
-        fill_frame(&mut frame, &pic);
+    for i in 0..count {
+        let next = if i == 0 { None } else { Some(picture(i)) };
+        let p = next.as_ref().unwrap_or(&pic);
+        if (p.width, p.height) != (pic.width, pic.height) {
+            return Err(CodecError::Size {
+                expected: (pic.width as u32, pic.height as u32),
+                found: (p.width as u32, p.height as u32),
+            });
+        }
+        fill_frame(&mut frame, p);
         frame.set_pts(Some(i as i64));
         frame.set_kind(if i == 0 {
             ffmpeg::picture::Type::I
@@ -222,6 +245,15 @@ fn read_frame(frame: &ffmpeg::frame::Video) -> Yuv420 {
 /// Decodes a layer stream written by [`encode_stream`] (or any 8-bit 4:2:0 stream of the same
 /// layout) into `width x height` layers, one per picture.
 pub fn decode_stream(path: &Path, width: u32, height: u32) -> Result<Vec<PremulImage>, CodecError> {
+    Ok(decode_pictures(path, width, height)?
+        .iter()
+        .map(|p| unstack(p, width, height))
+        .collect())
+}
+
+/// Decodes a stream of stacked pictures for `width x height` images (as written by
+/// [`encode_pictures`]), checking their size.
+pub fn decode_pictures(path: &Path, width: u32, height: u32) -> Result<Vec<Yuv420>, CodecError> {
     init()?;
     let bad = |reason: String| CodecError::Stream {
         path: path.to_path_buf(),
@@ -247,7 +279,7 @@ pub fn decode_stream(path: &Path, width: u32, height: u32) -> Result<Vec<PremulI
     }
     let mut out = Vec::new();
     let mut frame = ffmpeg::frame::Video::empty();
-    let mut take = |dec: &mut ffmpeg::decoder::Video, out: &mut Vec<PremulImage>| {
+    let mut take = |dec: &mut ffmpeg::decoder::Video, out: &mut Vec<Yuv420>| {
         while dec.receive_frame(&mut frame).is_ok() {
             if frame.format() != ffmpeg::format::Pixel::YUV420P {
                 return Err(bad(format!(
@@ -255,7 +287,7 @@ pub fn decode_stream(path: &Path, width: u32, height: u32) -> Result<Vec<PremulI
                     frame.format()
                 )));
             }
-            out.push(unstack(&read_frame(&frame), width, height));
+            out.push(read_frame(&frame));
         }
         Ok(())
     };

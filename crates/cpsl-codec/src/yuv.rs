@@ -41,13 +41,51 @@ pub fn coded_size(width: u32, height: u32) -> (usize, usize) {
 /// column/row where the layer size is odd.
 pub fn stack(img: &PremulImage) -> Yuv420 {
     let (w, h) = (img.width() as usize, img.height() as usize);
-    let (cw, ch) = coded_size(img.width(), img.height());
-    let (pw, ph) = (cw, 2 * ch);
     let px = img.as_bytes();
-    let at = |x: usize, y: usize| {
+    stack_with(img.width(), img.height(), |x, y| {
         let o = (y.min(h - 1) * w + x.min(w - 1)) * 4;
         [px[o], px[o + 1], px[o + 2], px[o + 3]]
-    };
+    })
+}
+
+/// Stacks any colour image (3 bytes per pixel) over any 8-bit grey image of the same size, in
+/// the layout of [`stack`] (the DIBR baseline codes colour over quantised inverse depth).
+pub fn stack_colour_grey(rgb: &[u8], grey: &[u8], width: u32, height: u32) -> Yuv420 {
+    let (w, h) = (width as usize, height as usize);
+    assert!(
+        rgb.len() == w * h * 3 && grey.len() == w * h,
+        "stack: plane sizes"
+    );
+    stack_with(width, height, |x, y| {
+        let i = y.min(h - 1) * w + x.min(w - 1);
+        [rgb[i * 3], rgb[i * 3 + 1], rgb[i * 3 + 2], grey[i]]
+    })
+}
+
+/// The colour (RGB) and grey planes of a picture made by [`stack_colour_grey`].
+pub fn unstack_colour_grey(p: &Yuv420, width: u32, height: u32) -> (Vec<u8>, Vec<u8>) {
+    let (w, h) = (width as usize, height as usize);
+    let mut rgb = vec![0u8; w * h * 3];
+    let mut grey = vec![0u8; w * h];
+    unstack_with(
+        p,
+        w,
+        h,
+        |i, colour, g| {
+            grey[i] = g;
+            if let Some(c) = colour {
+                rgb[i * 3..i * 3 + 3].copy_from_slice(&c);
+            }
+        },
+        false,
+    );
+    (rgb, grey)
+}
+
+/// The stacking of [`stack`] with pixel `(x, y)` read as `[r, g, b, grey]` by `at`.
+fn stack_with(width: u32, height: u32, at: impl Fn(usize, usize) -> [u8; 4]) -> Yuv420 {
+    let (cw, ch) = coded_size(width, height);
+    let (pw, ph) = (cw, 2 * ch);
     let mut y_plane = vec![0u8; pw * ph];
     let mut u = vec![128u8; pw / 2 * ph / 2];
     let mut v = vec![128u8; pw / 2 * ph / 2];
@@ -86,14 +124,41 @@ pub fn stack(img: &PremulImage) -> Yuv420 {
 /// to alpha so that the result is a valid premultiplied image.
 pub fn unstack(p: &Yuv420, width: u32, height: u32) -> PremulImage {
     let (w, h) = (width as usize, height as usize);
-    let ch = p.height / 2;
     let mut out = vec![0u8; w * h * 4];
+    unstack_with(
+        p,
+        w,
+        h,
+        |i, colour, a| {
+            out[i * 4 + 3] = a;
+            if let Some(c) = colour {
+                for k in 0..3 {
+                    out[i * 4 + k] = c[k].min(a);
+                }
+            }
+        },
+        true,
+    );
+    PremulImage::from_premul(width, height, out).expect("colour clamped to alpha")
+}
+
+/// Converts every pixel of a stacked picture back and hands `put` its index, its colour and
+/// its grey value; where `skip_zero` and the grey value is 0 the colour is not converted
+/// (`None`).
+fn unstack_with(
+    p: &Yuv420,
+    w: usize,
+    h: usize,
+    mut put: impl FnMut(usize, Option<[u8; 3]>, u8),
+    skip_zero: bool,
+) {
+    let ch = p.height / 2;
     for y in 0..h {
         for x in 0..w {
             let a = q((p.y[(y + ch) * p.width + x] as f32 - 16.0) * 255.0 / 219.0);
-            let o = (y * w + x) * 4;
-            out[o + 3] = a;
-            if a == 0 {
+            let i = y * w + x;
+            if skip_zero && a == 0 {
+                put(i, None, a);
                 continue;
             }
             let luma = (p.y[y * p.width + x] as f32 - 16.0) / 219.0;
@@ -103,12 +168,9 @@ pub fn unstack(p: &Yuv420, width: u32, height: u32) -> PremulImage {
             let r = luma + 2.0 * (1.0 - KR) * cr;
             let b = luma + 2.0 * (1.0 - KB) * cb;
             let g = (luma - KR * r - KB * b) / KG;
-            for (c, val) in [r, g, b].into_iter().enumerate() {
-                out[o + c] = q(val * 255.0).min(a);
-            }
+            put(i, Some([r, g, b].map(|v| q(v * 255.0))), a);
         }
     }
-    PremulImage::from_premul(width, height, out).expect("colour clamped to alpha")
 }
 
 #[cfg(test)]
@@ -141,6 +203,27 @@ mod tests {
         let back = unstack(&stack(&flat), 6, 4);
         for (a, b) in flat.as_bytes().iter().zip(back.as_bytes()) {
             assert!((*a as i32 - *b as i32).abs() <= 2, "{a} vs {b}");
+        }
+    }
+
+    #[test]
+    fn colour_over_grey_round_trips() {
+        let (w, h) = (6u32, 4u32);
+        // Flat colour per 2x2 block so that 4:2:0 keeps chroma; any grey value.
+        let rgb: Vec<u8> = (0..w * h)
+            .flat_map(|i| {
+                let b = ((i % w) / 2 + (i / w) / 2 * 3) as u8;
+                [40 + 30 * b, 200 - 20 * b, 90 + 10 * b]
+            })
+            .collect();
+        let grey: Vec<u8> = (0..w * h).map(|i| (i * 11 % 256) as u8).collect();
+        let (r2, g2) = unstack_colour_grey(&stack_colour_grey(&rgb, &grey, w, h), w, h);
+        for (a, b) in rgb.iter().zip(&r2) {
+            assert!((*a as i32 - *b as i32).abs() <= 2, "colour {a} vs {b}");
+        }
+        for (a, b) in grey.iter().zip(&g2) {
+            // 219 luma levels for 256 grey values.
+            assert!((*a as i32 - *b as i32).abs() <= 1, "grey {a} vs {b}");
         }
     }
 }

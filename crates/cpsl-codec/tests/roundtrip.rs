@@ -112,10 +112,7 @@ fn package_round_trip_meets_budget_and_quality() {
         assert_eq!(dec.len(), seg.len());
         for (d, s) in dec.iter().zip(seg) {
             assert_eq!(d.set.len(), s.set.len());
-            assert_eq!(
-                d.side.edc,
-                cpsl_package::sparse_edc(&s.edc, cpsl_package::EDC_SAMPLES_PER_PAIR)
-            );
+            assert_eq!(d.side.edc, cpsl_package::summarise_edc(&s.edc));
             for (a, b) in d.set.layers().iter().zip(s.set.layers()) {
                 assert!((a.depth - b.depth).abs() <= 1e-5 * b.depth);
             }
@@ -123,6 +120,31 @@ fn package_round_trip_meets_budget_and_quality() {
         }
     }
     eprintln!("worst decoded reference-view PSNR at {budget} bit/s: {worst:.2} dB");
+    // The side stream's per-pair EDC summary renders the Dynamic Pixel Strip as the full cache.
+    let pose = cpsl_core::Pose::from_euler_deg(cpsl_core::Vec3::new(0.4, 0.1, 0.5), 3.0, -8.0, 0.0);
+    let mut strips = 0;
+    for f in segs.iter().flatten() {
+        let render = |edc: &cpsl_core::Edc| {
+            let p = cpsl_render::PreparedLayers::new(&f.set).with_edc(edc);
+            let mut img = cpsl_core::PremulImage::new(f.set.camera().width, f.set.camera().height);
+            let stats = p.render_dps_into(&pose, f.set.camera(), &mut img, &Default::default());
+            (img, stats.pixels)
+        };
+        let ((full, n), (summary, m)) =
+            (render(&f.edc), render(&cpsl_package::summarise_edc(&f.edc)));
+        let close = full
+            .as_bytes()
+            .iter()
+            .zip(summary.as_bytes())
+            .all(|(a, b)| a.abs_diff(*b) <= 2);
+        assert!(
+            close && n.abs_diff(m) <= n / 50 + 2,
+            "frame {}: {n} vs {m} strip pixels",
+            f.index
+        );
+        strips += n;
+    }
+    assert!(strips > 0, "the clip exercises the strip");
     assert!(worst >= 30.0, "decoded layers at {worst:.2} dB");
 
     // Replacing the package works; a folder that is not a package is never replaced.

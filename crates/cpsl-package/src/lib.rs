@@ -24,8 +24,8 @@ pub use manifest::{
     StreamEntry, MANIFEST_FILE, PACKAGE_FORMAT, PACKAGE_VERSION,
 };
 pub use side::{
-    sparse_edc, RefreshReason, SideError, SideFrame, SideLayer, SideStream, EDC_SAMPLES_PER_PAIR,
-    MAX_SEGMENT_FRAMES, MAX_STREAMS, SIDE_MAGIC, SIDE_VERSION,
+    summarise_edc, RefreshReason, SideError, SideFrame, SideLayer, SideStream, MAX_SEGMENT_FRAMES,
+    MAX_STREAMS, SIDE_MAGIC, SIDE_VERSION,
 };
 
 use std::path::{Path, PathBuf};

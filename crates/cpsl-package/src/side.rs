@@ -453,33 +453,39 @@ fn expand_edc(b: &[u8], width: u32, height: u32) -> Result<Edc, EdcError> {
     Edc::decode(&bytes)
 }
 
-/// Samples per layer pair a side stream keeps by default (see [`sparse_edc`]).
-pub const EDC_SAMPLES_PER_PAIR: usize = 64;
-
-/// A sparse Edge-Depth Cache for streaming: at most `per_pair` samples of each (front, back)
-/// layer pair, evenly spaced in scan order along that pair's boundary. The renderer reads the
-/// cache per layer pair (mean offsets on both sides), which evenly spaced samples preserve,
-/// while a dense cache at 1080p costs tens of kilobytes per frame.
-pub fn sparse_edc(edc: &Edc, per_pair: usize) -> Edc {
-    let mut count: std::collections::HashMap<(u8, u8), usize> = Default::default();
+/// The Edge-Depth Cache a side stream carries: one sample per (front, back) layer pair, at
+/// the pair's first boundary sample, holding the pair's mean offsets on both sides (rounded to
+/// the cache's step). The renderer reads the cache per layer pair (mean offsets on both
+/// sides, `cpsl_render`'s Dynamic Pixel Strip), so the summary renders as the full cache does
+/// up to half a quantisation step of `ln z`, for a few bytes per pair where the full cache
+/// costs kilobytes per frame.
+pub fn summarise_edc(edc: &Edc) -> Edc {
+    // Per pair: first sample and the sums of both offsets.
+    let mut pairs: Vec<(cpsl_core::EdcSample, i64, i64, i64)> = Vec::new();
     for s in &edc.samples {
-        *count.entry((s.front, s.back)).or_default() += 1;
+        match pairs
+            .iter_mut()
+            .find(|p| (p.0.front, p.0.back) == (s.front, s.back))
+        {
+            Some(p) => {
+                p.1 += s.front_offset as i64;
+                p.2 += s.back_offset as i64;
+                p.3 += 1;
+            }
+            None => pairs.push((*s, s.front_offset as i64, s.back_offset as i64, 1)),
+        }
     }
-    let mut seen: std::collections::HashMap<(u8, u8), usize> = Default::default();
-    let samples = edc
-        .samples
-        .iter()
-        .filter(|s| {
-            let key = (s.front, s.back);
-            let n = count[&key];
-            let i = seen.entry(key).or_default();
-            let keep =
-                (*i * per_pair.max(1)) / n != ((*i + 1) * per_pair.max(1)) / n || n <= per_pair;
-            *i += 1;
-            keep
+    let mean = |sum: i64, n: i64| (sum as f64 / n as f64).round().clamp(-128.0, 127.0) as i8;
+    let mut samples: Vec<cpsl_core::EdcSample> = pairs
+        .into_iter()
+        .map(|(first, f, b, n)| cpsl_core::EdcSample {
+            front_offset: mean(f, n),
+            back_offset: mean(b, n),
+            ..first
         })
-        .copied()
         .collect();
+    // Scan order, as every cache keeps its samples.
+    samples.sort_by_key(|s| (s.y, s.x));
     Edc {
         samples,
         ..edc.clone()

@@ -147,7 +147,7 @@ fn manifest_round_trips_and_checks_itself() {
 }
 
 #[test]
-fn sparse_edc_keeps_every_pair_and_its_mean() {
+fn summarised_edc_keeps_every_pair_and_its_means() {
     let mut samples = Vec::new();
     for i in 0..1000u16 {
         samples.push(EdcSample {
@@ -155,7 +155,7 @@ fn sparse_edc_keeps_every_pair_and_its_mean() {
             y: i / 64 % 48,
             front: 0,
             back: 1,
-            front_offset: (i % 7) as i8 - 3,
+            front_offset: (i % 7) as i8 - 3 + (i % 2) as i8,
             back_offset: 4,
         });
     }
@@ -165,10 +165,11 @@ fn sparse_edc_keeps_every_pair_and_its_mean() {
             y: 47,
             front: 1,
             back: 2,
-            front_offset: 1,
+            front_offset: -(i as i8),
             back_offset: 2,
         });
     }
+    samples.sort_by_key(|s| (s.y, s.x));
     let edc = Edc {
         width: 64,
         height: 48,
@@ -176,23 +177,31 @@ fn sparse_edc_keeps_every_pair_and_its_mean() {
         step: 0.01,
         samples,
     };
-    let s = sparse_edc(&edc, 64);
-    let pair = |e: &Edc, f: u8| e.samples.iter().filter(|s| s.front == f).count();
-    assert_eq!(pair(&s, 0), 64);
-    assert_eq!(pair(&s, 1), 5);
-    let mean = |e: &Edc| {
-        let v: Vec<f64> = e
-            .samples
-            .iter()
-            .filter(|s| s.front == 0)
-            .map(|s| s.front_offset as f64)
-            .collect();
-        v.iter().sum::<f64>() / v.len() as f64
-    };
-    assert!(
-        (mean(&s) - mean(&edc)).abs() < 0.1,
-        "{} vs {}",
-        mean(&s),
-        mean(&edc)
-    );
+    let s = summarise_edc(&edc);
+    assert_eq!(s.samples.len(), 2, "one sample per pair");
+    let (step, layers) = (s.step, s.layers);
+    assert_eq!((step, layers), (0.01, 3));
+    for (front, back) in [(0u8, 1u8), (1, 2)] {
+        let of = |e: &Edc, side: fn(&EdcSample) -> i8| {
+            let v: Vec<f64> = e
+                .samples
+                .iter()
+                .filter(|s| (s.front, s.back) == (front, back))
+                .map(|s| side(s) as f64)
+                .collect();
+            v.iter().sum::<f64>() / v.len() as f64
+        };
+        for side in [
+            |s: &EdcSample| s.front_offset,
+            |s: &EdcSample| s.back_offset,
+        ] {
+            let (full, summary) = (of(&edc, side), of(&s, side));
+            assert!(
+                (full - summary).abs() <= 0.5,
+                "pair {front}-{back}: {full} vs {summary}"
+            );
+        }
+    }
+    // The summary survives the side stream's compact coding.
+    assert_eq!(summarise_edc(&s), s);
 }

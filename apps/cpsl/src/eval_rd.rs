@@ -1,0 +1,716 @@
+//! `cpsl eval-rd`: rate-distortion curves of coded CPSL against two baselines coded with the
+//! same codec, on a synthetic moving clip with ray-cast ground truth (paper §4.2-4.3):
+//!
+//! * **CPSL**: the video layered with I/P propagation (exact depth on I-frames), coded as a
+//!   package under a total budget (per-layer allocation), decoded and rendered with the
+//!   Dynamic Pixel Strip.
+//! * **DIBR streaming**: colour over 8-bit quantised inverse depth in one stream per frame,
+//!   rendered by forward warping with push-pull hole filling.
+//! * **MPI**: a uniform multiplane image (planes fixed over the clip, uniform in inverse depth,
+//!   hard alpha), every plane a colour-over-alpha stream at one quality.
+//!
+//! Every method is also scored uncompressed; the proxy distortion of the allocator is compared
+//! with LPIPS over the coded layered points.
+
+use crate::encode::{parse_bitrate, CodecArg};
+use crate::progress::Bars;
+use anyhow::{Context, Result};
+use clap::Args;
+use cpsl_codec::{CodingOptions, PackageWriter, RateControl, SegmentFrame};
+use cpsl_core::{Camera, Edc, Layer, LayerSet, Limits, Pose, PremulImage, Progress, ProgressEvent};
+use cpsl_eval::baselines::dibr;
+use cpsl_eval::metrics::psnr;
+use cpsl_package::{Codec, Package, RefreshReason};
+use cpsl_render::PreparedLayers;
+use cpsl_video::{GopConfig, VideoLayerer};
+use serde::Serialize;
+use std::path::{Path, PathBuf};
+
+/// Arguments of `cpsl eval-rd`.
+#[derive(Args)]
+pub struct EvalRdArgs {
+    /// Width of the clip.
+    #[arg(long, default_value_t = 1920)]
+    pub width: u32,
+    /// Height of the clip.
+    #[arg(long, default_value_t = 1080)]
+    pub height: u32,
+    /// Frames of the clip (30 per second; one GOP of 30 frames by default).
+    #[arg(long, default_value_t = 30, value_parser = clap::value_parser!(u32).range(2..=300))]
+    pub frames: u32,
+    /// Number of CPSL layers K.
+    #[arg(long, default_value_t = 6, value_parser = clap::value_parser!(u32).range(2..=16))]
+    pub layers: u32,
+    /// Planes of the MPI baseline.
+    #[arg(long, default_value_t = 32, value_parser = clap::value_parser!(u32).range(2..=64))]
+    pub mpi_planes: u32,
+    /// Codec of every method's streams.
+    #[arg(long, value_enum, default_value_t = CodecArg::H264)]
+    pub codec: CodecArg,
+    /// CPSL budgets (total bits per second).
+    #[arg(long, value_delimiter = ',', default_value = "0.5M,1M,2M,3M,6M", value_parser = parse_bitrate)]
+    pub bitrates: Vec<f64>,
+    /// Qualities (CRF) of the baselines; by default five points spread over the codec's range.
+    #[arg(long, value_delimiter = ',')]
+    pub qualities: Option<Vec<f32>>,
+    /// Score every N-th frame (at two novel viewpoints each).
+    #[arg(long, default_value_t = 15, value_parser = clap::value_parser!(u32).range(1..))]
+    pub score_every: u32,
+    /// Skip LPIPS.
+    #[arg(long)]
+    pub no_lpips: bool,
+    /// Write the curves and summary as JSON.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+}
+
+/// Frame rate of the clip.
+const FPS: f64 = 30.0;
+/// The novel viewpoints scored (scene units; the nearest object is at depth 2.5).
+const NOVEL: [[f64; 3]; 2] = [[0.12, 0.0, 0.0], [-0.12, 0.0, 0.0]];
+
+/// One point of a curve.
+#[derive(Serialize, Clone)]
+struct Point {
+    /// The rate control asked for: a budget (`3M`) or a quality (`crf 23`); `uncompressed`.
+    setting: String,
+    /// Bits per second actually spent (`null` uncompressed).
+    bitrate: Option<f64>,
+    /// Mean novel-view PSNR (dB) over the scored frames and viewpoints.
+    psnr: f64,
+    /// Mean novel-view LPIPS.
+    lpips: Option<f64>,
+    /// The allocator's proxy distortion of the decoded layers (layered methods).
+    proxy: Option<f64>,
+}
+
+/// One method's curve.
+#[derive(Serialize)]
+struct Curve {
+    method: &'static str,
+    uncompressed: Point,
+    points: Vec<Point>,
+}
+
+/// The headline numbers.
+#[derive(Serialize)]
+struct Summary {
+    /// Per CPSL point: the baseline's bitrate at the same PSNR divided by CPSL's (`null`
+    /// where the baseline's curve does not reach that PSNR).
+    dibr_rate_ratio: Vec<Option<f64>>,
+    mpi_rate_ratio: Vec<Option<f64>>,
+    /// Uncompressed CPSL PSNR minus the best CPSL PSNR at no more than 3 Mbit/s.
+    cpsl_gap_at_3m_db: Option<f64>,
+    /// Spearman rank correlation of the proxy distortion with LPIPS over the coded CPSL and
+    /// MPI points.
+    proxy_lpips_spearman: Option<f64>,
+}
+
+/// The ray-cast clip: frames with exact depth, and the truth at the novel viewpoints of the
+/// scored frames.
+struct Clip {
+    camera: Camera,
+    rgb: Vec<Vec<u8>>,
+    depth: Vec<Vec<f32>>,
+    poses: Vec<Pose>,
+    /// `(frame, pose index, truth)`.
+    truth: Vec<(usize, usize, Vec<u8>)>,
+}
+
+fn ray_cast(a: &EvalRdArgs, bars: &Bars) -> Clip {
+    let scene = cpsl_synth::Scene::default_scene(a.width, a.height);
+    let cam = scene.camera;
+    let poses: Vec<Pose> = NOVEL
+        .iter()
+        .map(|t| Pose::from_translation(cpsl_core::Vec3::new(t[0], t[1], t[2])))
+        .collect();
+    let n = a.frames as usize;
+    let stage = "ray cast clip";
+    bars.event(ProgressEvent::Start {
+        stage,
+        total: Some(n as u64),
+    });
+    let (mut rgb, mut depth, mut truth) = (vec![], vec![], vec![]);
+    for i in 0..n {
+        let time = i as f64 / FPS;
+        let v = scene.render(&cam, &Pose::IDENTITY, time, 2);
+        rgb.push(v.rgb);
+        depth.push(v.depth);
+        if i % a.score_every as usize == 0 {
+            for (p, pose) in poses.iter().enumerate() {
+                truth.push((i, p, scene.render(&cam, pose, time, 2).rgb));
+            }
+        }
+        bars.event(ProgressEvent::Advance {
+            stage,
+            done: i as u64 + 1,
+        });
+    }
+    bars.event(ProgressEvent::Finish { stage });
+    Clip {
+        camera: cam,
+        rgb,
+        depth,
+        poses,
+        truth,
+    }
+}
+
+/// Scores views rendered by `render(frame, pose)` against the truth: mean PSNR and LPIPS.
+fn score(
+    clip: &Clip,
+    lpips: &mut Option<cpsl_models::Lpips>,
+    mut render: impl FnMut(usize, &Pose) -> Result<Vec<u8>>,
+) -> Result<(f64, Option<f64>)> {
+    let (w, h) = (clip.camera.width, clip.camera.height);
+    let (mut p, mut l) = (0.0, 0.0);
+    for (f, pi, truth) in &clip.truth {
+        let img = render(*f, &clip.poses[*pi])?;
+        p += psnr(&img, truth);
+        if let Some(m) = lpips {
+            l += m.distance(&img, truth, w, h)? as f64;
+        }
+    }
+    let n = clip.truth.len() as f64;
+    Ok((p / n, lpips.as_ref().map(|_| l / n)))
+}
+
+fn render_layers(set: &LayerSet, edc: Option<&Edc>, pose: &Pose) -> Vec<u8> {
+    let mut prepared = PreparedLayers::new(set);
+    if let Some(e) = edc {
+        prepared = prepared.with_edc(e);
+    }
+    let mut img = PremulImage::new(set.camera().width, set.camera().height);
+    crate::render::render_pose(&prepared, edc.is_some(), pose, set.camera(), &mut img);
+    img.over_background([0, 0, 0])
+}
+
+/// Frames grouped into segments at their I-frames.
+type Segments = Vec<Vec<SegmentFrame>>;
+
+/// CPSL: I/P propagation with exact depth on I-frames.
+fn cpsl_layers(clip: &Clip, a: &EvalRdArgs, bars: &Bars) -> Result<Segments> {
+    let cfg = cpsl_layering::LayeringConfig {
+        layers: a.layers as usize,
+        ..Default::default()
+    };
+    let mut layerer = VideoLayerer::new(clip.camera, cfg, GopConfig::default())?;
+    let stage = "layer clip";
+    bars.event(ProgressEvent::Start {
+        stage,
+        total: Some(clip.rgb.len() as u64),
+    });
+    let mut segments: Segments = Vec::new();
+    for (i, (rgb, depth)) in clip.rgb.iter().zip(&clip.depth).enumerate() {
+        let z = layerer.next_is_intra().then_some(depth.as_slice());
+        let f = layerer.push(rgb, z).with_context(|| format!("frame {i}"))?;
+        if f.refresh.is_some() {
+            segments.push(Vec::new());
+        }
+        segments
+            .last_mut()
+            .expect("first frame is an I-frame")
+            .push(SegmentFrame {
+                index: f.index as u32,
+                refresh: f.refresh.map(crate::encode::refresh_reason),
+                set: f.set,
+                edc: f.edc,
+                confidence: f.confidence,
+            });
+        bars.event(ProgressEvent::Advance {
+            stage,
+            done: i as u64 + 1,
+        });
+    }
+    bars.event(ProgressEvent::Finish { stage });
+    Ok(segments)
+}
+
+/// Inverse-depth range of the clip (`1/far`, `1/near`).
+fn inverse_range(clip: &Clip) -> (f64, f64) {
+    let (mut lo, mut hi) = (f64::INFINITY, 0.0f64);
+    for d in clip.depth.iter().flatten() {
+        if d.is_finite() && *d > 0.0 {
+            let v = 1.0 / *d as f64;
+            lo = lo.min(v);
+            hi = hi.max(v);
+        }
+    }
+    (lo, hi.max(lo * (1.0 + 1e-6)))
+}
+
+/// MPI: `planes` planes uniform in inverse depth over the clip's range, fixed for every frame,
+/// each pixel fully in the plane of its depth; one segment per GOP.
+fn mpi_layers(clip: &Clip, planes: usize, gop: usize) -> Result<Segments> {
+    let (lo, hi) = inverse_range(clip);
+    let step = (hi - lo) / planes as f64;
+    let cam = clip.camera;
+    let (w, h) = (cam.width as usize, cam.height as usize);
+    let mut segments: Segments = Vec::new();
+    for (i, (rgb, depth)) in clip.rgb.iter().zip(&clip.depth).enumerate() {
+        let mut data = vec![vec![0u8; w * h * 4]; planes];
+        for p in 0..w * h {
+            let d = depth[p];
+            if !(d.is_finite() && d > 0.0) {
+                continue;
+            }
+            // Plane 0 is the nearest (largest inverse depth).
+            let k = (((hi - 1.0 / d as f64) / step) as usize).min(planes - 1);
+            data[k][p * 4..p * 4 + 3].copy_from_slice(&rgb[p * 3..p * 3 + 3]);
+            data[k][p * 4 + 3] = 255;
+        }
+        let layers = data
+            .into_iter()
+            .enumerate()
+            .map(|(k, d)| {
+                let z = 1.0 / (hi - (k as f64 + 0.5) * step);
+                Ok(Layer::new(
+                    PremulImage::from_premul(cam.width, cam.height, d)?,
+                    z,
+                ))
+            })
+            .collect::<Result<Vec<_>>>()?;
+        let set = LayerSet::new(cam, layers, &Limits::default())?;
+        let intra = i % gop == 0;
+        if intra {
+            segments.push(Vec::new());
+        }
+        segments
+            .last_mut()
+            .expect("frame 0 starts a segment")
+            .push(SegmentFrame {
+                index: i as u32,
+                refresh: intra.then_some(if i == 0 {
+                    RefreshReason::First
+                } else {
+                    RefreshReason::Gop
+                }),
+                edc: Edc {
+                    width: cam.width,
+                    height: cam.height,
+                    layers: planes as u16,
+                    step: 1.0 / 64.0,
+                    samples: Vec::new(),
+                },
+                confidence: vec![1.0; planes],
+                set,
+            });
+    }
+    Ok(segments)
+}
+
+/// The source and decoded layers of a scored frame.
+struct Coded {
+    bitrate: f64,
+    /// Per frame index: the decoded layers and their Edge-Depth Cache.
+    frames: std::collections::HashMap<usize, (LayerSet, Edc)>,
+}
+
+/// Codes `segments` as a package in `dir` with `rate`, and decodes the scored frames.
+fn code(
+    dir: &Path,
+    segments: &Segments,
+    k: u32,
+    codec: Codec,
+    rate: RateControl,
+    wanted: &[usize],
+) -> Result<Coded> {
+    let path = dir.join("rd.cpsl");
+    let cam = *segments[0][0].set.camera();
+    let opts = CodingOptions {
+        codec,
+        rate,
+        fps: FPS,
+    };
+    let mut writer = PackageWriter::create(&path, cam, k, opts)?;
+    for s in segments {
+        writer.push_segment(s)?;
+    }
+    let m = writer.finish()?;
+    let pkg = Package::open(&path)?;
+    let mut frames = std::collections::HashMap::new();
+    for (i, seg) in m.segments.iter().enumerate() {
+        let range = seg.start as usize..(seg.start + seg.frames) as usize;
+        if !wanted.iter().any(|f| range.contains(f)) {
+            continue;
+        }
+        for d in cpsl_codec::decode_segment(&pkg, i)? {
+            if wanted.contains(&(d.side.index as usize)) {
+                frames.insert(d.side.index as usize, (d.set, d.side.edc));
+            }
+        }
+    }
+    std::fs::remove_dir_all(&path).with_context(|| format!("removing {}", path.display()))?;
+    Ok(Coded {
+        bitrate: m.bitrate(),
+        frames,
+    })
+}
+
+/// The allocator's proxy distortion (visibility-weighted squared error of the premultiplied
+/// RGBA, summed over layers, per sample) of decoded frames against their sources.
+fn proxy(segments: &Segments, coded: &Coded) -> f64 {
+    let (mut e, mut n) = (0.0, 0.0);
+    for f in segments.iter().flatten() {
+        let Some((dec, _)) = coded.frames.get(&(f.index as usize)) else {
+            continue;
+        };
+        let cam = f.set.camera();
+        let src = f.set.layers();
+        for (k, (s, d)) in src.iter().zip(dec.layers()).enumerate() {
+            let front: Vec<&PremulImage> = src[..k].iter().map(|l| &l.image).collect();
+            let vis = cpsl_codec::alloc::visibility(&front, cam.width, cam.height);
+            e += cpsl_codec::alloc::distortion(&s.image, &d.image, &vis);
+        }
+        n += 4.0 * (cam.width * cam.height) as f64;
+    }
+    e / n.max(1.0)
+}
+
+/// Bitrate of `curve` at `target` PSNR, interpolated linearly in log-rate between the two
+/// points that bracket it (`None` outside the curve).
+fn rate_at(curve: &[Point], target: f64) -> Option<f64> {
+    let mut pts: Vec<(f64, f64)> = curve
+        .iter()
+        .filter_map(|p| Some((p.bitrate?.ln(), p.psnr)))
+        .collect();
+    pts.sort_by(|a, b| a.0.total_cmp(&b.0));
+    pts.windows(2).find_map(|w| {
+        let ((r0, p0), (r1, p1)) = (w[0], w[1]);
+        let (lo, hi) = (p0.min(p1), p0.max(p1));
+        if !(lo..=hi).contains(&target) || (p1 - p0).abs() < 1e-9 {
+            return None;
+        }
+        Some((r0 + (target - p0) / (p1 - p0) * (r1 - r0)).exp())
+    })
+}
+
+/// Spearman rank correlation.
+fn spearman(x: &[f64], y: &[f64]) -> Option<f64> {
+    if x.len() < 3 {
+        return None;
+    }
+    let rank = |v: &[f64]| {
+        let mut idx: Vec<usize> = (0..v.len()).collect();
+        idx.sort_by(|&a, &b| v[a].total_cmp(&v[b]));
+        let mut r = vec![0.0; v.len()];
+        for (i, &j) in idx.iter().enumerate() {
+            r[j] = i as f64;
+        }
+        r
+    };
+    let (rx, ry) = (rank(x), rank(y));
+    let n = x.len() as f64;
+    let mean = (n - 1.0) / 2.0;
+    let cov: f64 = rx
+        .iter()
+        .zip(&ry)
+        .map(|(a, b)| (a - mean) * (b - mean))
+        .sum();
+    let var: f64 = rx.iter().map(|a| (a - mean).powi(2)).sum();
+    Some(cov / var)
+}
+
+/// Runs `cpsl eval-rd`.
+pub fn run(a: EvalRdArgs) -> Result<()> {
+    let codec = Codec::from(a.codec);
+    anyhow::ensure!(
+        cpsl_codec::has_encoder(codec),
+        "this FFmpeg has no {} encoder",
+        codec.name()
+    );
+    let (q_min, q_max, _) = cpsl_codec::quality_range(codec);
+    let qualities = match &a.qualities {
+        Some(q) => q.clone(),
+        None => [0.2, 0.35, 0.5, 0.65, 0.8]
+            .iter()
+            .map(|t| (q_min + t * (q_max - q_min)).round())
+            .collect(),
+    };
+    if let Some(q) = qualities.iter().find(|q| !(q_min..=q_max).contains(*q)) {
+        anyhow::bail!("--qualities {q}: {} takes {q_min} to {q_max}", codec.name());
+    }
+    let bars = Bars::default();
+    let mut lpips = if a.no_lpips {
+        None
+    } else {
+        Some(
+            cpsl_models::Lpips::open(&cpsl_models::lpips::default_path())
+                .context("LPIPS (scripts/setup-models.sh, or --no-lpips)")?,
+        )
+    };
+    let clip = ray_cast(&a, &bars);
+    let wanted: Vec<usize> = (0..clip.rgb.len())
+        .step_by(a.score_every as usize)
+        .collect();
+    let tmp = tempfile::tempdir().context("creating a temporary folder")?;
+    let mut curves = Vec::new();
+
+    // CPSL.
+    let segments = cpsl_layers(&clip, &a, &bars)?;
+    let layered = |segments: &Segments, i: usize| {
+        segments
+            .iter()
+            .flatten()
+            .find(|f| f.index as usize == i)
+            .map(|f| (f.set.clone(), f.edc.clone()))
+            .expect("every frame layered")
+    };
+    let (p, l) = score(&clip, &mut lpips, |f, pose| {
+        let (set, edc) = layered(&segments, f);
+        Ok(render_layers(&set, Some(&edc), pose))
+    })?;
+    let mut cpsl = Curve {
+        method: "cpsl",
+        uncompressed: uncompressed(p, l),
+        points: Vec::new(),
+    };
+    for &b in &a.bitrates {
+        let coded = code(
+            tmp.path(),
+            &segments,
+            a.layers,
+            codec,
+            RateControl::Budget(b),
+            &wanted,
+        )?;
+        let (p, l) = score(&clip, &mut lpips, |f, pose| {
+            let (set, edc) = &coded.frames[&f];
+            Ok(render_layers(set, Some(edc), pose))
+        })?;
+        cpsl.points.push(Point {
+            setting: format!("{:.2}M", b / 1e6),
+            bitrate: Some(coded.bitrate),
+            psnr: p,
+            lpips: l,
+            proxy: Some(proxy(&segments, &coded)),
+        });
+        report(cpsl.method, cpsl.points.last().expect("pushed"));
+    }
+    drop(segments);
+    curves.push(cpsl);
+
+    // DIBR streaming: colour over quantised inverse depth.
+    let (lo, hi) = inverse_range(&clip);
+    let quantise = |d: f32| {
+        ((1.0 / d as f64 - lo) / (hi - lo) * 255.0)
+            .round()
+            .clamp(0.0, 255.0) as u8
+    };
+    let dequantise = |g: u8| (1.0 / (lo + g as f64 / 255.0 * (hi - lo))) as f32;
+    let cam = clip.camera;
+    let (p, l) = score(&clip, &mut lpips, |f, pose| {
+        Ok(dibr(&clip.rgb[f], &clip.depth[f], &cam, pose, &cam, true).rgb)
+    })?;
+    let mut dibr_curve = Curve {
+        method: "dibr",
+        uncompressed: uncompressed(p, l),
+        points: Vec::new(),
+    };
+    let grey: Vec<Vec<u8>> = clip
+        .depth
+        .iter()
+        .map(|d| d.iter().map(|&z| quantise(z)).collect())
+        .collect();
+    for &q in &qualities {
+        let path = tmp.path().join("dibr.mp4");
+        let bytes = cpsl_codec::encode_pictures(
+            &path,
+            clip.rgb.len(),
+            &|i| cpsl_codec::yuv::stack_colour_grey(&clip.rgb[i], &grey[i], cam.width, cam.height),
+            codec,
+            q,
+            FPS,
+        )?;
+        let pictures = cpsl_codec::decode_pictures(&path, cam.width, cam.height)?;
+        anyhow::ensure!(pictures.len() == clip.rgb.len(), "DIBR stream lost frames");
+        let (p, l) = score(&clip, &mut lpips, |f, pose| {
+            let (rgb, g) =
+                cpsl_codec::yuv::unstack_colour_grey(&pictures[f], cam.width, cam.height);
+            let depth: Vec<f32> = g.into_iter().map(dequantise).collect();
+            Ok(dibr(&rgb, &depth, &cam, pose, &cam, true).rgb)
+        })?;
+        dibr_curve.points.push(Point {
+            setting: format!("crf {q}"),
+            bitrate: Some(bytes as f64 * 8.0 * FPS / clip.rgb.len() as f64),
+            psnr: p,
+            lpips: l,
+            proxy: None,
+        });
+        report(dibr_curve.method, dibr_curve.points.last().expect("pushed"));
+    }
+    curves.push(dibr_curve);
+
+    // MPI.
+    let planes = a.mpi_planes as usize;
+    let segments = mpi_layers(&clip, planes, 30)?;
+    let (p, l) = score(&clip, &mut lpips, |f, pose| {
+        let (set, _) = layered(&segments, f);
+        Ok(render_layers(&set, None, pose))
+    })?;
+    let mut mpi = Curve {
+        method: "mpi",
+        uncompressed: uncompressed(p, l),
+        points: Vec::new(),
+    };
+    for &q in &qualities {
+        let coded = code(
+            tmp.path(),
+            &segments,
+            a.mpi_planes,
+            codec,
+            RateControl::Quality(q),
+            &wanted,
+        )?;
+        let (p, l) = score(&clip, &mut lpips, |f, pose| {
+            Ok(render_layers(&coded.frames[&f].0, None, pose))
+        })?;
+        mpi.points.push(Point {
+            setting: format!("crf {q}"),
+            bitrate: Some(coded.bitrate),
+            psnr: p,
+            lpips: l,
+            proxy: Some(proxy(&segments, &coded)),
+        });
+        report(mpi.method, mpi.points.last().expect("pushed"));
+    }
+    curves.push(mpi);
+
+    let summary = summarise(&curves);
+    print_tables(&a, codec, &curves, &summary);
+    if let Some(path) = &a.json {
+        crate::util::write_json(
+            path,
+            &serde_json::json!({
+                "clip": {"width": a.width, "height": a.height, "frames": a.frames, "fps": FPS,
+                         "scored_frames": wanted, "novel_viewpoints": NOVEL},
+                "codec": codec.name(),
+                "layers": a.layers,
+                "mpi_planes": a.mpi_planes,
+                "curves": curves,
+                "summary": summary,
+            }),
+        )?;
+        println!("wrote {}", path.display());
+    }
+    Ok(())
+}
+
+fn uncompressed(psnr: f64, lpips: Option<f64>) -> Point {
+    Point {
+        setting: "uncompressed".into(),
+        bitrate: None,
+        psnr,
+        lpips,
+        proxy: None,
+    }
+}
+
+fn report(method: &str, p: &Point) {
+    eprintln!(
+        "{method} {}: {:.0} kbit/s, {:.2} dB",
+        p.setting,
+        p.bitrate.unwrap_or(0.0) / 1e3,
+        p.psnr
+    );
+}
+
+fn summarise(curves: &[Curve]) -> Summary {
+    let [cpsl, dibr, mpi] = [&curves[0], &curves[1], &curves[2]];
+    let ratio = |base: &Curve| -> Vec<Option<f64>> {
+        cpsl.points
+            .iter()
+            .map(|p| Some(rate_at(&base.points, p.psnr)? / p.bitrate?))
+            .collect()
+    };
+    let best_3m = cpsl
+        .points
+        .iter()
+        .filter(|p| p.bitrate.is_some_and(|b| b <= 3e6))
+        .map(|p| p.psnr)
+        .max_by(f64::total_cmp);
+    let (proxies, lpips): (Vec<f64>, Vec<f64>) = cpsl
+        .points
+        .iter()
+        .chain(&mpi.points)
+        .filter_map(|p| Some((p.proxy?, p.lpips?)))
+        .unzip();
+    Summary {
+        dibr_rate_ratio: ratio(dibr),
+        mpi_rate_ratio: ratio(mpi),
+        cpsl_gap_at_3m_db: best_3m.map(|b| cpsl.uncompressed.psnr - b),
+        proxy_lpips_spearman: spearman(&proxies, &lpips),
+    }
+}
+
+fn print_tables(a: &EvalRdArgs, codec: Codec, curves: &[Curve], s: &Summary) {
+    println!(
+        "rate-distortion, synthetic {}x{} clip, {} frames at {FPS} fps, {}; novel views at tx +-{} every {} frames",
+        a.width, a.height, a.frames, codec.name(), NOVEL[0][0], a.score_every
+    );
+    println!("| method | setting | kbit/s | PSNR (dB) | LPIPS | proxy |");
+    println!("|---|---|---|---|---|---|");
+    let opt = |v: Option<f64>, d: usize| v.map_or("-".into(), |v| format!("{v:.d$}"));
+    for c in curves {
+        for p in std::iter::once(&c.uncompressed).chain(&c.points) {
+            println!(
+                "| {} | {} | {} | {:.2} | {} | {} |",
+                c.method,
+                p.setting,
+                opt(p.bitrate.map(|b| b / 1e3), 0),
+                p.psnr,
+                opt(p.lpips, 3),
+                p.proxy.map_or("-".into(), |v| format!("{v:.2e}")),
+            );
+        }
+    }
+    let ratios = |r: &[Option<f64>]| r.iter().map(|v| opt(*v, 2)).collect::<Vec<_>>().join(", ");
+    println!(
+        "bitrate of DIBR / CPSL at equal PSNR, per CPSL point: {}",
+        ratios(&s.dibr_rate_ratio)
+    );
+    println!(
+        "bitrate of MPI / CPSL at equal PSNR, per CPSL point: {}",
+        ratios(&s.mpi_rate_ratio)
+    );
+    println!(
+        "CPSL at <= 3 Mbit/s: {} dB below its uncompressed layers",
+        opt(s.cpsl_gap_at_3m_db, 2)
+    );
+    println!(
+        "proxy distortion vs LPIPS, Spearman over coded layered points: {}",
+        opt(s.proxy_lpips_spearman, 3)
+    );
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn pt(bitrate: f64, psnr: f64) -> Point {
+        Point {
+            setting: String::new(),
+            bitrate: Some(bitrate),
+            psnr,
+            lpips: None,
+            proxy: None,
+        }
+    }
+
+    #[test]
+    fn rate_at_interpolates_in_log_rate() {
+        let curve = [pt(4e6, 30.0), pt(1e6, 26.0), pt(2e6, 28.0)];
+        assert!((rate_at(&curve, 28.0).unwrap() - 2e6).abs() < 1.0);
+        // Halfway in dB between 1 and 2 Mbit/s is their geometric mean.
+        assert!((rate_at(&curve, 27.0).unwrap() - 2f64.sqrt() * 1e6).abs() < 1.0);
+        assert!(rate_at(&curve, 31.0).is_none() && rate_at(&curve, 25.0).is_none());
+    }
+
+    #[test]
+    fn spearman_of_monotone_and_reversed() {
+        let x = [1.0, 2.0, 3.0, 4.0];
+        assert!((spearman(&x, &[10.0, 20.0, 25.0, 90.0]).unwrap() - 1.0).abs() < 1e-12);
+        assert!((spearman(&x, &[4.0, 3.0, 2.0, 1.0]).unwrap() + 1.0).abs() < 1e-12);
+        assert!(spearman(&x[..2], &x[..2]).is_none());
+    }
+}

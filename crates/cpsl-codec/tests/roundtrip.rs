@@ -80,7 +80,7 @@ fn package_round_trip_meets_budget_and_quality() {
     );
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("clip.cpsl");
-    let budget = 1_500_000.0;
+    let budget = 800_000.0;
     let opts = CodingOptions {
         codec: Codec::H264,
         rate: RateControl::Budget(budget),

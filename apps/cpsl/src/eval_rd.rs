@@ -92,13 +92,47 @@ struct Curve {
     points: Vec<Point>,
 }
 
+/// A baseline's bitrate at the PSNR of a CPSL point, divided by CPSL's.
+#[derive(Serialize, Clone, Copy, Debug, PartialEq)]
+#[serde(rename_all = "snake_case")]
+enum Ratio {
+    /// Interpolated on the baseline's curve.
+    Equal(f64),
+    /// The baseline's cheapest point already does better: the ratio is at most this.
+    AtMost(f64),
+    /// The baseline does worse at every rate measured.
+    Never,
+}
+
+impl std::fmt::Display for Ratio {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Ratio::Equal(r) => write!(f, "{r:.2}"),
+            Ratio::AtMost(r) => write!(f, "< {r:.2}"),
+            Ratio::Never => write!(f, "never reached"),
+        }
+    }
+}
+
+/// The ratio of `base`'s bitrate to `rate` at `psnr`.
+fn ratio(base: &[Point], psnr: f64, rate: f64) -> Ratio {
+    if let Some(r) = rate_at(base, psnr) {
+        return Ratio::Equal(r / rate);
+    }
+    let coded = || base.iter().filter_map(|p| Some((p.bitrate?, p.psnr)));
+    let cheapest = coded().min_by(|a, b| a.0.total_cmp(&b.0));
+    match cheapest {
+        Some((r, p)) if p >= psnr => Ratio::AtMost(r / rate),
+        _ => Ratio::Never,
+    }
+}
+
 /// The headline numbers.
 #[derive(Serialize)]
 struct Summary {
-    /// Per CPSL point: the baseline's bitrate at the same PSNR divided by CPSL's (`null`
-    /// where the baseline's curve does not reach that PSNR).
-    dibr_rate_ratio: Vec<Option<f64>>,
-    mpi_rate_ratio: Vec<Option<f64>>,
+    /// Per CPSL point: the baseline's bitrate at the same PSNR divided by CPSL's.
+    dibr_rate_ratio: Vec<Ratio>,
+    mpi_rate_ratio: Vec<Ratio>,
     /// Uncompressed CPSL PSNR minus the best CPSL PSNR at no more than 3 Mbit/s.
     cpsl_gap_at_3m_db: Option<f64>,
     /// Spearman rank correlation of the proxy distortion with LPIPS over the coded CPSL and
@@ -617,10 +651,10 @@ fn report(method: &str, p: &Point) {
 
 fn summarise(curves: &[Curve]) -> Summary {
     let [cpsl, dibr, mpi] = [&curves[0], &curves[1], &curves[2]];
-    let ratio = |base: &Curve| -> Vec<Option<f64>> {
+    let ratios = |base: &Curve| -> Vec<Ratio> {
         cpsl.points
             .iter()
-            .map(|p| Some(rate_at(&base.points, p.psnr)? / p.bitrate?))
+            .filter_map(|p| Some(ratio(&base.points, p.psnr, p.bitrate?)))
             .collect()
     };
     let best_3m = cpsl
@@ -636,8 +670,8 @@ fn summarise(curves: &[Curve]) -> Summary {
         .filter_map(|p| Some((p.proxy?, p.lpips?)))
         .unzip();
     Summary {
-        dibr_rate_ratio: ratio(dibr),
-        mpi_rate_ratio: ratio(mpi),
+        dibr_rate_ratio: ratios(dibr),
+        mpi_rate_ratio: ratios(mpi),
         cpsl_gap_at_3m_db: best_3m.map(|b| cpsl.uncompressed.psnr - b),
         proxy_lpips_spearman: spearman(&proxies, &lpips),
     }
@@ -664,7 +698,12 @@ fn print_tables(a: &EvalRdArgs, codec: Codec, curves: &[Curve], s: &Summary) {
             );
         }
     }
-    let ratios = |r: &[Option<f64>]| r.iter().map(|v| opt(*v, 2)).collect::<Vec<_>>().join(", ");
+    let ratios = |r: &[Ratio]| {
+        r.iter()
+            .map(Ratio::to_string)
+            .collect::<Vec<_>>()
+            .join(", ")
+    };
     println!(
         "bitrate of DIBR / CPSL at equal PSNR, per CPSL point: {}",
         ratios(&s.dibr_rate_ratio)
@@ -704,6 +743,17 @@ mod tests {
         // Halfway in dB between 1 and 2 Mbit/s is their geometric mean.
         assert!((rate_at(&curve, 27.0).unwrap() - 2f64.sqrt() * 1e6).abs() < 1.0);
         assert!(rate_at(&curve, 31.0).is_none() && rate_at(&curve, 25.0).is_none());
+    }
+
+    #[test]
+    fn ratio_interpolates_or_bounds() {
+        let base = [pt(1e6, 26.0), pt(2e6, 28.0)];
+        let Ratio::Equal(r) = ratio(&base, 28.0, 4e6) else {
+            panic!("28 dB is on the curve")
+        };
+        assert!((r - 0.5).abs() < 1e-9, "{r}");
+        assert_eq!(ratio(&base, 25.0, 4e6), Ratio::AtMost(0.25));
+        assert_eq!(ratio(&base, 29.0, 4e6), Ratio::Never);
     }
 
     #[test]

@@ -577,7 +577,8 @@ pub fn run(a: EvalRdArgs) -> Result<()> {
 
     // MPI.
     let planes = a.mpi_planes as usize;
-    let segments = mpi_layers(&clip, planes, 30)?;
+    // The MPI is segmented like CPSL's fixed GOP (CPSL may also refresh earlier).
+    let segments = mpi_layers(&clip, planes, GopConfig::default().gop)?;
     let (p, l) = score(&clip, &mut lpips, |f, pose| {
         let (set, _) = layered(&segments, f);
         Ok(render_layers(&set, None, pose))

@@ -10,6 +10,7 @@ mod eval_video;
 mod layer;
 mod progress;
 mod render;
+mod serve;
 mod synth;
 mod util;
 mod video;
@@ -56,6 +57,8 @@ enum Command {
     /// Rate-distortion curves on a synthetic moving clip: CPSL packages under budgets against
     /// DIBR streaming (colour + depth) and a uniform MPI coded with the same codec.
     EvalRd(eval_rd::EvalRdArgs),
+    /// Serve packages and the browser player over HTTP (range requests, ETags, CORS).
+    Serve(serve::ServeArgs),
     /// Benchmarks.
     #[command(subcommand)]
     Bench(bench::BenchCommand),
@@ -97,6 +100,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Eval(a) => eval::run(a),
         Command::EvalVideo(a) => eval_video::run(a),
         Command::EvalRd(a) => eval_rd::run(a),
+        Command::Serve(a) => serve::run(a),
         Command::Bench(b) => bench::run(b),
     }
 }

@@ -1,0 +1,115 @@
+//! The package listing: every package under the root (a few folders deep, symbolic links
+//! not followed) and every variant set.
+
+use cpsl_package::{is_package, Package};
+use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// File naming the bitrate variants of one piece of content.
+pub const VARIANTS_FILE: &str = "variants.json";
+/// Format name of a variant set.
+pub const VARIANTS_FORMAT: &str = "cpsl-variants";
+/// Folders searched below the root.
+const DEPTH: usize = 3;
+
+/// One package as the listing shows it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct PackageSummary {
+    /// Path under the root, `/`-separated.
+    pub path: String,
+    /// URL of the package folder on this server.
+    pub url: String,
+    /// Frame size.
+    pub width: u32,
+    /// Frame size.
+    pub height: u32,
+    /// Frames.
+    pub frames: u32,
+    /// Frames per second.
+    pub frame_rate: f64,
+    /// Codec name.
+    pub codec: String,
+    /// Segments.
+    pub segments: usize,
+    /// Mean bits per second of all its files.
+    pub bitrate: u64,
+}
+
+/// A variant set: packages of the same content at several bitrates (`variants.json`).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct VariantSet {
+    /// Always [`VARIANTS_FORMAT`].
+    pub format: String,
+    /// Format version (1).
+    pub version: u32,
+    /// Package folders relative to the set's file, cheapest first.
+    pub variants: Vec<String>,
+}
+
+/// The listing answered by `/api/packages`.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
+pub struct Listing {
+    /// Packages, by path.
+    pub packages: Vec<PackageSummary>,
+    /// URLs of variant sets.
+    pub variant_sets: Vec<String>,
+}
+
+fn summarise(root: &Path, dir: &Path) -> Option<PackageSummary> {
+    let rel = dir.strip_prefix(root).ok()?.to_str()?.replace('\\', "/");
+    let pkg = Package::open(dir).ok()?;
+    let m = pkg.manifest();
+    let bytes: u64 = m
+        .segments
+        .iter()
+        .map(|s| s.side.bytes + s.streams.iter().map(|t| t.file.bytes).sum::<u64>())
+        .sum();
+    let seconds = m.frames as f64 / m.frame_rate;
+    Some(PackageSummary {
+        url: format!("/files/{rel}/"),
+        path: rel,
+        width: m.camera.width,
+        height: m.camera.height,
+        frames: m.frames,
+        frame_rate: m.frame_rate,
+        codec: m.codec.name().to_string(),
+        segments: m.segments.len(),
+        bitrate: (bytes as f64 * 8.0 / seconds.max(1e-9)).round() as u64,
+    })
+}
+
+/// Lists the packages and variant sets under `root` (canonical), sorted by path.
+pub fn list_packages(root: &Path) -> Listing {
+    let mut out = Listing::default();
+    let mut stack = vec![(root.to_path_buf(), 0usize)];
+    while let Some((dir, depth)) = stack.pop() {
+        if dir != root && is_package(&dir) {
+            out.packages.extend(summarise(root, &dir));
+            continue;
+        }
+        let Ok(entries) = std::fs::read_dir(&dir) else {
+            continue;
+        };
+        for e in entries.flatten() {
+            let name = e.file_name();
+            let Some(name) = name.to_str() else { continue };
+            if name.starts_with('.') {
+                continue;
+            }
+            // `file_type` does not follow symbolic links: links are never listed.
+            let Ok(t) = e.file_type() else { continue };
+            if t.is_dir() && depth < DEPTH {
+                stack.push((e.path(), depth + 1));
+            } else if t.is_file() && name == VARIANTS_FILE {
+                if let Some(rel) = e.path().strip_prefix(root).ok().and_then(|p| p.to_str()) {
+                    out.variant_sets
+                        .push(format!("/files/{}", rel.replace('\\', "/")));
+                }
+            }
+        }
+    }
+    out.packages.sort_by(|a, b| a.path.cmp(&b.path));
+    out.variant_sets.sort();
+    out
+}

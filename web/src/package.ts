@@ -1,0 +1,124 @@
+// The package format (crates/cpsl-package): the manifest and the per-segment side stream.
+
+import type { Camera } from "./pose.js";
+
+export interface FileEntry {
+  path: string;
+  bytes: number;
+  sha256: string;
+}
+
+export interface StreamEntry {
+  file: FileEntry;
+  track?: number;
+  bitrate: number;
+}
+
+export interface Segment {
+  start: number;
+  frames: number;
+  streams: StreamEntry[];
+  side: FileEntry;
+}
+
+export interface Manifest {
+  format: string;
+  version: number;
+  camera: Camera;
+  frame_rate: number;
+  frames: number;
+  layers: number;
+  codec: "h264" | "h265" | "av1" | "vp9";
+  layout: { kind: string; coded_width: number; coded_height: number };
+  budget?: number;
+  segments: Segment[];
+}
+
+/** Checks what the player relies on; throws a readable error otherwise. */
+export function checkManifest(m: Manifest): Manifest {
+  if (m.format !== "cpsl-package") throw new Error(`not a cpsl package (format '${m.format}')`);
+  if (!(m.version >= 1 && m.version <= 1)) throw new Error(`package version ${m.version}: this player reads version 1`);
+  if (m.layout?.kind !== "colour-over-alpha") throw new Error(`layout '${m.layout?.kind}' is not supported`);
+  if (!m.segments?.length) throw new Error("the package has no segments");
+  return m;
+}
+
+/** Bits per second of a segment's files. */
+export function segmentBitrate(m: Manifest, i: number): number {
+  const s = m.segments[i];
+  const bytes = s.side.bytes + s.streams.reduce((a, t) => a + t.file.bytes, 0);
+  return (bytes * 8 * m.frame_rate) / s.frames;
+}
+
+/** Mean bits per second of a package. */
+export function packageBitrate(m: Manifest): number {
+  let bytes = 0;
+  for (const s of m.segments) bytes += s.side.bytes + s.streams.reduce((a, t) => a + t.file.bytes, 0);
+  return (bytes * 8 * m.frame_rate) / m.frames;
+}
+
+export interface SideLayer {
+  stream: number;
+  depth: number;
+}
+
+export interface SideFrame {
+  index: number;
+  layers: SideLayer[];
+  /** Mean Edge-Depth Cache log-depth offsets per layer pair, key `front * 256 + back`. */
+  offsets: Map<number, [number, number]>;
+}
+
+async function inflateRaw(bytes: Uint8Array, expected: number): Promise<Uint8Array> {
+  const ds = new DecompressionStream("deflate-raw");
+  const out = new Uint8Array(await new Response(new Blob([bytes as BlobPart]).stream().pipeThrough(ds)).arrayBuffer());
+  if (out.length !== expected) throw new Error("side stream: edge-depth cache inflates to the wrong length");
+  return out;
+}
+
+/** Parses a side stream (`side.bin`, version 1; see crates/cpsl-package/src/side.rs). */
+export async function parseSide(buf: ArrayBuffer): Promise<SideFrame[]> {
+  const b = new Uint8Array(buf);
+  const v = new DataView(buf);
+  const magic = String.fromCharCode(...b.subarray(0, 8));
+  if (b.length < 40 || magic !== "CPSLSIDE") throw new Error("not a cpsl side stream");
+  const version = v.getUint16(8, true);
+  if (version !== 1) throw new Error(`side stream version ${version}: this player reads version 1`);
+  const frames = v.getUint32(20, true);
+  const streams = v.getUint16(24, true);
+  let pos = 40;
+  const out: SideFrame[] = [];
+  for (let r = 0; r < frames; r++) {
+    if (pos + 4 > b.length) throw new Error(`side stream truncated at record ${r}`);
+    const len = v.getUint32(pos, true);
+    const p = pos + 4;
+    if (len < 12 || p + len + 4 > b.length) throw new Error(`side stream record ${r} truncated`);
+    const index = v.getUint32(p, true);
+    const n = b[p + 6];
+    if (n === 0 || n > streams) throw new Error(`side stream record ${r}: ${n} layers`);
+    const layers: SideLayer[] = [];
+    for (let i = 0; i < n; i++) {
+      const o = p + 8 + i * 16;
+      layers.push({ stream: b[o], depth: v.getFloat32(o + 4, true) });
+    }
+    const e = p + 8 + n * 16;
+    const edcLen = v.getUint32(e, true);
+    const c = e + 4;
+    const step = v.getFloat32(c + 2, true);
+    const samples = v.getUint32(c + 6, true);
+    const planes = await inflateRaw(b.subarray(c + 10, c + edcLen), samples * 8);
+    const acc = new Map<number, [number, number, number]>();
+    for (let i = 0; i < samples; i++) {
+      const key = planes[4 * samples + i] * 256 + planes[5 * samples + i];
+      const fo = ((planes[6 * samples + i] << 24) >> 24) * step;
+      const bo = ((planes[7 * samples + i] << 24) >> 24) * step;
+      const a = acc.get(key) ?? [0, 0, 0];
+      acc.set(key, [a[0] + fo, a[1] + bo, a[2] + 1]);
+    }
+    const offsets = new Map<number, [number, number]>();
+    for (const [k, a] of acc) offsets.set(k, [a[0] / a[2], a[1] / a[2]]);
+    out.push({ index, layers, offsets });
+    pos = p + len + 4;
+  }
+  return out;
+}

@@ -1,0 +1,423 @@
+// The WebGL2 renderer, with the semantics of the CPU reference (crates/cpsl-render):
+// per layer the inverse plane-induced homography, bilinear premultiplied sampling with a
+// transparent border, front-to-back compositing (paper eq. 2), then the Dynamic Pixel Strip
+// (paper eq. 4) guided by the Edge-Depth Cache. The layer pictures are converted from
+// Y'CbCr (BT.709, limited range, colour over alpha) in the shader exactly as cpsl-codec's
+// `unstack` does, so the browser's own colour conversion never enters.
+
+import { type Camera, type Pose, planeInverse, stripWidth } from "./pose.js";
+import type { SideFrame } from "./package.js";
+
+/** Most layers per frame. */
+export const MAX_LAYERS = 16;
+
+const VERT = `#version 300 es
+void main() {
+  vec2 p = vec2(float((gl_VertexID << 1) & 2), float(gl_VertexID & 2));
+  gl_Position = vec4(p * 2.0 - 1.0, 0.0, 1.0);
+}`;
+
+// Shared by both passes: one layer texel (premultiplied RGBA, 0..255) from the planes.
+const TEXEL = `
+precision highp float;
+precision highp int;
+precision highp sampler2DArray;
+uniform sampler2DArray uY;
+uniform sampler2DArray uU;
+uniform sampler2DArray uV;
+uniform ivec2 uSize;      // layer (frame) size
+uniform int uHalf;        // coded height of one half: alpha rows start here
+uniform mat3 uH[${MAX_LAYERS}];
+uniform int uStream[${MAX_LAYERS}];
+uniform int uLayers;
+
+float q8(float v) { return clamp(floor(v + 0.5), 0.0, 255.0); }
+
+vec4 texel(int k, ivec2 t) {
+  if (t.x < 0 || t.y < 0 || t.x >= uSize.x || t.y >= uSize.y) return vec4(0.0);
+  int s = uStream[k];
+  float ya = texelFetch(uY, ivec3(t.x, t.y + uHalf, s), 0).r * 255.0;
+  float a = q8((ya - 16.0) * 255.0 / 219.0);
+  if (a == 0.0) return vec4(0.0);
+  float luma = (texelFetch(uY, ivec3(t, s), 0).r * 255.0 - 16.0) / 219.0;
+  ivec2 c = t / 2;
+  float cb = (texelFetch(uU, ivec3(c, s), 0).r * 255.0 - 128.0) / 224.0;
+  float cr = (texelFetch(uV, ivec3(c, s), 0).r * 255.0 - 128.0) / 224.0;
+  const float KR = 0.2126, KB = 0.0722, KG = 1.0 - 0.2126 - 0.0722;
+  float r = luma + 2.0 * (1.0 - KR) * cr;
+  float b = luma + 2.0 * (1.0 - KB) * cb;
+  float g = (luma - KR * r - KB * b) / KG;
+  return vec4(min(vec3(q8(r * 255.0), q8(g * 255.0), q8(b * 255.0)), vec3(a)), a);
+}
+
+// Target pixel -> source position of layer k; false where the plane is not visible.
+bool warp(int k, vec2 px, out vec2 src) {
+  vec3 h = uH[k] * vec3(px, 1.0);
+  if (h.z <= 0.0) return false;
+  src = h.xy / h.z;
+  return true;
+}
+`;
+
+const COMPOSITE = `#version 300 es
+${TEXEL}
+out vec4 outColor;
+void main() {
+  vec2 px = floor(gl_FragCoord.xy);
+  vec4 o = vec4(0.0);
+  float t = 1.0;
+  for (int k = 0; k < uLayers; k++) {
+    vec2 s;
+    if (!warp(k, px, s)) continue;
+    // Positions rounded to 1/256 px and bilinear weights as the CPU renderer's fixed point.
+    vec2 fi = floor(s * 256.0 + 0.5);
+    vec2 f0 = floor(fi / 256.0);
+    vec2 w = (fi - f0 * 256.0) / 256.0;
+    ivec2 i0 = ivec2(f0);
+    if (i0.x < -1 || i0.y < -1 || i0.x >= uSize.x || i0.y >= uSize.y) continue;
+    vec4 v = mix(mix(texel(k, i0), texel(k, i0 + ivec2(1, 0)), w.x),
+                 mix(texel(k, i0 + ivec2(0, 1)), texel(k, i0 + ivec2(1, 1)), w.x), w.y);
+    v = floor(v + 0.5);
+    if (v.a <= 0.0) continue;
+    o += t * v;
+    t *= 1.0 - v.a / 255.0;
+    if (t <= 0.0) break;
+  }
+  float a = q8(o.a);
+  outColor = vec4(min(vec3(q8(o.r), q8(o.g), q8(o.b)), vec3(a)), a) / 255.0;
+}`;
+
+const DPS = `#version 300 es
+${TEXEL}
+uniform sampler2D uImage;     // the composite, RGBA8
+uniform sampler2D uOffsets;   // RG32F, MAX_LAYERS x MAX_LAYERS: mean EDC offsets per pair
+uniform float uLogDepth[${MAX_LAYERS}];
+uniform int uReach;
+out vec4 outColor;
+
+vec4 img(ivec2 p) { return texelFetch(uImage, p, 0) * 255.0; }
+bool covered(ivec2 p) { return img(p).a >= 128.0; }
+
+float alphaAt(int k, vec2 s) {
+  vec2 f = floor(s);
+  vec2 a = s - f;
+  ivec2 i = ivec2(f);
+  float t00 = texel(k, i).a, t10 = texel(k, i + ivec2(1, 0)).a;
+  float t01 = texel(k, i + ivec2(0, 1)).a, t11 = texel(k, i + ivec2(1, 1)).a;
+  return mix(mix(t00, t10, a.x), mix(t01, t11, a.x), a.y) / 255.0;
+}
+
+int visibleLayer(ivec2 p) {
+  for (int k = 0; k < uLayers; k++) {
+    vec2 s;
+    if (!warp(k, vec2(p), s)) continue;
+    if (!(s.x > -1.0 && s.y > -1.0 && s.x < float(uSize.x) && s.y < float(uSize.y))) continue;
+    if (alphaAt(k, s) >= 0.5) return k;
+  }
+  return -1;
+}
+
+bool nearAlong(ivec2 p, ivec2 d, ivec2 size) {
+  for (int step = 1; step <= uReach; step++) {
+    ivec2 q = p + d * step;
+    if (q.x < 0 || q.y < 0 || q.x >= size.x || q.y >= size.y) return false;
+    if (covered(q)) return true;
+  }
+  return false;
+}
+
+void main() {
+  ivec2 p = ivec2(gl_FragCoord.xy);
+  ivec2 size = textureSize(uImage, 0);
+  vec4 here = img(p);
+  outColor = here / 255.0;
+  if (here.a >= 128.0) return;
+  if (!((nearAlong(p, ivec2(1, 0), size) && nearAlong(p, ivec2(-1, 0), size)) ||
+        (nearAlong(p, ivec2(0, 1), size) && nearAlong(p, ivec2(0, -1), size)))) return;
+  const ivec2 DIRS[8] = ivec2[8](ivec2(1, 0), ivec2(-1, 0), ivec2(0, 1), ivec2(0, -1),
+                                 ivec2(1, 1), ivec2(-1, -1), ivec2(1, -1), ivec2(-1, 1));
+  float len[8];
+  ivec2 at[8];
+  int lay[8];
+  bool hit[8];
+  for (int d = 0; d < 8; d++) {
+    hit[d] = false;
+    lay[d] = -1;
+    for (int step = 1; step <= uReach; step++) {
+      ivec2 q = p + DIRS[d] * step;
+      if (q.x < 0 || q.y < 0 || q.x >= size.x || q.y >= size.y) break;
+      if (covered(q)) {
+        int k = visibleLayer(q);
+        if (k >= 0) {
+          len[d] = length(vec2(DIRS[d])) * float(step);
+          at[d] = q;
+          lay[d] = k;
+          hit[d] = true;
+        }
+        break;
+      }
+    }
+  }
+  if (!((hit[0] && hit[1]) || (hit[2] && hit[3]) || (hit[4] && hit[5]) || (hit[6] && hit[7]))) return;
+  int f = ${MAX_LAYERS}, b = -1;
+  for (int d = 0; d < 8; d++) if (hit[d]) { f = min(f, lay[d]); b = max(b, lay[d]); }
+  // Nearest side of each: the first in direction order among equals, as the CPU does.
+  float df = 1e9, db = 1e9;
+  ivec2 qf = p, qb = p;
+  for (int d = 0; d < 8; d++) {
+    if (hit[d] && lay[d] == f && len[d] < df) { df = len[d]; qf = at[d]; }
+    if (hit[d] && lay[d] == b && len[d] < db) { db = len[d]; qb = at[d]; }
+  }
+  float gamma = 0.0;
+  if (f != b) {
+    gamma = df / (df + db);
+    vec2 off = texelFetch(uOffsets, ivec2(f, b), 0).rg;
+    float zf = uLogDepth[f], zb = uLogDepth[b];
+    float r = clamp((zb + off.y - zf - off.x) / (zb - zf), 0.0, 2.0);
+    gamma = clamp(0.5 + (gamma - 0.5) * (1.0 + r), 0.0, 1.0);
+  }
+  vec4 cf = img(qf), cb = img(qb);
+  vec3 strip = (1.0 - gamma) * (cf.rgb / max(cf.a, 1.0) * 255.0) + gamma * (cb.rgb / max(cb.a, 1.0) * 255.0);
+  float t = 1.0 - here.a / 255.0;
+  outColor = vec4(clamp(floor(here.rgb + t * strip + 0.5), 0.0, 255.0) / 255.0, 1.0);
+}`;
+
+const PRESENT = `#version 300 es
+precision highp float;
+uniform sampler2D uImage;
+uniform ivec2 uView;      // where this eye's image starts on the canvas (x) and its size
+uniform ivec2 uViewSize;
+out vec4 outColor;
+void main() {
+  ivec2 size = textureSize(uImage, 0);
+  vec2 rel = (gl_FragCoord.xy - vec2(uView)) / vec2(uViewSize);
+  ivec2 p = ivec2(rel * vec2(size));
+  p.y = size.y - 1 - p.y;
+  outColor = vec4(texelFetch(uImage, clamp(p, ivec2(0), size - 1), 0).rgb, 1.0);
+}`;
+
+function compile(gl: WebGL2RenderingContext, frag: string): WebGLProgram {
+  const shader = (type: number, src: string) => {
+    const s = gl.createShader(type)!;
+    gl.shaderSource(s, src);
+    gl.compileShader(s);
+    if (!gl.getShaderParameter(s, gl.COMPILE_STATUS)) throw new Error(`shader: ${gl.getShaderInfoLog(s)}`);
+    return s;
+  };
+  const p = gl.createProgram()!;
+  gl.attachShader(p, shader(gl.VERTEX_SHADER, VERT));
+  gl.attachShader(p, shader(gl.FRAGMENT_SHADER, frag));
+  gl.linkProgram(p);
+  if (!gl.getProgramParameter(p, gl.LINK_STATUS)) throw new Error(`program: ${gl.getProgramInfoLog(p)}`);
+  return p;
+}
+
+interface Target {
+  tex: WebGLTexture;
+  fb: WebGLFramebuffer;
+}
+
+export class Renderer {
+  readonly gl: WebGL2RenderingContext;
+  private camera: Camera;
+  private half: number;
+  private composite: WebGLProgram;
+  private dps: WebGLProgram;
+  private present: WebGLProgram;
+  private planes: WebGLTexture[] = [];
+  private streams = 0;
+  private offsets: WebGLTexture;
+  private targets: Target[];
+  private scratch = new Uint8Array(0);
+  private frame: SideFrame | null = null;
+  /** Strip half-width of the last render. */
+  stripWidth = 0;
+  /** Whether the Dynamic Pixel Strip runs. */
+  dpsEnabled = true;
+
+  constructor(canvas: HTMLCanvasElement, camera: Camera, codedHeight: number) {
+    const gl = canvas.getContext("webgl2", { antialias: false, alpha: false, preserveDrawingBuffer: true });
+    if (!gl) throw new Error("this browser has no WebGL2");
+    this.gl = gl;
+    this.camera = camera;
+    this.half = codedHeight;
+    this.composite = compile(gl, COMPOSITE);
+    this.dps = compile(gl, DPS);
+    this.present = compile(gl, PRESENT);
+    gl.getExtension("EXT_color_buffer_float");
+    this.offsets = gl.createTexture()!;
+    gl.bindTexture(gl.TEXTURE_2D, this.offsets);
+    gl.texStorage2D(gl.TEXTURE_2D, 1, gl.RG32F, MAX_LAYERS, MAX_LAYERS);
+    this.targets = [0, 1].map(() => {
+      const tex = gl.createTexture()!;
+      gl.bindTexture(gl.TEXTURE_2D, tex);
+      gl.texStorage2D(gl.TEXTURE_2D, 1, gl.RGBA8, camera.width, camera.height);
+      for (const p of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER]) gl.texParameteri(gl.TEXTURE_2D, p, gl.NEAREST);
+      const fb = gl.createFramebuffer()!;
+      gl.bindFramebuffer(gl.FRAMEBUFFER, fb);
+      gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, tex, 0);
+      return { tex, fb };
+    });
+    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+  }
+
+  private ensurePlanes(streams: number, w: number, h: number) {
+    const gl = this.gl;
+    if (this.streams === streams && this.planes.length) return;
+    for (const t of this.planes) gl.deleteTexture(t);
+    this.planes = [
+      [w, h],
+      [w / 2, h / 2],
+      [w / 2, h / 2],
+    ].map(([pw, ph]) => {
+      const t = gl.createTexture()!;
+      gl.bindTexture(gl.TEXTURE_2D_ARRAY, t);
+      gl.texStorage3D(gl.TEXTURE_2D_ARRAY, 1, gl.R8, pw, ph, streams);
+      for (const p of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER]) gl.texParameteri(gl.TEXTURE_2D_ARRAY, p, gl.NEAREST);
+      return t;
+    });
+    this.streams = streams;
+  }
+
+  /** Uploads the decoded pictures of one frame (`frames[k]` is stream k) and its side data. */
+  async upload(frames: VideoFrame[], side: SideFrame) {
+    const gl = this.gl;
+    const w = frames[0].visibleRect?.width ?? frames[0].codedWidth;
+    const h = frames[0].visibleRect?.height ?? frames[0].codedHeight;
+    this.ensurePlanes(frames.length, w, h);
+    gl.pixelStorei(gl.UNPACK_ALIGNMENT, 1);
+    for (const [s, f] of frames.entries()) {
+      // Software decoders give I420; hardware ones may give NV12 (chroma interleaved).
+      if (f.format !== "I420" && f.format !== "I420A" && f.format !== "NV12")
+        throw new Error(`unsupported picture format ${f.format}`);
+      const nv12 = f.format === "NV12";
+      const size = f.allocationSize();
+      if (this.scratch.length < size) this.scratch = new Uint8Array(size);
+      const layout = await f.copyTo(this.scratch);
+      const dims = [
+        [w, h],
+        [w / 2, h / 2],
+        [w / 2, h / 2],
+      ];
+      for (let p = 0; p < 3; p++) {
+        gl.bindTexture(gl.TEXTURE_2D_ARRAY, this.planes[p]);
+        if (nv12 && p > 0) {
+          // Split the interleaved chroma plane.
+          const l = layout[1];
+          const [pw, ph] = dims[p];
+          const out = new Uint8Array(pw * ph);
+          for (let y = 0; y < ph; y++)
+            for (let x = 0; x < pw; x++) out[y * pw + x] = this.scratch[l.offset + y * l.stride + 2 * x + (p - 1)];
+          gl.pixelStorei(gl.UNPACK_ROW_LENGTH, 0);
+          gl.texSubImage3D(gl.TEXTURE_2D_ARRAY, 0, 0, 0, s, pw, ph, 1, gl.RED, gl.UNSIGNED_BYTE, out);
+          continue;
+        }
+        const l = layout[p];
+        gl.pixelStorei(gl.UNPACK_ROW_LENGTH, l.stride);
+        gl.texSubImage3D(gl.TEXTURE_2D_ARRAY, 0, 0, 0, s, dims[p][0], dims[p][1], 1, gl.RED, gl.UNSIGNED_BYTE, this.scratch, l.offset);
+      }
+    }
+    gl.pixelStorei(gl.UNPACK_ROW_LENGTH, 0);
+    const off = new Float32Array(MAX_LAYERS * MAX_LAYERS * 2);
+    for (const [key, [fo, bo]] of side.offsets) {
+      const [f, b] = [key >> 8, key & 255];
+      if (f < MAX_LAYERS && b < MAX_LAYERS) off.set([fo, bo], (b * MAX_LAYERS + f) * 2);
+    }
+    gl.bindTexture(gl.TEXTURE_2D, this.offsets);
+    gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, MAX_LAYERS, MAX_LAYERS, gl.RG, gl.FLOAT, off);
+    this.frame = side;
+  }
+
+  private bindLayers(p: WebGLProgram, pose: Pose) {
+    const gl = this.gl;
+    const side = this.frame!;
+    const cam = this.camera;
+    const hs = new Float32Array(MAX_LAYERS * 9);
+    const streams = new Int32Array(MAX_LAYERS);
+    let n = 0;
+    for (const l of side.layers.slice(0, MAX_LAYERS)) {
+      const h = planeInverse(cam, cam, pose, l.depth);
+      // A layer the viewer has passed is skipped, as the CPU renderer does.
+      const m = h ?? [
+        [0, 0, 0],
+        [0, 0, 0],
+        [0, 0, -1],
+      ];
+      // Column-major for GLSL.
+      for (let c = 0; c < 3; c++) for (let r = 0; r < 3; r++) hs[n * 9 + c * 3 + r] = m[r][c];
+      streams[n] = l.stream;
+      n++;
+    }
+    gl.useProgram(p);
+    const u = (name: string) => gl.getUniformLocation(p, name);
+    gl.uniformMatrix3fv(u("uH"), false, hs);
+    gl.uniform1iv(u("uStream"), streams);
+    gl.uniform1i(u("uLayers"), n);
+    gl.uniform2i(u("uSize"), cam.width, cam.height);
+    gl.uniform1i(u("uHalf"), this.half);
+    this.planes.forEach((t, i) => {
+      gl.activeTexture(gl.TEXTURE0 + i);
+      gl.bindTexture(gl.TEXTURE_2D_ARRAY, t);
+      gl.uniform1i(u(["uY", "uU", "uV"][i]), i);
+    });
+  }
+
+  /** Renders the uploaded frame from `pose`; the result stays in an offscreen target. */
+  render(pose: Pose) {
+    if (!this.frame) return;
+    const gl = this.gl;
+    const cam = this.camera;
+    gl.viewport(0, 0, cam.width, cam.height);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, this.targets[0].fb);
+    this.bindLayers(this.composite, pose);
+    gl.drawArrays(gl.TRIANGLES, 0, 3);
+    this.result = this.targets[0];
+    if (!this.dpsEnabled) return;
+    const depths = this.frame.layers.map((l) => l.depth);
+    this.stripWidth = stripWidth(cam, pose, depths);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, this.targets[1].fb);
+    this.bindLayers(this.dps, pose);
+    const u = (name: string) => gl.getUniformLocation(this.dps, name);
+    gl.activeTexture(gl.TEXTURE3);
+    gl.bindTexture(gl.TEXTURE_2D, this.targets[0].tex);
+    gl.uniform1i(u("uImage"), 3);
+    gl.activeTexture(gl.TEXTURE4);
+    gl.bindTexture(gl.TEXTURE_2D, this.offsets);
+    gl.uniform1i(u("uOffsets"), 4);
+    const logs = new Float32Array(MAX_LAYERS);
+    depths.slice(0, MAX_LAYERS).forEach((d, i) => (logs[i] = Math.log(d)));
+    gl.uniform1fv(u("uLogDepth"), logs);
+    gl.uniform1i(u("uReach"), 2 * this.stripWidth);
+    gl.drawArrays(gl.TRIANGLES, 0, 3);
+    this.result = this.targets[1];
+  }
+
+  private result: Target | null = null;
+
+  /** Draws the last render into the canvas rectangle `x, y, w, h` (GL coordinates). */
+  show(x: number, y: number, w: number, h: number) {
+    if (!this.result) return;
+    const gl = this.gl;
+    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+    gl.viewport(x, y, w, h);
+    gl.useProgram(this.present);
+    gl.activeTexture(gl.TEXTURE3);
+    gl.bindTexture(gl.TEXTURE_2D, this.result.tex);
+    gl.uniform1i(gl.getUniformLocation(this.present, "uImage"), 3);
+    gl.uniform2i(gl.getUniformLocation(this.present, "uView"), x, y);
+    gl.uniform2i(gl.getUniformLocation(this.present, "uViewSize"), w, h);
+    gl.drawArrays(gl.TRIANGLES, 0, 3);
+  }
+
+  /** The last render as premultiplied RGBA rows, top row first (for tests and snapshots). */
+  pixels(): Uint8Array {
+    const gl = this.gl;
+    const { width: w, height: h } = this.camera;
+    const out = new Uint8Array(w * h * 4);
+    if (!this.result) return out;
+    gl.bindFramebuffer(gl.FRAMEBUFFER, this.result.fb);
+    gl.readPixels(0, 0, w, h, gl.RGBA, gl.UNSIGNED_BYTE, out);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+    return out;
+  }
+}

@@ -1,0 +1,128 @@
+// End-to-end test of the browser player: `cpsl demo` makes a small package, `cpsl serve`
+// serves it, headless Debian Chromium (driven by playwright-core) plays it at given poses
+// and frames, and every render must match the CPU reference (`cpsl render`) of the same
+// pose and frame.
+//
+//   node test/e2e.mjs            (CPSL_BIN: the cpsl binary, default ../target/release/cpsl)
+//
+// Tolerances: the player reads the decoded pictures (I420 planes from WebCodecs) and converts,
+// warps, composites and bridges cracks in float where the CPU renderer uses 8-bit fixed point,
+// so single pixels may differ by a few levels; the render must reach MIN_PSNR dB and the
+// screenshot of the page (the canvas as the browser shows it) MIN_SCREENSHOT_PSNR dB.
+import { chromium } from "playwright-core";
+import { spawn, execFileSync } from "node:child_process";
+import { mkdtempSync, readFileSync, rmSync } from "node:fs";
+import { tmpdir } from "node:os";
+import { join, resolve, dirname } from "node:path";
+import { fileURLToPath } from "node:url";
+import { readPng, compare } from "./png.mjs";
+
+const MIN_PSNR = 45;
+const MIN_SCREENSHOT_PSNR = 45;
+// Strip pixels blend two sides chosen by a search over the composite: a one-level difference
+// there can pick another side, so they get a looser per-pixel bound.
+const MAX_STRIP_DIFF = 24;
+const here = dirname(fileURLToPath(import.meta.url));
+const bin = resolve(process.env.CPSL_BIN ?? join(here, "../../target/release/cpsl"));
+const chromiumPath = process.env.CHROMIUM ?? "/usr/bin/chromium";
+const work = mkdtempSync(join(tmpdir(), "cpsl-e2e-"));
+
+const cases = [
+  { frame: 0, pose: "0,0,0,0,0,0", dps: true },
+  { frame: 7, pose: "0.12,-0.05,0.1,2,-3,1", dps: true },
+  { frame: 19, pose: "-0.15,0.04,-0.05,-1,4,0", dps: false },
+  // A strong move that opens cracks: the Dynamic Pixel Strip must fill some pixels here.
+  { frame: 12, pose: "0.4,0.1,0.5,3,-8,0", dps: true, strip: true },
+];
+
+function run(args) {
+  return execFileSync(bin, args, { stdio: ["ignore", "pipe", "inherit"] }).toString();
+}
+
+async function startServer(dir) {
+  const child = spawn(bin, ["serve", dir, "--addr", "127.0.0.1:0"], { stdio: ["ignore", "pipe", "inherit"] });
+  const url = await new Promise((ok, fail) => {
+    let out = "";
+    child.stdout.on("data", (d) => {
+      out += d;
+      const m = out.match(/on (http:\/\/127\.0\.0\.1:\d+)\//);
+      if (m) ok(m[1]);
+    });
+    child.on("exit", (c) => fail(new Error(`cpsl serve exited with ${c}`)));
+  });
+  return { child, url };
+}
+
+let server;
+let browser;
+let failures = 0;
+try {
+  run(["demo", "-o", work, "--width", "192", "--height", "144", "--clip-frames", "24"]);
+  const pkg = join(work, "clip.cpsl");
+  server = await startServer(work);
+  browser = await chromium.launch({
+    executablePath: chromiumPath,
+    headless: true,
+    args: [
+      "--headless",
+      "--no-sandbox",
+      "--disable-gpu",
+      "--disable-quic",
+      "--no-first-run",
+      "--disable-background-networking",
+      "--disable-component-update",
+      "--disable-sync",
+      "--use-angle=swiftshader",
+      "--enable-unsafe-swiftshader",
+    ],
+  });
+  const page = await browser.newPage({ viewport: { width: 800, height: 600 }, deviceScaleFactor: 1 });
+  page.on("console", (m) => {
+    if (m.type() === "error") console.error(`browser: ${m.text()}`);
+  });
+  for (const c of cases) {
+    const ref = join(work, `ref_${c.frame}_${c.dps}.png`);
+    run(["render", pkg, "--frame", String(c.frame), "--pose", c.pose, "-o", ref, ...(c.dps ? [] : ["--no-dps"])]);
+    const want = readPng(readFileSync(ref));
+    // Pixels the strip changed in the CPU reference, and how far the player is from them.
+    let strip = "";
+    if (c.strip) {
+      const plain = join(work, "plain.png");
+      run(["render", pkg, "--frame", String(c.frame), "--pose", c.pose, "-o", plain, "--no-dps"]);
+      const p = readPng(readFileSync(plain)).rgba;
+      c.mask = [];
+      for (let i = 0; i < p.length; i += 4)
+        if (p[i] !== want.rgba[i] || p[i + 1] !== want.rgba[i + 1] || p[i + 2] !== want.rgba[i + 2]) c.mask.push(i);
+    }
+    const q = new URLSearchParams({ src: "/files/clip.cpsl/", frame: String(c.frame), pose: c.pose, paused: "1", dps: c.dps ? "1" : "0" });
+    await page.goto(`${server.url}/?${q}`);
+    await page.waitForFunction(() => window.cpsl && (window.cpsl.ready || window.cpsl.error), null, { timeout: 60000 });
+    const err = await page.evaluate(() => window.cpsl.error);
+    if (err) throw new Error(`player: ${err}`);
+    const got = Buffer.from(await page.evaluate(() => window.cpsl.pixels()), "base64");
+    const r = compare(got, want.rgba);
+    const shot = readPng(await page.locator("#view").screenshot());
+    const s = compare(shot.rgba, want.rgba);
+    let ok = r.psnr >= MIN_PSNR && s.psnr >= MIN_SCREENSHOT_PSNR;
+    if (c.strip) {
+      let worst = 0;
+      for (const i of c.mask) for (let k = 0; k < 3; k++) worst = Math.max(worst, Math.abs(got[i + k] - want.rgba[i + k]));
+      strip = `; strip pixels ${c.mask.length}, max diff there ${worst} (need > 0 pixels, <= ${MAX_STRIP_DIFF})`;
+      ok &&= c.mask.length > 0 && worst <= MAX_STRIP_DIFF;
+    }
+    if (!ok) failures++;
+    console.log(
+      `${ok ? "ok  " : "FAIL"} frame ${c.frame} pose ${c.pose} dps ${c.dps}: render ${r.psnr.toFixed(2)} dB (max diff ${r.max}), ` +
+        `screenshot ${s.psnr.toFixed(2)} dB (max diff ${s.max}); need ${MIN_PSNR} / ${MIN_SCREENSHOT_PSNR} dB${strip}`,
+    );
+  }
+} finally {
+  await browser?.close();
+  server?.child.kill("SIGTERM");
+  rmSync(work, { recursive: true, force: true });
+}
+if (failures) {
+  console.error(`${failures} of ${cases.length} player renders differ from the CPU reference`);
+  process.exit(1);
+}
+console.log(`browser player matches the CPU reference on ${cases.length} renders`);

@@ -59,6 +59,10 @@ let failures = 0;
 try {
   run(["demo", "-o", work, "--width", "192", "--height", "144", "--clip-frames", "24"]);
   const pkg = join(work, "clip.cpsl");
+  // A variant set of the same clip at two budgets, in GOPs of 8 frames (three segments).
+  const clip = join(work, "clip");
+  run(["encode", join(clip, "frames"), "--depth-frames", join(clip, "depth"), "--camera", join(clip, "camera.json"),
+       "--fps", "30", "--gop", "8", "--variants", "150k,1M", "-o", join(work, "set")]);
   server = await startServer(work);
   browser = await chromium.launch({
     executablePath: chromiumPath,
@@ -116,6 +120,33 @@ try {
         `screenshot ${s.psnr.toFixed(2)} dB (max diff ${s.max}); need ${MIN_PSNR} / ${MIN_SCREENSHOT_PSNR} dB${strip}`,
     );
   }
+  // Variants: a fixed variant renders like the CPU reference of that package; left to adapt,
+  // the player starts on the cheapest and moves to the best once it has measured the link.
+  {
+    const ref = join(work, "ref_variant.png");
+    const pose = "0.1,0,0,0,2,0";
+    run(["render", join(work, "set", "1000k.cpsl"), "--frame", "10", "--pose", pose, "-o", ref]);
+    const q = new URLSearchParams({ src: "/files/set/variants.json", frame: "10", pose, paused: "1", variant: "1" });
+    await page.goto(`${server.url}/?${q}`);
+    await page.waitForFunction(() => window.cpsl && (window.cpsl.ready || window.cpsl.error), null, { timeout: 60000 });
+    const err = await page.evaluate(() => window.cpsl.error);
+    if (err) throw new Error(`player: ${err}`);
+    const got = Buffer.from(await page.evaluate(() => window.cpsl.pixels()), "base64");
+    const r = compare(got, readPng(readFileSync(ref)).rgba);
+    const ok = r.psnr >= MIN_PSNR;
+    if (!ok) failures++;
+    console.log(`${ok ? "ok  " : "FAIL"} variant 2 of 2, frame 10: render ${r.psnr.toFixed(2)} dB (max diff ${r.max}); need ${MIN_PSNR} dB`);
+
+    await page.goto(`${server.url}/?src=/files/set/variants.json`);
+    await page.waitForFunction(() => window.cpsl && (window.cpsl.ready || window.cpsl.error), null, { timeout: 60000 });
+    const first = await page.evaluate(() => window.cpsl.player.variant);
+    await page.waitForFunction(() => window.cpsl.error || window.cpsl.player.frame >= 17, null, { timeout: 60000 });
+    const later = await page.evaluate(() => ({ v: window.cpsl.player.variant, e: window.cpsl.error }));
+    if (later.e) throw new Error(`player: ${later.e}`);
+    const adapted = first === 0 && later.v === 1;
+    if (!adapted) failures++;
+    console.log(`${adapted ? "ok  " : "FAIL"} adaptive variants: started on ${first}, on ${later.v} by frame 17 (want 0 then 1)`);
+  }
 } finally {
   await browser?.close();
   server?.child.kill("SIGTERM");
@@ -125,4 +156,4 @@ if (failures) {
   console.error(`${failures} of ${cases.length} player renders differ from the CPU reference`);
   process.exit(1);
 }
-console.log(`browser player matches the CPU reference on ${cases.length} renders`);
+console.log(`browser player matches the CPU reference on ${cases.length + 1} renders and adapts between variants`);

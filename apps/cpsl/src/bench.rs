@@ -16,6 +16,9 @@ pub enum BenchCommand {
     Render(BenchRenderArgs),
     /// Per-stage time of content-promoted layering of one frame.
     Layer(BenchLayerArgs),
+    /// Load test of `cpsl serve` on loopback: concurrent clients fetching every file of the
+    /// packages in a folder; zero errors expected, latency percentiles and throughput reported.
+    Serve(crate::serve::BenchServeArgs),
 }
 
 /// Arguments of `cpsl bench layer`.
@@ -394,6 +397,7 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
     let a = match cmd {
         BenchCommand::Render(a) => a,
         BenchCommand::Layer(a) => return bench_layer(a),
+        BenchCommand::Serve(a) => return crate::serve::bench(a),
     };
     anyhow::ensure!(a.frames >= 1, "--frames must be at least 1");
     let sets: Vec<(&'static str, LayerSet)> = match (&a.layerset, a.coverage) {

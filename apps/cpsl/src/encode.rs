@@ -7,7 +7,7 @@ use clap::{Args, ValueEnum};
 use cpsl_codec::{CodingOptions, PackageWriter, RateControl, SegmentFrame};
 use cpsl_package::{Codec, Package, RefreshReason};
 use cpsl_video::Refresh;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Instant;
@@ -77,6 +77,11 @@ pub struct EncodeArgs {
     /// omitted (h264 23, h265 28, av1 35, vp9 32).
     #[arg(long, conflicts_with = "bitrate")]
     pub quality: Option<f32>,
+    /// Several budgets (`500k,1M,3M`): one package per budget from a single layering pass,
+    /// written into the --output folder with a `variants.json` that the browser player
+    /// (`cpsl serve`) adapts between at segment boundaries.
+    #[arg(long, value_delimiter = ',', value_parser = parse_bitrate, conflicts_with_all = ["bitrate", "quality"])]
+    pub variants: Vec<f64>,
     /// Frame rate of the package; the input's by default (30 for image folders).
     #[arg(long)]
     pub fps: Option<f64>,
@@ -109,12 +114,40 @@ pub fn run(a: EncodeArgs) -> Result<()> {
         (None, Some(q)) => bail!("--quality {q}: {} takes {q_min} to {q_max}", codec.name()),
         (None, None) => RateControl::Quality(q_default),
     };
-    if a.output.exists() && !cpsl_package::is_package(&a.output) {
-        bail!(
-            "{} exists and is not a CPSL package; not replacing it",
-            a.output.display()
-        );
-    }
+    // One (package, rate) per output: the package itself, or one per variant.
+    let outputs: Vec<(PathBuf, RateControl)> = if a.variants.is_empty() {
+        if a.output.exists() && !cpsl_package::is_package(&a.output) {
+            bail!(
+                "{} exists and is not a CPSL package; not replacing it",
+                a.output.display()
+            );
+        }
+        vec![(a.output.clone(), rate)]
+    } else {
+        let set = a.output.join(cpsl_server::VARIANTS_FILE);
+        if a.output.exists() && !set.is_file() {
+            bail!(
+                "{} exists and is not a variant set (no {}); not replacing it",
+                a.output.display(),
+                cpsl_server::VARIANTS_FILE
+            );
+        }
+        let mut budgets = a.variants.clone();
+        budgets.sort_by(f64::total_cmp);
+        budgets.dedup();
+        std::fs::create_dir_all(&a.output)
+            .with_context(|| format!("creating {}", a.output.display()))?;
+        budgets
+            .into_iter()
+            .map(|b| {
+                let p = a.output.join(format!("{:.0}k.cpsl", b / 1e3));
+                if p.exists() && !cpsl_package::is_package(&p) {
+                    bail!("{} exists and is not a CPSL package", p.display());
+                }
+                Ok((p, RateControl::Budget(b)))
+            })
+            .collect::<Result<_>>()?
+    };
     let fps = match a.fps {
         Some(f) if f.is_finite() && (0.1..=1000.0).contains(&f) => f,
         Some(f) => bail!("--fps {f}: give 0.1 to 1000 frames per second"),
@@ -134,26 +167,29 @@ pub fn run(a: EncodeArgs) -> Result<()> {
         ctrlc::set_handler(move || stop.store(true, Ordering::SeqCst))
             .context("installing the Ctrl-C handler")?;
     }
-    let opts = CodingOptions { codec, rate, fps };
-    let mut writer: Option<PackageWriter> = None;
+    let mut writers: Vec<PackageWriter> = Vec::new();
     let mut pending: Vec<SegmentFrame> = Vec::new();
     let mut reports = Vec::new();
     let mut coding = 0.0;
-    let mut flush = |writer: &mut PackageWriter, pending: &mut Vec<SegmentFrame>| -> Result<()> {
+    let mut flush = |writers: &mut Vec<PackageWriter>,
+                     pending: &mut Vec<SegmentFrame>|
+     -> Result<()> {
         if !pending.is_empty() {
             let t = Instant::now();
-            let r = writer
-                .push_segment(pending)
-                .with_context(|| format!("coding the segment from frame {}", pending[0].index))?;
-            if !r.feasible {
-                tracing::warn!(
-                    "segment at frame {}: the budget is below what the lowest quality needs ({:.0} bits spent of {:.0})",
-                    pending[0].index,
-                    r.bits,
-                    r.budget_bits.unwrap_or(0.0)
-                );
+            for writer in writers.iter_mut() {
+                let r = writer.push_segment(pending).with_context(|| {
+                    format!("coding the segment from frame {}", pending[0].index)
+                })?;
+                if !r.feasible {
+                    tracing::warn!(
+                        "segment at frame {}: the budget is below what the lowest quality needs ({:.0} bits spent of {:.0})",
+                        pending[0].index,
+                        r.bits,
+                        r.budget_bits.unwrap_or(0.0)
+                    );
+                }
+                reports.push(r);
             }
-            reports.push(r);
             pending.clear();
             coding += t.elapsed().as_secs_f64();
         }
@@ -165,17 +201,23 @@ pub fn run(a: EncodeArgs) -> Result<()> {
             bail!("interrupted; no package written");
         }
         let f = &r.frame;
-        let w = match &mut writer {
-            Some(w) => w,
-            None => writer.insert(PackageWriter::create(
-                &a.output,
-                *f.set.camera(),
-                a.layering.layers,
-                opts,
-            )?),
-        };
+        if writers.is_empty() {
+            for (path, rate) in &outputs {
+                let opts = CodingOptions {
+                    codec,
+                    rate: *rate,
+                    fps,
+                };
+                writers.push(PackageWriter::create(
+                    path,
+                    *f.set.camera(),
+                    a.layering.layers,
+                    opts,
+                )?);
+            }
+        }
         if f.refresh.is_some() {
-            flush(w, &mut pending)?;
+            flush(&mut writers, &mut pending)?;
         }
         pending.push(SegmentFrame {
             index: f.index as u32,
@@ -186,27 +228,51 @@ pub fn run(a: EncodeArgs) -> Result<()> {
         });
         Ok(())
     })?;
-    let mut writer = writer.context("no frames")?;
-    flush(&mut writer, &mut pending)?;
+    anyhow::ensure!(!writers.is_empty(), "no frames");
+    flush(&mut writers, &mut pending)?;
     if stop.load(Ordering::SeqCst) {
         bail!("interrupted; no package written");
     }
-    let m = writer.finish()?;
     let secs = t.elapsed().as_secs_f64();
-    println!(
-        "wrote {} ({} frames, {} segments, {} at {:.0} kbit/s{}) in {secs:.1} s ({:.1} frames/s; coding {coding:.1} s, {:.1} frames/s)",
-        a.output.display(),
-        m.frames,
-        m.segments.len(),
-        codec.name(),
-        m.bitrate() / 1e3,
-        match m.budget {
-            Some(b) => format!(" for a budget of {:.0} kbit/s", b as f64 / 1e3),
-            None => String::new(),
-        },
-        m.frames as f64 / secs,
-        m.frames as f64 / coding.max(1e-9)
-    );
+    for (w, (path, _)) in writers.into_iter().zip(&outputs) {
+        let m = w.finish()?;
+        println!(
+            "wrote {} ({} frames, {} segments, {} at {:.0} kbit/s{}) in {secs:.1} s ({:.1} frames/s; coding {coding:.1} s, {:.1} frames/s)",
+            path.display(),
+            m.frames,
+            m.segments.len(),
+            codec.name(),
+            m.bitrate() / 1e3,
+            match m.budget {
+                Some(b) => format!(" for a budget of {:.0} kbit/s", b as f64 / 1e3),
+                None => String::new(),
+            },
+            m.frames as f64 / secs,
+            m.frames as f64 / coding.max(1e-9)
+        );
+    }
+    if !a.variants.is_empty() {
+        write_variant_set(&a.output, &outputs)?;
+    }
+    Ok(())
+}
+
+/// Writes `variants.json` naming the packages in `dir`, cheapest first (atomically: a
+/// sibling temporary file renamed into place).
+fn write_variant_set(dir: &Path, outputs: &[(PathBuf, RateControl)]) -> Result<()> {
+    let set = cpsl_server::VariantSet {
+        format: cpsl_server::VARIANTS_FORMAT.into(),
+        version: 1,
+        variants: outputs
+            .iter()
+            .filter_map(|(p, _)| p.file_name()?.to_str().map(String::from))
+            .collect(),
+    };
+    let path = dir.join(cpsl_server::VARIANTS_FILE);
+    let tmp = dir.join(format!(".{}.tmp", cpsl_server::VARIANTS_FILE));
+    std::fs::write(&tmp, serde_json::to_string_pretty(&set)? + "\n")?;
+    std::fs::rename(&tmp, &path)?;
+    println!("wrote {} ({} variants)", path.display(), set.variants.len());
     Ok(())
 }
 

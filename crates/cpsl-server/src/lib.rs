@@ -20,10 +20,13 @@
 mod assets;
 mod files;
 mod listing;
+mod load;
 
 pub use listing::{
-    list_packages, Listing, PackageSummary, VariantSet, VARIANTS_FILE, VARIANTS_FORMAT,
+    list_packages, package_urls, Listing, PackageSummary, VariantSet, VARIANTS_FILE,
+    VARIANTS_FORMAT,
 };
+pub use load::{run_load, LoadConfig, LoadReport};
 
 use axum::body::Body;
 use axum::extract::{Request, State};

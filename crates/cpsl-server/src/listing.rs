@@ -113,3 +113,21 @@ pub fn list_packages(root: &Path) -> Listing {
     out.variant_sets.sort();
     out
 }
+
+/// URLs of every file of a listed package: its manifest, then each segment's streams and side
+/// stream.
+pub fn package_urls(root: &Path, p: &PackageSummary) -> Vec<String> {
+    let Ok(pkg) = Package::open(&root.join(&p.path)) else {
+        return Vec::new();
+    };
+    let mut out = vec![format!("{}manifest.json", p.url)];
+    for s in &pkg.manifest().segments {
+        out.extend(
+            s.streams
+                .iter()
+                .map(|t| format!("{}{}", p.url, t.file.path)),
+        );
+        out.push(format!("{}{}", p.url, s.side.path));
+    }
+    out
+}

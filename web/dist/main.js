@@ -67,7 +67,11 @@ class Player {
     shownFrame = -1;
     lastTick = 0;
     frameTimes = [];
+    /** Frames decoded and uploaded so far. */
+    shown = 0;
+    showTimes = [];
     busy = false;
+    drawn = "";
     error = null;
     constructor(canvas, variants, fixedVariant) {
         this.canvas = canvas;
@@ -178,6 +182,7 @@ class Player {
     }
     /** Decodes and uploads `frame`; later calls for earlier frames restart its segment. */
     async show(frame) {
+        const t0 = performance.now();
         const i = this.segmentOf(frame);
         if (this.current && this.current.index === i && frame < this.shownFrame) {
             // Seeking backwards inside a segment: decode it again from its I-frame.
@@ -190,6 +195,10 @@ class Player {
         await this.renderer.upload(pictures, seg.side[local]);
         this.shownFrame = frame;
         this.frame = frame;
+        this.shown++;
+        this.showTimes.push(performance.now() - t0);
+        if (this.showTimes.length > 60)
+            this.showTimes.shift();
     }
     draw() {
         const t0 = performance.now();
@@ -216,9 +225,16 @@ class Player {
     set dps(on) {
         this.renderer.dpsEnabled = on;
     }
+    /** Median time of the last 60 draws (render and present), milliseconds. */
+    medianDrawMs() {
+        return median(this.frameTimes);
+    }
+    /** Median time of the last 60 frame changes (fetch, decode, upload), milliseconds. */
+    medianShowMs() {
+        return median(this.showTimes);
+    }
     status() {
-        const ft = [...this.frameTimes].sort((a, b) => a - b);
-        const med = ft.length ? ft[Math.floor(ft.length / 2)] : 0;
+        const med = this.medianDrawMs();
         const v = this.variants[this.variant];
         return (`frame ${this.frame + 1}/${this.manifest.frames} · render ${med.toFixed(1)} ms` +
             ` · ${(v.bitrate / 1e6).toFixed(2)} Mbit/s` +
@@ -235,12 +251,21 @@ class Player {
                 this.lastTick = now;
                 await this.show((this.frame + 1) % this.manifest.frames);
             }
-            this.draw();
+            // Draw only when the picture or the view changed.
+            const key = JSON.stringify([this.shown, this.pose(-1), this.pose(1), this.stereo]);
+            if (key !== this.drawn) {
+                this.drawn = key;
+                this.draw();
+            }
         }
         finally {
             this.busy = false;
         }
     }
+}
+function median(v) {
+    const s = [...v].sort((a, b) => a - b);
+    return s.length ? s[Math.floor(s.length / 2)] : 0;
 }
 function controls(player, canvas) {
     let drag = null;

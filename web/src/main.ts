@@ -83,7 +83,11 @@ class Player {
   private shownFrame = -1;
   private lastTick = 0;
   private frameTimes: number[] = [];
+  /** Frames decoded and uploaded so far. */
+  shown = 0;
+  private showTimes: number[] = [];
   private busy = false;
+  private drawn = "";
   error: string | null = null;
 
   constructor(canvas: HTMLCanvasElement, variants: Variant[], fixedVariant: number | null) {
@@ -190,6 +194,7 @@ class Player {
 
   /** Decodes and uploads `frame`; later calls for earlier frames restart its segment. */
   async show(frame: number) {
+    const t0 = performance.now();
     const i = this.segmentOf(frame);
     if (this.current && this.current.index === i && frame < this.shownFrame) {
       // Seeking backwards inside a segment: decode it again from its I-frame.
@@ -202,6 +207,9 @@ class Player {
     await this.renderer.upload(pictures, seg.side[local]);
     this.shownFrame = frame;
     this.frame = frame;
+    this.shown++;
+    this.showTimes.push(performance.now() - t0);
+    if (this.showTimes.length > 60) this.showTimes.shift();
   }
 
   draw() {
@@ -230,9 +238,18 @@ class Player {
     this.renderer.dpsEnabled = on;
   }
 
+  /** Median time of the last 60 draws (render and present), milliseconds. */
+  medianDrawMs(): number {
+    return median(this.frameTimes);
+  }
+
+  /** Median time of the last 60 frame changes (fetch, decode, upload), milliseconds. */
+  medianShowMs(): number {
+    return median(this.showTimes);
+  }
+
   status(): string {
-    const ft = [...this.frameTimes].sort((a, b) => a - b);
-    const med = ft.length ? ft[Math.floor(ft.length / 2)] : 0;
+    const med = this.medianDrawMs();
     const v = this.variants[this.variant];
     return (
       `frame ${this.frame + 1}/${this.manifest.frames} · render ${med.toFixed(1)} ms` +
@@ -251,11 +268,21 @@ class Player {
         this.lastTick = now;
         await this.show((this.frame + 1) % this.manifest.frames);
       }
-      this.draw();
+      // Draw only when the picture or the view changed.
+      const key = JSON.stringify([this.shown, this.pose(-1), this.pose(1), this.stereo]);
+      if (key !== this.drawn) {
+        this.drawn = key;
+        this.draw();
+      }
     } finally {
       this.busy = false;
     }
   }
+}
+
+function median(v: number[]): number {
+  const s = [...v].sort((a, b) => a - b);
+  return s.length ? s[Math.floor(s.length / 2)] : 0;
 }
 
 function controls(player: Player, canvas: HTMLCanvasElement) {

@@ -98,21 +98,27 @@ pub struct BenchServeArgs {
     /// Seconds to run.
     #[arg(long, default_value_t = 30.0)]
     pub seconds: f64,
-    /// Write the report as JSON here.
+    /// Also load another server that serves the same folder at its root (e.g. nginx on
+    /// `127.0.0.1:8081`, files under `/files/` mapped to the folder), right after ours, and
+    /// report both side by side.
+    #[arg(long)]
+    pub peer: Option<SocketAddr>,
+    /// Write the report(s) as JSON here.
     #[arg(long)]
     pub json: Option<PathBuf>,
 }
 
-/// Serves `dir` on an ephemeral loopback port and loads it with `clients` clients.
+/// Starts `cpsl serve DIR` on an ephemeral loopback port in its own process (as the peer
+/// runs in its own), and loads it with `clients` clients.
 pub fn bench(a: BenchServeArgs) -> anyhow::Result<()> {
+    use std::io::BufRead;
     anyhow::ensure!(a.clients >= 1, "--clients must be at least 1");
     anyhow::ensure!(
         a.seconds > 0.0 && a.seconds.is_finite(),
         "--seconds must be positive"
     );
-    let cfg = ServerConfig::default();
-    let app = router(&a.dir, &cfg)?;
-    let root = std::fs::canonicalize(&a.dir)?;
+    let root = std::fs::canonicalize(&a.dir)
+        .with_context(|| format!("cannot serve {}", a.dir.display()))?;
     let listing = list_packages(&root);
     let paths: Vec<String> = listing
         .packages
@@ -124,51 +130,71 @@ pub fn bench(a: BenchServeArgs) -> anyhow::Result<()> {
         "no package under {} (make one with `cpsl demo`)",
         a.dir.display()
     );
+    let mut child = std::process::Command::new(std::env::current_exe()?)
+        .arg("serve")
+        .arg(&root)
+        .args(["--addr", "127.0.0.1:0"])
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .context("starting `cpsl serve`")?;
+    let mut first = String::new();
+    std::io::BufReader::new(child.stdout.take().context("server output")?).read_line(&mut first)?;
+    let addr: SocketAddr = first
+        .split("http://")
+        .nth(1)
+        .and_then(|s| s.trim().trim_end_matches('/').parse().ok())
+        .with_context(|| format!("unexpected server output: {first}"))?;
+    eprintln!(
+        "{} clients fetching {} files of {} package(s) from http://{addr}/ for {} s",
+        a.clients,
+        paths.len(),
+        listing.packages.len(),
+        a.seconds
+    );
     let rt = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()?;
-    let report = rt.block_on(async move {
-        let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await?;
-        let addr = listener.local_addr()?;
-        let (tx, rx) = tokio::sync::oneshot::channel::<()>();
-        let server = tokio::spawn(async move {
-            let stop = async {
-                let _ = rx.await;
-            };
-            serve(listener, app, &cfg, stop, Duration::from_secs(5)).await
-        });
-        eprintln!(
-            "{} clients fetching {} files of {} package(s) from http://{addr}/ for {} s",
-            a.clients,
-            paths.len(),
-            listing.packages.len(),
-            a.seconds
+    let load = |addr| cpsl_server::LoadConfig {
+        addr,
+        paths: paths.clone(),
+        clients: a.clients,
+        duration: Duration::from_secs_f64(a.seconds),
+    };
+    let ours = rt.block_on(cpsl_server::run_load(&load(addr)));
+    let _ = child.kill();
+    let _ = child.wait();
+    let peer = a.peer.map(|p| {
+        eprintln!("the same load on the peer at http://{p}/");
+        rt.block_on(cpsl_server::run_load(&load(p)))
+    });
+    let report = (ours, peer);
+    let line = |name: &str, r: &cpsl_server::LoadReport| {
+        println!(
+            "{name:>6}: {} requests in {:.1} s: {:.0} requests/s, {:.1} MB/s; latency p50 {:.2} ms, p99 {:.2} ms, max {:.2} ms; {} errors",
+            r.requests,
+            r.seconds,
+            r.requests_per_second,
+            r.megabytes_per_second,
+            r.p50_ms,
+            r.p99_ms,
+            r.max_ms,
+            r.errors
+        )
+    };
+    let (ours, peer) = report;
+    line("cpsl", &ours);
+    if let Some(p) = &peer {
+        line("peer", p);
+        println!(
+            "cpsl / peer: {:.2}x the requests per second, {:.2}x the p99 latency",
+            ours.requests_per_second / p.requests_per_second.max(1e-9),
+            ours.p99_ms / p.p99_ms.max(1e-9)
         );
-        let report = cpsl_server::run_load(&cpsl_server::LoadConfig {
-            addr,
-            paths,
-            clients: a.clients,
-            duration: Duration::from_secs_f64(a.seconds),
-        })
-        .await;
-        let _ = tx.send(());
-        server.await??;
-        anyhow::Ok(report)
-    })?;
-    println!(
-        "{} requests in {:.1} s: {:.0} requests/s, {:.1} MB/s; latency p50 {:.2} ms, p99 {:.2} ms, max {:.2} ms; {} errors",
-        report.requests,
-        report.seconds,
-        report.requests_per_second,
-        report.megabytes_per_second,
-        report.p50_ms,
-        report.p99_ms,
-        report.max_ms,
-        report.errors
-    );
-    if let Some(p) = &a.json {
-        std::fs::write(p, serde_json::to_string_pretty(&report)?)?;
     }
-    anyhow::ensure!(report.errors == 0, "{} requests failed", report.errors);
+    if let Some(p) = &a.json {
+        let v = serde_json::json!({ "cpsl": ours, "peer": peer });
+        std::fs::write(p, serde_json::to_string_pretty(&v)?)?;
+    }
+    anyhow::ensure!(ours.errors == 0, "{} requests failed", ours.errors);
     Ok(())
 }

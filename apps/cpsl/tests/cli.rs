@@ -124,6 +124,38 @@ fn clear_errors_and_nothing_written() {
         &["render", s(&missing), "--sweep", "qx:0:1:3", "-o", "x"],
         "axis must be",
     );
+    fails(
+        &["serve", s(&missing), "--addr", "127.0.0.1:0"],
+        "cannot serve",
+    );
+    fails(&["bench", "serve", s(d.path())], "no package under");
+    // A variant set goes into a folder of its own: anything else there is not replaced.
+    let taken = d.path().join("taken");
+    std::fs::create_dir(&taken).unwrap();
+    fails(
+        &[
+            "encode",
+            s(&missing),
+            "-o",
+            s(&taken),
+            "--variants",
+            "500k,1M",
+        ],
+        "is not a variant set",
+    );
+    fails(
+        &[
+            "encode",
+            s(&missing),
+            "-o",
+            s(&taken),
+            "--variants",
+            "1M",
+            "--bitrate",
+            "1M",
+        ],
+        "cannot be used with",
+    );
 
     // Depth of the wrong size: error naming both sizes, no layer set written.
     let scene = d.path().join("scene");

@@ -72,6 +72,7 @@ class Player {
     showTimes = [];
     busy = false;
     drawn = "";
+    queue = Promise.resolve();
     error = null;
     constructor(canvas, variants, fixedVariant) {
         this.canvas = canvas;
@@ -180,8 +181,15 @@ class Player {
             this.next = this.load(i + 1, this.chooseVariant());
         return seg;
     }
-    /** Decodes and uploads `frame`; later calls for earlier frames restart its segment. */
-    async show(frame) {
+    /** Decodes and uploads `frame`, after any show already under way (seeks, keys and the
+     * playback clock may ask at once; decoders take one request at a time). */
+    show(frame) {
+        const run = this.queue.then(() => this.showNow(frame));
+        this.queue = run.catch(() => undefined);
+        return run;
+    }
+    /** Decodes and uploads `frame`; a frame before the last one restarts its segment. */
+    async showNow(frame) {
         const t0 = performance.now();
         const i = this.segmentOf(frame);
         if (this.current && this.current.index === i && frame < this.shownFrame) {
@@ -314,7 +322,7 @@ function controls(player, canvas) {
     seek.max = String(player.manifest.frames - 1);
     seek.addEventListener("input", () => {
         player.playing = false;
-        void player.show(Number(seek.value));
+        player.show(Number(seek.value)).catch(fail);
     });
     const play = $("play");
     const toggle = () => {
@@ -342,9 +350,9 @@ function controls(player, canvas) {
         else if (e.key === "ArrowDown")
             player.dolly -= step;
         else if (e.key === ",")
-            void player.show(Math.max(player.frame - 1, 0));
+            player.show(Math.max(player.frame - 1, 0)).catch(fail);
         else if (e.key === ".")
-            void player.show(Math.min(player.frame + 1, player.manifest.frames - 1));
+            player.show(Math.min(player.frame + 1, player.manifest.frames - 1)).catch(fail);
         else
             return;
         e.preventDefault();

@@ -88,6 +88,7 @@ class Player {
   private showTimes: number[] = [];
   private busy = false;
   private drawn = "";
+  private queue: Promise<void> = Promise.resolve();
   error: string | null = null;
 
   constructor(canvas: HTMLCanvasElement, variants: Variant[], fixedVariant: number | null) {
@@ -192,8 +193,16 @@ class Player {
     return seg;
   }
 
-  /** Decodes and uploads `frame`; later calls for earlier frames restart its segment. */
-  async show(frame: number) {
+  /** Decodes and uploads `frame`, after any show already under way (seeks, keys and the
+   * playback clock may ask at once; decoders take one request at a time). */
+  show(frame: number): Promise<void> {
+    const run = this.queue.then(() => this.showNow(frame));
+    this.queue = run.catch(() => undefined);
+    return run;
+  }
+
+  /** Decodes and uploads `frame`; a frame before the last one restarts its segment. */
+  private async showNow(frame: number) {
     const t0 = performance.now();
     const i = this.segmentOf(frame);
     if (this.current && this.current.index === i && frame < this.shownFrame) {
@@ -332,7 +341,7 @@ function controls(player: Player, canvas: HTMLCanvasElement) {
   seek.max = String(player.manifest.frames - 1);
   seek.addEventListener("input", () => {
     player.playing = false;
-    void player.show(Number(seek.value));
+    player.show(Number(seek.value)).catch(fail);
   });
   const play = $("play") as HTMLButtonElement;
   const toggle = () => {
@@ -353,8 +362,8 @@ function controls(player: Player, canvas: HTMLCanvasElement) {
     else if (e.key === "ArrowRight") player.pan[0] += step;
     else if (e.key === "ArrowUp") player.dolly += step;
     else if (e.key === "ArrowDown") player.dolly -= step;
-    else if (e.key === ",") void player.show(Math.max(player.frame - 1, 0));
-    else if (e.key === ".") void player.show(Math.min(player.frame + 1, player.manifest.frames - 1));
+    else if (e.key === ",") player.show(Math.max(player.frame - 1, 0)).catch(fail);
+    else if (e.key === ".") player.show(Math.min(player.frame + 1, player.manifest.frames - 1)).catch(fail);
     else return;
     e.preventDefault();
   });

@@ -7,8 +7,7 @@
 //
 // Headless Chromium without a GPU renders WebGL2 with SwiftShader on the CPU: numbers from
 // such a machine measure the correctness path, not what a GPU browser does.
-import { chromium } from "playwright-core";
-import { spawn } from "node:child_process";
+import { startServer, launchChromium, playerReady } from "./browser.mjs";
 import { join, resolve, dirname } from "node:path";
 import { fileURLToPath } from "node:url";
 
@@ -20,28 +19,12 @@ if (!dir) {
   console.error("usage: node test/bench.mjs DIR [SECONDS]");
   process.exit(2);
 }
-const child = spawn(bin, ["serve", dir, "--addr", "127.0.0.1:0"], { stdio: ["ignore", "pipe", "inherit"] });
-const url = await new Promise((ok, fail) => {
-  let out = "";
-  child.stdout.on("data", (d) => {
-    out += d;
-    const m = out.match(/on (http:\/\/127\.0\.0\.1:\d+)\//);
-    if (m) ok(m[1]);
-  });
-  child.on("exit", (c) => fail(new Error(`cpsl serve exited with ${c}`)));
-});
-const browser = await chromium.launch({
-  executablePath: process.env.CHROMIUM ?? "/usr/bin/chromium",
-  args: ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",
-    "--disable-background-networking", "--disable-component-update", "--disable-sync",
-    "--use-angle=swiftshader", "--enable-unsafe-swiftshader"],
-});
+const { child, url } = await startServer(bin, dir);
+const browser = await launchChromium();
 try {
   const page = await browser.newPage({ viewport: { width: 1400, height: 900 } });
   await page.goto(`${url}/`);
-  await page.waitForFunction(() => window.cpsl && (window.cpsl.ready || window.cpsl.error), null, { timeout: 60000 });
-  const err = await page.evaluate(() => window.cpsl.error);
-  if (err) throw new Error(err);
+  await playerReady(page);
   await page.waitForTimeout(2000); // warm up
   const a = await page.evaluate(() => ({ n: window.cpsl.player.shown, t: performance.now() }));
   await page.waitForTimeout(seconds * 1000);
@@ -62,4 +45,3 @@ try {
   await browser.close();
   child.kill("SIGTERM");
 }
-// (Playwright starts Chromium with a fresh temporary profile of its own.)

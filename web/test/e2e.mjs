@@ -9,13 +9,13 @@
 // warps, composites and bridges cracks in float where the CPU renderer uses 8-bit fixed point,
 // so single pixels may differ by a few levels; the render must reach MIN_PSNR dB and the
 // screenshot of the page (the canvas as the browser shows it) MIN_SCREENSHOT_PSNR dB.
-import { chromium } from "playwright-core";
-import { spawn, execFileSync } from "node:child_process";
+import { execFileSync } from "node:child_process";
 import { mkdtempSync, readFileSync, rmSync } from "node:fs";
 import { tmpdir } from "node:os";
 import { join, resolve, dirname } from "node:path";
 import { fileURLToPath } from "node:url";
 import { readPng, compare } from "./png.mjs";
+import { startServer, launchChromium, playerReady } from "./browser.mjs";
 
 const MIN_PSNR = 45;
 const MIN_SCREENSHOT_PSNR = 45;
@@ -24,7 +24,6 @@ const MIN_SCREENSHOT_PSNR = 45;
 const MAX_STRIP_DIFF = 24;
 const here = dirname(fileURLToPath(import.meta.url));
 const bin = resolve(process.env.CPSL_BIN ?? join(here, "../../target/release/cpsl"));
-const chromiumPath = process.env.CHROMIUM ?? "/usr/bin/chromium";
 const work = mkdtempSync(join(tmpdir(), "cpsl-e2e-"));
 
 const cases = [
@@ -39,20 +38,6 @@ function run(args) {
   return execFileSync(bin, args, { stdio: ["ignore", "pipe", "inherit"] }).toString();
 }
 
-async function startServer(dir) {
-  const child = spawn(bin, ["serve", dir, "--addr", "127.0.0.1:0"], { stdio: ["ignore", "pipe", "inherit"] });
-  const url = await new Promise((ok, fail) => {
-    let out = "";
-    child.stdout.on("data", (d) => {
-      out += d;
-      const m = out.match(/on (http:\/\/127\.0\.0\.1:\d+)\//);
-      if (m) ok(m[1]);
-    });
-    child.on("exit", (c) => fail(new Error(`cpsl serve exited with ${c}`)));
-  });
-  return { child, url };
-}
-
 let server;
 let browser;
 let failures = 0;
@@ -63,23 +48,8 @@ try {
   const clip = join(work, "clip");
   run(["encode", join(clip, "frames"), "--depth-frames", join(clip, "depth"), "--camera", join(clip, "camera.json"),
        "--fps", "30", "--gop", "8", "--variants", "150k,1M", "-o", join(work, "set")]);
-  server = await startServer(work);
-  browser = await chromium.launch({
-    executablePath: chromiumPath,
-    headless: true,
-    args: [
-      "--headless",
-      "--no-sandbox",
-      "--disable-gpu",
-      "--disable-quic",
-      "--no-first-run",
-      "--disable-background-networking",
-      "--disable-component-update",
-      "--disable-sync",
-      "--use-angle=swiftshader",
-      "--enable-unsafe-swiftshader",
-    ],
-  });
+  server = await startServer(bin, work);
+  browser = await launchChromium();
   const page = await browser.newPage({ viewport: { width: 800, height: 600 }, deviceScaleFactor: 1 });
   page.on("console", (m) => {
     if (m.type() === "error") console.error(`browser: ${m.text()}`);
@@ -100,9 +70,7 @@ try {
     }
     const q = new URLSearchParams({ src: "/files/clip.cpsl/", frame: String(c.frame), pose: c.pose, paused: "1", dps: c.dps ? "1" : "0" });
     await page.goto(`${server.url}/?${q}`);
-    await page.waitForFunction(() => window.cpsl && (window.cpsl.ready || window.cpsl.error), null, { timeout: 60000 });
-    const err = await page.evaluate(() => window.cpsl.error);
-    if (err) throw new Error(`player: ${err}`);
+    await playerReady(page);
     const got = Buffer.from(await page.evaluate(() => window.cpsl.pixels()), "base64");
     const r = compare(got, want.rgba);
     const shot = readPng(await page.locator("#view").screenshot());
@@ -128,9 +96,7 @@ try {
     run(["render", join(work, "set", "1000k.cpsl"), "--frame", "10", "--pose", pose, "-o", ref]);
     const q = new URLSearchParams({ src: "/files/set/variants.json", frame: "10", pose, paused: "1", variant: "1" });
     await page.goto(`${server.url}/?${q}`);
-    await page.waitForFunction(() => window.cpsl && (window.cpsl.ready || window.cpsl.error), null, { timeout: 60000 });
-    const err = await page.evaluate(() => window.cpsl.error);
-    if (err) throw new Error(`player: ${err}`);
+    await playerReady(page);
     const got = Buffer.from(await page.evaluate(() => window.cpsl.pixels()), "base64");
     const r = compare(got, readPng(readFileSync(ref)).rgba);
     const ok = r.psnr >= MIN_PSNR;
@@ -138,7 +104,7 @@ try {
     console.log(`${ok ? "ok  " : "FAIL"} variant 2 of 2, frame 10: render ${r.psnr.toFixed(2)} dB (max diff ${r.max}); need ${MIN_PSNR} dB`);
 
     await page.goto(`${server.url}/?src=/files/set/variants.json`);
-    await page.waitForFunction(() => window.cpsl && (window.cpsl.ready || window.cpsl.error), null, { timeout: 60000 });
+    await playerReady(page);
     const first = await page.evaluate(() => window.cpsl.player.variant);
     await page.waitForFunction(() => window.cpsl.error || window.cpsl.player.frame >= 17, null, { timeout: 60000 });
     const later = await page.evaluate(() => ({ v: window.cpsl.player.variant, e: window.cpsl.error }));
@@ -146,6 +112,23 @@ try {
     const adapted = first === 0 && later.v === 1;
     if (!adapted) failures++;
     console.log(`${adapted ? "ok  " : "FAIL"} adaptive variants: started on ${first}, on ${later.v} by frame 17 (want 0 then 1)`);
+  }
+  // Controls: a mouse drag orbits the viewer (the picture changes), R resets it exactly.
+  {
+    await page.goto(`${server.url}/?src=/files/clip.cpsl/&frame=5&paused=1`);
+    await playerReady(page);
+    const before = await page.evaluate(() => window.cpsl.pixels());
+    const box = await page.locator("#view").boundingBox();
+    await page.mouse.move(box.x + box.width / 2, box.y + box.height / 2);
+    await page.mouse.down();
+    await page.mouse.move(box.x + box.width / 2 + 60, box.y + box.height / 2 - 20, { steps: 5 });
+    await page.mouse.up();
+    const moved = await page.evaluate(() => ({ yaw: window.cpsl.player.yaw, px: window.cpsl.pixels() }));
+    await page.keyboard.press("r");
+    const reset = await page.evaluate(() => ({ yaw: window.cpsl.player.yaw, px: window.cpsl.pixels() }));
+    const ok = moved.yaw > 0 && moved.px !== before && reset.yaw === 0 && reset.px === before;
+    if (!ok) failures++;
+    console.log(`${ok ? "ok  " : "FAIL"} drag orbits (yaw ${moved.yaw.toFixed(2)} deg, picture changed: ${moved.px !== before}), R resets (same picture: ${reset.px === before})`);
   }
 } finally {
   await browser?.close();
@@ -156,4 +139,4 @@ if (failures) {
   console.error(`${failures} of ${cases.length} player renders differ from the CPU reference`);
   process.exit(1);
 }
-console.log(`browser player matches the CPU reference on ${cases.length + 1} renders and adapts between variants`);
+console.log(`browser player matches the CPU reference on ${cases.length + 1} renders and adapts between variants; controls work`);

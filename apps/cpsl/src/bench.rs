@@ -215,12 +215,25 @@ pub struct BenchRenderArgs {
     /// compositing) by running scripts/bench_opencv.py with this Python interpreter.
     #[arg(long)]
     pub opencv: Option<PathBuf>,
+    /// Also time the GPU renderer (wgpu; composite pass only, like the CPU timing, from
+    /// submission to completion) and check its image against the CPU's.
+    #[arg(long)]
+    pub gpu: bool,
     /// Print JSON instead of a table.
     #[arg(long)]
     pub json: bool,
     /// Also write the JSON report to this file.
     #[arg(long)]
     pub save: Option<PathBuf>,
+}
+
+#[derive(Serialize)]
+struct GpuResult {
+    adapter: String,
+    timing: Timing,
+    fps: f64,
+    /// PSNR of the GPU render against the CPU's.
+    psnr_vs_cpu_db: f64,
 }
 
 #[derive(Serialize)]
@@ -265,6 +278,8 @@ struct Case {
     fps: f64,
     #[serde(skip_serializing_if = "Option::is_none")]
     opencv: Option<OpenCvResult>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    gpu: Option<GpuResult>,
 }
 
 #[derive(Serialize)]
@@ -327,6 +342,35 @@ fn time_cpsl(set: &LayerSet, pose: &Pose, frames: u32) -> (Timing, PremulImage) 
         })
         .collect();
     (timing(ms), out)
+}
+
+/// Times the GPU renderer on the same layers and pose (3 warm-up frames).
+fn time_gpu(
+    g: &cpsl_render_gpu::GpuRenderer,
+    set: &LayerSet,
+    pose: &Pose,
+    frames: u32,
+    cpu: &PremulImage,
+) -> Result<GpuResult> {
+    let cam = *set.camera();
+    let layers = g.prepare(set, None)?;
+    let img = g.render(&layers, pose, &cam, None)?;
+    g.time_renders(&layers, pose, &cam, None, 3)?;
+    let ms: Vec<f64> = g
+        .time_renders(&layers, pose, &cam, None, frames as usize)?
+        .into_iter()
+        .map(|s| s * 1e3)
+        .collect();
+    let timing = timing(ms);
+    Ok(GpuResult {
+        adapter: g.adapter().to_string(),
+        fps: 1e3 / timing.median_ms,
+        timing,
+        psnr_vs_cpu_db: cpsl_eval::metrics::psnr(
+            &cpu.over_background([0, 0, 0]),
+            &img.over_background([0, 0, 0]),
+        ),
+    })
 }
 
 /// Times the OpenCV implementation on the same layers and pose. `ours` is cpsl's render and
@@ -418,6 +462,17 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
         let s = &sets[0].1;
         (s.camera().width, s.camera().height, s.len() as u32)
     };
+    let gpu = if a.gpu {
+        match cpsl_render_gpu::GpuRenderer::new() {
+            Ok(g) => Some(g),
+            Err(e) => {
+                eprintln!("--gpu: {e}; timing the CPU only");
+                None
+            }
+        }
+    } else {
+        None
+    };
     let mut cases = Vec::new();
     for (name, set) in sets {
         let mean_cov =
@@ -427,12 +482,17 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
             Some(py) => Some(time_opencv(py, &set, &a.pose, a.frames, (&img, &cpsl))?),
             None => None,
         };
+        let gpu = match &gpu {
+            Some(g) => Some(time_gpu(g, &set, &a.pose, a.frames, &img)?),
+            None => None,
+        };
         cases.push(Case {
             coverage: name,
             mean_layer_coverage: mean_cov,
             fps: 1e3 / cpsl.median_ms,
             cpsl,
             opencv,
+            gpu,
         });
     }
     let (rx, ry, rz) = a.pose.euler_deg();
@@ -484,6 +544,17 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
                 o.timing.median_ms,
                 o.ratio,
                 o.psnr_vs_cpsl_db
+            );
+        }
+        if let Some(g) = &c.gpu {
+            println!(
+                "  {:<8} gpu {} median {:>7.2} ms (p90 {:>7.2}, {:>6.1} fps; agrees with the CPU at {:.1} dB)",
+                "",
+                g.adapter,
+                g.timing.median_ms,
+                g.timing.p90_ms,
+                g.fps,
+                g.psnr_vs_cpu_db
             );
         }
     }

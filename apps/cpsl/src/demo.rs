@@ -5,7 +5,7 @@
 use crate::encode::{CodecArg, EncodeArgs};
 use crate::layer::{layer_image, write_output, InstanceMode};
 use crate::progress::Bars;
-use crate::render::{render_sweep, Source, Sweep};
+use crate::render::{render_sweep, Backend, Frame, Source, Sweep};
 use crate::synth::{depth_list, estimate_depth, synthesise, SynthArgs};
 use crate::util::{self, Output};
 use anyhow::{Context, Result};
@@ -16,7 +16,6 @@ use cpsl_io::images::write_png;
 use cpsl_io::pfm::{write_pfm, FloatImage};
 use cpsl_layering::LayeringConfig;
 use cpsl_package::Package;
-use cpsl_render::PreparedLayers;
 use cpsl_synth::Scene;
 use serde::Serialize;
 use std::path::PathBuf;
@@ -142,13 +141,15 @@ pub fn run(a: DemoArgs) -> Result<()> {
         layer_dir.display()
     );
 
-    let mut source = Source::Still(Box::new(
-        PreparedLayers::new(&set).with_edc(&run.layered.edc),
-    ));
+    let mut source = Source::Still(Box::new(Frame::new(
+        set.clone(),
+        Some(run.layered.edc.clone()),
+    )));
     let sweep_dir = a.output.join("sweep");
     let sweep = Sweep::parse("tx:-0.3:0.3:61").expect("valid sweep");
     render_sweep(
         &mut source,
+        &Backend::Cpu,
         true,
         &sweep.poses(),
         &sweep_dir,
@@ -171,7 +172,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
     let mut scores = Vec::new();
     for (entry, truth) in &synth.views {
         let mut img = cpsl_core::PremulImage::new(set.camera().width, set.camera().height);
-        crate::render::render_pose(prepared, true, &entry.pose_matrix, set.camera(), &mut img);
+        Backend::Cpu.render(prepared, true, &entry.pose_matrix, set.camera(), &mut img)?;
         scores.push(Score {
             view: entry.name.clone(),
             pose: entry.pose.clone(),
@@ -309,6 +310,7 @@ fn clip(a: &DemoArgs, scene: &Scene, bars: &Bars) -> Result<()> {
         .poses();
     render_sweep(
         &mut source,
+        &Backend::Cpu,
         true,
         &poses,
         &sweep_dir,
@@ -319,7 +321,7 @@ fn clip(a: &DemoArgs, scene: &Scene, bars: &Bars) -> Result<()> {
     let mut img = cpsl_core::PremulImage::new(cam.width, cam.height);
     let mut scores = Vec::new();
     for (i, t) in &truth {
-        crate::render::render_pose(source.at(*i)?, true, &novel, &cam, &mut img);
+        Backend::Cpu.render(source.at(*i)?, true, &novel, &cam, &mut img)?;
         scores.push(serde_json::json!({
             "frame": i,
             "psnr_db": psnr(&img.over_background([0, 0, 0]), t),

@@ -4,8 +4,9 @@ use crate::progress::Bars;
 use crate::util::{self, Output};
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use cpsl_core::{Camera, Pose, PremulImage, Progress, ProgressEvent, Vec3};
+use cpsl_core::{Camera, Edc, LayerSet, Pose, PremulImage, Progress, ProgressEvent, Vec3};
 use cpsl_render::PreparedLayers;
+use cpsl_render_gpu::GpuRenderer;
 use std::path::{Path, PathBuf};
 
 /// Arguments of `cpsl render`.
@@ -41,6 +42,80 @@ pub struct RenderArgs {
     /// Render without the Dynamic Pixel Strip (ablation).
     #[arg(long)]
     pub no_dps: bool,
+    /// Render on the GPU (wgpu: Vulkan, Metal or GL; lavapipe on machines without one);
+    /// falls back to the CPU renderer, saying so, when no adapter exists.
+    #[arg(long)]
+    pub gpu: bool,
+}
+
+/// One frame's layers: the layer set and its cache, and their CPU preparation.
+pub struct Frame {
+    /// The layers.
+    pub set: LayerSet,
+    /// Their Edge-Depth Cache, when there is one.
+    pub edc: Option<Edc>,
+    /// Prepared for the CPU renderer.
+    pub prepared: PreparedLayers,
+}
+
+impl Frame {
+    /// Prepares `set` (with `edc`) for rendering.
+    pub fn new(set: LayerSet, edc: Option<Edc>) -> Self {
+        let prepared = PreparedLayers::new(&set);
+        let prepared = match &edc {
+            Some(e) => prepared.with_edc(e),
+            None => prepared,
+        };
+        Self { set, edc, prepared }
+    }
+}
+
+/// Which renderer draws.
+pub enum Backend {
+    /// The CPU reference.
+    Cpu,
+    /// wgpu.
+    Gpu(Box<GpuRenderer>),
+}
+
+impl Backend {
+    /// The GPU when asked for and present, else the CPU (with a message saying why).
+    pub fn choose(gpu: bool) -> Self {
+        if !gpu {
+            return Backend::Cpu;
+        }
+        match GpuRenderer::new() {
+            Ok(g) => {
+                eprintln!("rendering on {}", g.adapter());
+                Backend::Gpu(Box::new(g))
+            }
+            Err(e) => {
+                eprintln!("--gpu: {e}; rendering on the CPU instead");
+                Backend::Cpu
+            }
+        }
+    }
+
+    /// Renders `frame` at `pose` for camera `target` into `img`, with or without the Dynamic
+    /// Pixel Strip.
+    pub fn render(
+        &self,
+        frame: &Frame,
+        dps: bool,
+        pose: &Pose,
+        target: &Camera,
+        img: &mut PremulImage,
+    ) -> Result<()> {
+        match self {
+            Backend::Cpu => render_pose(&frame.prepared, dps, pose, target, img),
+            Backend::Gpu(g) => {
+                let cfg = cpsl_render::DpsConfig::default();
+                let layers = g.prepare(&frame.set, frame.edc.as_ref())?;
+                *img = g.render(&layers, pose, target, dps.then_some(&cfg))?;
+            }
+        }
+        Ok(())
+    }
 }
 
 /// A sweep of poses along one axis.
@@ -108,7 +183,7 @@ impl Sweep {
 /// What is rendered: one layer set, or the frames of a package.
 pub enum Source {
     /// A layer set, prepared.
-    Still(Box<PreparedLayers>),
+    Still(Box<Frame>),
     /// A package, decoded one segment at a time.
     Package(Box<PackagePlayer>),
 }
@@ -120,11 +195,12 @@ impl Source {
             return Ok(Source::Package(Box::new(PackagePlayer::open(path)?)));
         }
         let set = util::load_layer_set(path)?;
-        Ok(Source::Still(Box::new(prepare(path, &set)?)))
+        let edc = cpsl_io::read_edc(path, &set, &cpsl_core::Limits::default())?;
+        Ok(Source::Still(Box::new(Frame::new(set, edc))))
     }
 
     /// The layers to show at step `i` (a package's frame `i` modulo its length).
-    pub fn at(&mut self, i: usize) -> Result<&PreparedLayers> {
+    pub fn at(&mut self, i: usize) -> Result<&Frame> {
         match self {
             Source::Still(p) => Ok(p),
             Source::Package(p) => {
@@ -139,7 +215,7 @@ impl Source {
 pub struct PackagePlayer {
     pkg: cpsl_package::Package,
     segment: Option<usize>,
-    frames: Vec<PreparedLayers>,
+    frames: Vec<Frame>,
 }
 
 impl PackagePlayer {
@@ -160,7 +236,7 @@ impl PackagePlayer {
     }
 
     /// Frame `f`, decoded and prepared for rendering with its Edge-Depth Cache.
-    pub fn frame(&mut self, f: u32) -> Result<&PreparedLayers> {
+    pub fn frame(&mut self, f: u32) -> Result<&Frame> {
         let m = self.pkg.manifest();
         let seg = m
             .segment_of(f)
@@ -170,8 +246,8 @@ impl PackagePlayer {
                 format!("decoding segment {seg} of {}", self.pkg.root().display())
             })?;
             self.frames = decoded
-                .iter()
-                .map(|d| PreparedLayers::new(&d.set).with_edc(&d.side.edc))
+                .into_iter()
+                .map(|d| Frame::new(d.set, Some(d.side.edc)))
                 .collect();
             self.segment = Some(seg);
         }
@@ -182,8 +258,10 @@ impl PackagePlayer {
 /// Renders `poses` into `dir` as `frame_NNN.png`, plus `sheet.png` (five frames side by side)
 /// and, when FFmpeg is present, `sweep.mp4`. A package plays along the sweep, one frame per
 /// pose.
+#[allow(clippy::too_many_arguments)]
 pub fn render_sweep(
     source: &mut Source,
+    backend: &Backend,
     dps: bool,
     poses: &[Pose],
     dir: &Path,
@@ -192,7 +270,7 @@ pub fn render_sweep(
     progress: &dyn Progress,
 ) -> Result<()> {
     std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
-    let cam = *source.at(0)?.camera();
+    let cam = *source.at(0)?.set.camera();
     let mut img = PremulImage::new(cam.width, cam.height);
     let n = poses.len();
     let picks: Vec<usize> = if n <= 5 {
@@ -207,7 +285,7 @@ pub fn render_sweep(
         total: Some(poses.len() as u64),
     });
     for (i, pose) in poses.iter().enumerate() {
-        render_pose(source.at(i)?, dps, pose, &cam, &mut img);
+        backend.render(source.at(i)?, dps, pose, &cam, &mut img)?;
         util::write_render(&dir.join(format!("frame_{i:03}.png")), &img, how)?;
         if picks.contains(&i) {
             let (small, w, h) = util::downscale_rgb(
@@ -240,8 +318,8 @@ pub fn render_sweep(
     Ok(())
 }
 
-/// Renders the view of camera `target` at `pose` into `img`, with or without the Dynamic Pixel
-/// Strip.
+/// Renders the view of camera `target` at `pose` into `img` on the CPU, with or without the
+/// Dynamic Pixel Strip.
 pub fn render_pose(
     prepared: &PreparedLayers,
     dps: bool,
@@ -256,20 +334,10 @@ pub fn render_pose(
     }
 }
 
-/// Prepares a layer set for rendering, with its Edge-Depth Cache when the folder has one.
-pub fn prepare(dir: &Path, set: &cpsl_core::LayerSet) -> Result<PreparedLayers> {
-    let prepared = PreparedLayers::new(set);
-    Ok(
-        match cpsl_io::read_edc(dir, set, &cpsl_core::Limits::default())? {
-            Some(edc) => prepared.with_edc(&edc),
-            None => prepared,
-        },
-    )
-}
-
 /// Runs `cpsl render`.
 pub fn run(a: RenderArgs) -> Result<()> {
     let mut source = Source::open(&a.layerset)?;
+    let backend = Backend::choose(a.gpu);
     let dps = !a.no_dps;
     let how = if a.alpha {
         Output::Alpha
@@ -278,19 +346,20 @@ pub fn run(a: RenderArgs) -> Result<()> {
     };
     match (a.pose, a.sweep) {
         (Some(pose), None) => {
-            let prepared = match &mut source {
+            let frame = match &mut source {
                 Source::Still(p) => &**p,
                 Source::Package(p) => p.frame(a.frame)?,
             };
-            let cam = *prepared.camera();
+            let cam = *frame.set.camera();
             let mut img = PremulImage::new(cam.width, cam.height);
-            render_pose(prepared, dps, &pose, &cam, &mut img);
+            backend.render(frame, dps, &pose, &cam, &mut img)?;
             util::write_render(&a.output, &img, how)?;
             println!("wrote {}", a.output.display());
         }
         (None, Some(sweep)) => {
             render_sweep(
                 &mut source,
+                &backend,
                 dps,
                 &sweep.poses(),
                 &a.output,

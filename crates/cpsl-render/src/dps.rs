@@ -50,10 +50,11 @@ pub struct DpsStats {
 
 /// Per layer pair `(front, back)`: mean cached log-depth offsets on both sides.
 #[derive(Debug, Clone, Default)]
-pub(crate) struct EdgeOffsets(HashMap<(u8, u8), (f64, f64)>);
+pub struct EdgeOffsets(HashMap<(u8, u8), (f64, f64)>);
 
 impl EdgeOffsets {
-    pub(crate) fn from_edc(edc: &Edc) -> Self {
+    /// The mean offsets of every layer pair of `edc`.
+    pub fn from_edc(edc: &Edc) -> Self {
         let mut acc: HashMap<(u8, u8), (f64, f64, f64)> = HashMap::new();
         for s in &edc.samples {
             let e = acc.entry((s.front, s.back)).or_default();
@@ -67,6 +68,36 @@ impl EdgeOffsets {
                 .collect(),
         )
     }
+
+    /// The mean front and back offsets of pair `(front, back)`; zero where the cache has none.
+    pub fn get(&self, front: u8, back: u8) -> (f64, f64) {
+        self.0.get(&(front, back)).copied().unwrap_or((0.0, 0.0))
+    }
+}
+
+/// The strip half-width `s` for `pose`: the largest screen-space parallax between neighbouring
+/// layers (at `depths`, nearest first) at the image centre, plus one pixel, within
+/// `[1, cfg.max_width]`.
+pub fn strip_width(
+    camera: &Camera,
+    depths: &[f64],
+    pose: &Pose,
+    target: &Camera,
+    cfg: &DpsConfig,
+) -> u32 {
+    let (cx, cy) = (camera.cx, camera.cy);
+    let at = |z: f64| {
+        let p = pose.ref_to_view(camera.unproject(cx, cy, z));
+        target.project(p)
+    };
+    let parallax = depths
+        .windows(2)
+        .filter_map(|l| {
+            let (a, b) = (at(l[0])?, at(l[1])?);
+            Some(((a.0 - b.0).powi(2) + (a.1 - b.1).powi(2)).sqrt())
+        })
+        .fold(0.0, f64::max);
+    ((parallax.ceil() as u32) + 1).clamp(1, cfg.max_width.max(1))
 }
 
 const DIRS: [(i32, i32); 8] = [
@@ -81,22 +112,6 @@ const DIRS: [(i32, i32); 8] = [
 ];
 
 impl PreparedLayers {
-    /// Screen-space parallax in pixels between neighbouring layers at the image centre.
-    fn max_parallax(&self, pose: &Pose, target: &Camera) -> f64 {
-        let (cx, cy) = (self.camera.cx, self.camera.cy);
-        let at = |z: f64| {
-            let p = pose.ref_to_view(self.camera.unproject(cx, cy, z));
-            target.project(p)
-        };
-        self.layers
-            .windows(2)
-            .filter_map(|l| {
-                let (a, b) = (at(l[0].depth)?, at(l[1].depth)?);
-                Some(((a.0 - b.0).powi(2) + (a.1 - b.1).powi(2)).sqrt())
-            })
-            .fold(0.0, f64::max)
-    }
-
     /// Index of the first layer whose warped alpha at target pixel `(x, y)` is at least 1/2.
     fn visible_layer(&self, warps: &[Option<Warp>], x: usize, y: usize) -> Option<usize> {
         let (sw, sh) = (self.camera.width as f64, self.camera.height as f64);
@@ -127,8 +142,8 @@ impl PreparedLayers {
     ) -> DpsStats {
         self.render_into(pose, target, out);
         let (w, h) = (target.width as usize, target.height as usize);
-        let s =
-            ((self.max_parallax(pose, target).ceil() as u32) + 1).clamp(1, cfg.max_width.max(1));
+        let depths: Vec<f64> = self.layers.iter().map(|l| l.depth).collect();
+        let s = strip_width(&self.camera, &depths, pose, target, cfg);
         let mut stats = DpsStats {
             width: s,
             pixels: 0,
@@ -240,12 +255,7 @@ impl PreparedLayers {
                 let mut gamma = if f == b { 0.0 } else { df / (df + db) };
                 if f != b {
                     let (zf, zb) = (self.layers[f].depth.ln(), self.layers[b].depth.ln());
-                    let (of, ob) = self
-                        .edge_offsets
-                        .0
-                        .get(&(f as u8, b as u8))
-                        .copied()
-                        .unwrap_or((0.0, 0.0));
+                    let (of, ob) = self.edge_offsets.get(f as u8, b as u8);
                     let r = ((zb + ob - zf - of) / (zb - zf)).clamp(0.0, 2.0);
                     gamma = (0.5 + (gamma - 0.5) * (1.0 + r)).clamp(0.0, 1.0);
                 }

@@ -31,6 +31,6 @@ mod raster;
 #[cfg(target_arch = "x86_64")]
 mod simd;
 
-pub use dps::{DpsConfig, DpsStats};
+pub use dps::{strip_width, DpsConfig, DpsStats, EdgeOffsets};
 pub use prepared::PreparedLayers;
 pub use raster::RenderStats;

@@ -1,0 +1,40 @@
+// Shared by both passes (prepended to each): parameters, the layer texels and the warp.
+
+struct Params {
+    size: vec2<i32>,              // layer (and output) size
+    layers: i32,                  // layers in use
+    reach: i32,                   // DPS search reach 2s, in pixels
+    h: array<mat3x3<f32>, 16>,    // per layer: target pixel -> source pixel
+    log_depth: array<vec4<f32>, 4>,
+    offsets: array<vec4<f32>, 128>, // EDC mean offsets of pair (f, b) at b * 16 + f: (front, back)
+};
+
+@group(0) @binding(0) var layers: texture_2d_array<f32>;
+@group(0) @binding(1) var<uniform> P: Params;
+
+@vertex
+fn vs(@builtin(vertex_index) i: u32) -> @builtin(position) vec4<f32> {
+    let p = vec2<f32>(f32((i << 1u) & 2u), f32(i & 2u));
+    return vec4<f32>(p * 2.0 - 1.0, 0.0, 1.0);
+}
+
+fn q8(v: f32) -> f32 {
+    return clamp(floor(v + 0.5), 0.0, 255.0);
+}
+
+// Premultiplied RGBA of layer k at texel t, in 0..255; transparent outside the layer.
+fn texel(k: i32, t: vec2<i32>) -> vec4<f32> {
+    if (t.x < 0 || t.y < 0 || t.x >= P.size.x || t.y >= P.size.y) {
+        return vec4<f32>(0.0);
+    }
+    return floor(textureLoad(layers, t, k, 0) * 255.0 + 0.5);
+}
+
+// Source position of target pixel px on layer k; w <= 0 where the plane is not visible.
+fn warp(k: i32, px: vec2<f32>) -> vec3<f32> {
+    let h = P.h[k] * vec3<f32>(px, 1.0);
+    if (h.z <= 0.0) {
+        return vec3<f32>(0.0, 0.0, -1.0);
+    }
+    return vec3<f32>(h.xy / h.z, 1.0);
+}

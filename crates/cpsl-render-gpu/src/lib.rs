@@ -1,0 +1,468 @@
+//! The wgpu renderer of CPSL layers, with the semantics of the CPU reference (`cpsl-render`):
+//! per layer the inverse plane-induced homography ([`cpsl_core::Homography::plane_inverse`]),
+//! bilinear premultiplied sampling at positions rounded to 1/256 px with a transparent border,
+//! front-to-back compositing (paper eq. 2), then the Dynamic Pixel Strip (paper eq. 4) guided
+//! by the Edge-Depth Cache. The shaders are `common.wgsl` + `composite.wgsl` and `common.wgsl`
+//! + `dps.wgsl` next to this file (validated by naga in a test).
+//!
+//! Runs on any adapter wgpu finds (Vulkan, Metal, GL; on a machine without a GPU, Mesa's
+//! lavapipe). [`GpuRenderer::new`] fails with [`GpuError::NoAdapter`] where there is none, so
+//! callers can fall back to the CPU renderer.
+
+use cpsl_core::{Camera, Edc, Homography, LayerSet, Pose, PremulImage};
+use cpsl_render::{strip_width, DpsConfig, EdgeOffsets};
+use std::time::Duration;
+use thiserror::Error;
+
+/// The shader code shared by both passes.
+pub const COMMON_WGSL: &str = include_str!("common.wgsl");
+/// The compositing pass.
+pub const COMPOSITE_WGSL: &str = include_str!("composite.wgsl");
+/// The Dynamic Pixel Strip pass.
+pub const DPS_WGSL: &str = include_str!("dps.wgsl");
+/// Most layers per frame.
+pub const MAX_LAYERS: usize = 16;
+const PARAMS_BYTES: usize = 16 + MAX_LAYERS * 48 + 64 + 128 * 16;
+const FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8Unorm;
+
+/// Errors of the GPU renderer.
+#[derive(Debug, Error)]
+pub enum GpuError {
+    /// No graphics adapter (no GPU and no software Vulkan such as lavapipe).
+    #[error("no GPU adapter found ({0}); install a Vulkan driver (e.g. Debian's mesa-vulkan-drivers for lavapipe)")]
+    NoAdapter(String),
+    /// The device could not be created.
+    #[error("GPU device: {0}")]
+    Device(String),
+    /// The layer set does not fit the renderer.
+    #[error("{0}")]
+    Layers(String),
+    /// Reading the result back failed.
+    #[error("GPU readback: {0}")]
+    Readback(String),
+}
+
+/// A wgpu device with the two render pipelines.
+pub struct GpuRenderer {
+    device: wgpu::Device,
+    queue: wgpu::Queue,
+    layout: wgpu::BindGroupLayout,
+    composite: wgpu::RenderPipeline,
+    dps: wgpu::RenderPipeline,
+    /// Bound as the composite where the composite pass itself runs (it reads nothing there).
+    dummy: wgpu::TextureView,
+    adapter: String,
+}
+
+/// Layers uploaded to the GPU, with what the strip needs.
+pub struct GpuLayers {
+    texture: wgpu::TextureView,
+    camera: Camera,
+    depths: Vec<f64>,
+    offsets: EdgeOffsets,
+}
+
+impl GpuRenderer {
+    /// Opens the first adapter wgpu finds (set `WGPU_BACKEND`, e.g. `vulkan` or `gl`, to
+    /// choose) and builds the pipelines.
+    pub fn new() -> Result<Self, GpuError> {
+        let instance =
+            wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+        let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
+            power_preference: wgpu::PowerPreference::HighPerformance,
+            ..Default::default()
+        }))
+        .map_err(|e| GpuError::NoAdapter(e.to_string()))?;
+        let info = adapter.get_info();
+        let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
+            label: Some("cpsl"),
+            ..Default::default()
+        }))
+        .map_err(|e| GpuError::Device(e.to_string()))?;
+        let entry = |binding, ty| wgpu::BindGroupLayoutEntry {
+            binding,
+            visibility: wgpu::ShaderStages::FRAGMENT,
+            ty,
+            count: None,
+        };
+        let tex = |dim| wgpu::BindingType::Texture {
+            sample_type: wgpu::TextureSampleType::Float { filterable: false },
+            view_dimension: dim,
+            multisampled: false,
+        };
+        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("cpsl layers"),
+            entries: &[
+                entry(0, tex(wgpu::TextureViewDimension::D2Array)),
+                entry(
+                    1,
+                    wgpu::BindingType::Buffer {
+                        ty: wgpu::BufferBindingType::Uniform,
+                        has_dynamic_offset: false,
+                        min_binding_size: None,
+                    },
+                ),
+                entry(2, tex(wgpu::TextureViewDimension::D2)),
+            ],
+        });
+        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("cpsl"),
+            bind_group_layouts: &[Some(&layout)],
+            immediate_size: 0,
+        });
+        let pipeline = |name: &str, pass: &str| {
+            let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+                label: Some(name),
+                source: wgpu::ShaderSource::Wgsl(format!("{COMMON_WGSL}\n{pass}").into()),
+            });
+            device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+                label: Some(name),
+                layout: Some(&pipeline_layout),
+                vertex: wgpu::VertexState {
+                    module: &module,
+                    entry_point: Some("vs"),
+                    compilation_options: Default::default(),
+                    buffers: &[],
+                },
+                fragment: Some(wgpu::FragmentState {
+                    module: &module,
+                    entry_point: Some("fs"),
+                    compilation_options: Default::default(),
+                    targets: &[Some(FORMAT.into())],
+                }),
+                primitive: Default::default(),
+                depth_stencil: None,
+                multisample: Default::default(),
+                multiview_mask: None,
+                cache: None,
+            })
+        };
+        // The composite pass declares no binding 2; a layout may hold more than a shader uses.
+        let composite = pipeline("cpsl composite", COMPOSITE_WGSL);
+        let dps = pipeline("cpsl dps", DPS_WGSL);
+        let dummy = device
+            .create_texture(&wgpu::TextureDescriptor {
+                label: Some("cpsl dummy"),
+                size: wgpu::Extent3d {
+                    width: 1,
+                    height: 1,
+                    depth_or_array_layers: 1,
+                },
+                mip_level_count: 1,
+                sample_count: 1,
+                dimension: wgpu::TextureDimension::D2,
+                format: FORMAT,
+                usage: wgpu::TextureUsages::TEXTURE_BINDING,
+                view_formats: &[],
+            })
+            .create_view(&Default::default());
+        Ok(Self {
+            device,
+            queue,
+            layout,
+            composite,
+            dps,
+            dummy,
+            adapter: format!("{} ({:?}, {:?})", info.name, info.backend, info.device_type),
+        })
+    }
+
+    /// The adapter's name, backend and type.
+    pub fn adapter(&self) -> &str {
+        &self.adapter
+    }
+
+    /// Uploads a layer set (and its Edge-Depth Cache, for the strip).
+    pub fn prepare(&self, set: &LayerSet, edc: Option<&Edc>) -> Result<GpuLayers, GpuError> {
+        let cam = *set.camera();
+        let n = set.len();
+        if n == 0 || n > MAX_LAYERS {
+            return Err(GpuError::Layers(format!(
+                "{n} layers; the GPU renderer takes 1 to {MAX_LAYERS}"
+            )));
+        }
+        let size = wgpu::Extent3d {
+            width: cam.width,
+            height: cam.height,
+            depth_or_array_layers: n as u32,
+        };
+        let texture = self.device.create_texture(&wgpu::TextureDescriptor {
+            label: Some("cpsl layers"),
+            size,
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: FORMAT,
+            usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+            view_formats: &[],
+        });
+        for (k, l) in set.layers().iter().enumerate() {
+            self.queue.write_texture(
+                wgpu::TexelCopyTextureInfo {
+                    texture: &texture,
+                    mip_level: 0,
+                    origin: wgpu::Origin3d {
+                        x: 0,
+                        y: 0,
+                        z: k as u32,
+                    },
+                    aspect: wgpu::TextureAspect::All,
+                },
+                l.image.as_bytes(),
+                wgpu::TexelCopyBufferLayout {
+                    offset: 0,
+                    bytes_per_row: Some(4 * cam.width),
+                    rows_per_image: Some(cam.height),
+                },
+                wgpu::Extent3d {
+                    depth_or_array_layers: 1,
+                    ..size
+                },
+            );
+        }
+        Ok(GpuLayers {
+            texture: texture.create_view(&wgpu::TextureViewDescriptor {
+                dimension: Some(wgpu::TextureViewDimension::D2Array),
+                ..Default::default()
+            }),
+            camera: cam,
+            depths: set.layers().iter().map(|l| l.depth).collect(),
+            offsets: edc.map(EdgeOffsets::from_edc).unwrap_or_default(),
+        })
+    }
+
+    fn params(&self, layers: &GpuLayers, pose: &Pose, target: &Camera, reach: u32) -> Vec<u8> {
+        let mut b = vec![0u8; PARAMS_BYTES];
+        let put = |b: &mut [u8], at: usize, v: [u8; 4]| b[at..at + 4].copy_from_slice(&v);
+        put(&mut b, 0, (target.width as i32).to_le_bytes());
+        put(&mut b, 4, (target.height as i32).to_le_bytes());
+        put(&mut b, 8, (layers.depths.len() as i32).to_le_bytes());
+        put(&mut b, 12, (reach as i32).to_le_bytes());
+        for (k, &d) in layers.depths.iter().enumerate() {
+            // A plane the viewer has reached maps nothing (w = -1 everywhere).
+            let m = Homography::plane_inverse(&layers.camera, target, pose, d)
+                .map(|h| h.0 .0)
+                .unwrap_or([[0.0; 3], [0.0; 3], [0.0, 0.0, -1.0]]);
+            // Column-major, each column padded to 16 bytes (WGSL mat3x3).
+            for (r, row) in m.iter().enumerate() {
+                for (c, v) in row.iter().enumerate() {
+                    let at = 16 + k * 48 + c * 16 + r * 4;
+                    put(&mut b, at, (*v as f32).to_le_bytes());
+                }
+            }
+            let at = 16 + MAX_LAYERS * 48 + k * 4;
+            put(&mut b, at, (d.ln() as f32).to_le_bytes());
+        }
+        let n = layers.depths.len();
+        for f in 0..n {
+            for bk in 0..n {
+                let (of, ob) = layers.offsets.get(f as u8, bk as u8);
+                let at = 16 + MAX_LAYERS * 48 + 64 + (bk * 16 + f) * 8;
+                put(&mut b, at, (of as f32).to_le_bytes());
+                put(&mut b, at + 4, (ob as f32).to_le_bytes());
+            }
+        }
+        b
+    }
+
+    fn target(&self, cam: &Camera, usage: wgpu::TextureUsages) -> wgpu::Texture {
+        self.device.create_texture(&wgpu::TextureDescriptor {
+            label: Some("cpsl target"),
+            size: wgpu::Extent3d {
+                width: cam.width,
+                height: cam.height,
+                depth_or_array_layers: 1,
+            },
+            mip_level_count: 1,
+            sample_count: 1,
+            dimension: wgpu::TextureDimension::D2,
+            format: FORMAT,
+            usage,
+            view_formats: &[],
+        })
+    }
+
+    /// Records the passes for one view into `encoder`; the result lands in `out` (and the
+    /// composite alone in `first`). Returns the strip half-width used (0 without the strip).
+    #[allow(clippy::too_many_arguments)]
+    fn encode(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        layers: &GpuLayers,
+        pose: &Pose,
+        target: &Camera,
+        dps: Option<&DpsConfig>,
+        first: &wgpu::Texture,
+        out: &wgpu::Texture,
+    ) -> u32 {
+        let s = dps.map_or(0, |cfg| {
+            strip_width(&layers.camera, &layers.depths, pose, target, cfg)
+        });
+        let params = self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("cpsl params"),
+            size: PARAMS_BYTES as u64,
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        self.queue
+            .write_buffer(&params, 0, &self.params(layers, pose, target, 2 * s));
+        let first_view = first.create_view(&Default::default());
+        let bind = |image: &wgpu::TextureView| {
+            self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+                label: Some("cpsl"),
+                layout: &self.layout,
+                entries: &[
+                    wgpu::BindGroupEntry {
+                        binding: 0,
+                        resource: wgpu::BindingResource::TextureView(&layers.texture),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 1,
+                        resource: params.as_entire_binding(),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 2,
+                        resource: wgpu::BindingResource::TextureView(image),
+                    },
+                ],
+            })
+        };
+        // Pass 1 writes `first` when the strip follows (pass 2 reads it), else `out` directly.
+        let passes = match dps {
+            Some(_) => vec![
+                (&self.composite, first, bind(&self.dummy)),
+                (&self.dps, out, bind(&first_view)),
+            ],
+            None => vec![(&self.composite, out, bind(&self.dummy))],
+        };
+        for (pipeline, into, group) in passes {
+            let view = into.create_view(&Default::default());
+            let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+                label: Some("cpsl pass"),
+                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                    view: &view,
+                    depth_slice: None,
+                    resolve_target: None,
+                    ops: wgpu::Operations {
+                        load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
+                        store: wgpu::StoreOp::Store,
+                    },
+                })],
+                depth_stencil_attachment: None,
+                timestamp_writes: None,
+                occlusion_query_set: None,
+                multiview_mask: None,
+            });
+            pass.set_pipeline(pipeline);
+            pass.set_bind_group(0, &group, &[]);
+            pass.draw(0..3, 0..1);
+        }
+        s
+    }
+
+    /// Renders `layers` from `pose` into a `target`-sized image, with the Dynamic Pixel Strip
+    /// when `dps` is given.
+    pub fn render(
+        &self,
+        layers: &GpuLayers,
+        pose: &Pose,
+        target: &Camera,
+        dps: Option<&DpsConfig>,
+    ) -> Result<PremulImage, GpuError> {
+        let usage = wgpu::TextureUsages::RENDER_ATTACHMENT
+            | wgpu::TextureUsages::TEXTURE_BINDING
+            | wgpu::TextureUsages::COPY_SRC;
+        // Two targets, so that the strip never reads what it writes.
+        let out = self.target(target, usage);
+        let first = self.target(target, usage);
+        let mut encoder = self
+            .device
+            .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                label: Some("cpsl"),
+            });
+        self.encode(&mut encoder, layers, pose, target, dps, &first, &out);
+        let (w, h) = (target.width as usize, target.height as usize);
+        let row = (4 * w).next_multiple_of(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT as usize);
+        let buffer = self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("cpsl readback"),
+            size: (row * h) as u64,
+            usage: wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ,
+            mapped_at_creation: false,
+        });
+        encoder.copy_texture_to_buffer(
+            out.as_image_copy(),
+            wgpu::TexelCopyBufferInfo {
+                buffer: &buffer,
+                layout: wgpu::TexelCopyBufferLayout {
+                    offset: 0,
+                    bytes_per_row: Some(row as u32),
+                    rows_per_image: Some(h as u32),
+                },
+            },
+            wgpu::Extent3d {
+                width: w as u32,
+                height: h as u32,
+                depth_or_array_layers: 1,
+            },
+        );
+        self.queue.submit([encoder.finish()]);
+        let slice = buffer.slice(..);
+        let (tx, rx) = std::sync::mpsc::channel();
+        slice.map_async(wgpu::MapMode::Read, move |r| {
+            let _ = tx.send(r);
+        });
+        self.wait()?;
+        rx.recv()
+            .map_err(|e| GpuError::Readback(e.to_string()))?
+            .map_err(|e| GpuError::Readback(e.to_string()))?;
+        let data = slice
+            .get_mapped_range()
+            .map_err(|e| GpuError::Readback(e.to_string()))?;
+        let mut px = Vec::with_capacity(4 * w * h);
+        for y in 0..h {
+            px.extend_from_slice(&data[y * row..y * row + 4 * w]);
+        }
+        drop(data);
+        buffer.unmap();
+        PremulImage::from_premul(target.width, target.height, px)
+            .map_err(|e| GpuError::Readback(e.to_string()))
+    }
+
+    fn wait(&self) -> Result<(), GpuError> {
+        self.device
+            .poll(wgpu::PollType::Wait {
+                submission_index: None,
+                timeout: Some(Duration::from_secs(60)),
+            })
+            .map(|_| ())
+            .map_err(|e| GpuError::Readback(e.to_string()))
+    }
+
+    /// Renders `frames` views (no readback), each submitted and waited for, and returns the
+    /// time of each in seconds: wall-clock from submission to completion.
+    pub fn time_renders(
+        &self,
+        layers: &GpuLayers,
+        pose: &Pose,
+        target: &Camera,
+        dps: Option<&DpsConfig>,
+        frames: usize,
+    ) -> Result<Vec<f64>, GpuError> {
+        let usage = wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING;
+        let (out, first) = (self.target(target, usage), self.target(target, usage));
+        let mut times = Vec::with_capacity(frames);
+        for _ in 0..frames {
+            let mut encoder = self
+                .device
+                .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                    label: Some("cpsl"),
+                });
+            self.encode(&mut encoder, layers, pose, target, dps, &first, &out);
+            let t = std::time::Instant::now();
+            self.queue.submit([encoder.finish()]);
+            self.wait()?;
+            times.push(t.elapsed().as_secs_f64());
+        }
+        Ok(times)
+    }
+}

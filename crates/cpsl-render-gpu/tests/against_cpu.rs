@@ -1,0 +1,157 @@
+//! The GPU renderer against the CPU reference on several scenes and poses, with and without
+//! the Dynamic Pixel Strip: at least 45 dB PSNR everywhere. Without an adapter (no GPU, no
+//! lavapipe) the tests say so and pass, unless `CPSL_REQUIRE_GPU=1` (set by `.ci/run`, which
+//! installs lavapipe) makes a missing adapter a failure.
+
+use cpsl_core::{Camera, Layer, LayerSet, Limits, Pose, PremulImage, Vec3};
+use cpsl_render::{DpsConfig, PreparedLayers};
+use cpsl_render_gpu::{GpuRenderer, COMMON_WGSL, COMPOSITE_WGSL, DPS_WGSL};
+use cpsl_synth::layers::{synthetic_layer_set, Coverage};
+
+const MIN_PSNR: f64 = 45.0;
+
+fn gpu() -> Option<GpuRenderer> {
+    match GpuRenderer::new() {
+        Ok(g) => {
+            eprintln!("GPU adapter: {}", g.adapter());
+            Some(g)
+        }
+        Err(e) => {
+            assert!(
+                std::env::var("CPSL_REQUIRE_GPU").as_deref() != Ok("1"),
+                "CPSL_REQUIRE_GPU=1 but {e}"
+            );
+            eprintln!("skipping the GPU comparison: {e}");
+            None
+        }
+    }
+}
+
+/// RGB PSNR and the largest difference.
+fn compare(a: &PremulImage, b: &PremulImage) -> (f64, u8) {
+    let (mut se, mut n, mut max) = (0.0, 0usize, 0u8);
+    for (i, (x, y)) in a.as_bytes().iter().zip(b.as_bytes()).enumerate() {
+        if i % 4 == 3 {
+            continue;
+        }
+        let d = x.abs_diff(*y);
+        se += (d as f64).powi(2);
+        n += 1;
+        max = max.max(d);
+    }
+    let mse = se / n as f64;
+    (
+        if mse == 0.0 {
+            f64::INFINITY
+        } else {
+            10.0 * (255.0f64 * 255.0 / mse).log10()
+        },
+        max,
+    )
+}
+
+/// Front layer on the left, back layer on the right, a `gap`-pixel crack between them.
+fn gapped(gap: u32) -> LayerSet {
+    let (w, h) = (96, 48);
+    let mut front = PremulImage::new(w, h);
+    let mut back = PremulImage::new(w, h);
+    for y in 0..h {
+        for x in 0..w {
+            let shade = ((x * 7 + y * 3) % 50) as u8;
+            if x < 40 {
+                front.set_pixel(x, y, [200, 30 + shade, 30, 255]);
+            } else if x >= 40 + gap {
+                back.set_pixel(x, y, [30, 40 + shade, 220, 255]);
+            }
+        }
+    }
+    LayerSet::new(
+        Camera::from_fov(w, h, 60.0),
+        vec![Layer::new(front, 2.0), Layer::new(back, 6.0)],
+        &Limits::default(),
+    )
+    .unwrap()
+}
+
+#[test]
+fn gpu_matches_the_cpu_reference() {
+    let Some(gpu) = gpu() else { return };
+    let scenes = [
+        (
+            "typical 320x240 K=6",
+            synthetic_layer_set(320, 240, 6, Coverage::Typical, 7),
+        ),
+        (
+            "dense 256x144 K=4",
+            synthetic_layer_set(256, 144, 4, Coverage::Dense, 3),
+        ),
+        ("gapped 96x48 K=2", gapped(3)),
+    ];
+    let poses = [
+        Pose::IDENTITY,
+        Pose::from_euler_deg(Vec3::new(0.05, 0.02, 0.1), 2.0, -3.0, 1.0),
+        Pose::from_euler_deg(Vec3::new(-0.1, 0.0, -0.05), 0.0, 5.0, 0.0),
+        Pose::from_translation(Vec3::new(0.0, 0.03, 0.0)),
+    ];
+    let mut strip_pixels = 0;
+    for (name, set) in &scenes {
+        let cam = *set.camera();
+        let cpu = PreparedLayers::new(set);
+        let layers = gpu.prepare(set, None).unwrap();
+        for pose in &poses {
+            for dps in [None, Some(DpsConfig::default())] {
+                let mut want = PremulImage::new(cam.width, cam.height);
+                match &dps {
+                    Some(cfg) => {
+                        strip_pixels += cpu.render_dps_into(pose, &cam, &mut want, cfg).pixels
+                    }
+                    None => {
+                        cpu.render_into(pose, &cam, &mut want);
+                    }
+                }
+                let got = gpu.render(&layers, pose, &cam, dps.as_ref()).unwrap();
+                let (psnr, max) = compare(&got, &want);
+                eprintln!(
+                    "{name}, pose {:?} {:?}, dps {}: {psnr:.2} dB, max {max}",
+                    pose.translation,
+                    pose.euler_deg(),
+                    dps.is_some()
+                );
+                assert!(
+                    psnr >= MIN_PSNR,
+                    "{name}, pose {pose:?}, dps {}: {psnr:.2} dB < {MIN_PSNR} (max difference {max})",
+                    dps.is_some()
+                );
+            }
+        }
+    }
+    assert!(
+        strip_pixels > 0,
+        "the strip must run somewhere in these scenes"
+    );
+}
+
+#[test]
+fn refuses_more_layers_than_it_takes() {
+    let Some(gpu) = gpu() else { return };
+    let set = synthetic_layer_set(64, 48, 2, Coverage::Typical, 1);
+    assert!(gpu.prepare(&set, None).is_ok());
+    let many = synthetic_layer_set(64, 48, 17, Coverage::Typical, 1);
+    let err = gpu.prepare(&many, None).err().expect("17 layers refused");
+    assert!(err.to_string().contains("1 to 16"), "{err}");
+}
+
+#[test]
+fn shaders_validate() {
+    for (name, pass) in [("composite", COMPOSITE_WGSL), ("dps", DPS_WGSL)] {
+        let src = format!("{COMMON_WGSL}\n{pass}");
+        let module = naga::front::wgsl::parse_str(&src)
+            .unwrap_or_else(|e| panic!("{name}: {}", e.emit_to_string(&src)));
+        naga::valid::Validator::new(
+            naga::valid::ValidationFlags::all(),
+            naga::valid::Capabilities::default(),
+        )
+        .validate(&module)
+        .unwrap_or_else(|e| panic!("{name}: {e:?}"));
+    }
+}

@@ -78,6 +78,27 @@ fn synth_slice_render_pose_and_sweep() {
         input
     );
 
+    // --gpu renders the same view (on a GPU or lavapipe), or falls back to the CPU saying so.
+    let gpu_png = d.path().join("view_gpu.png");
+    let o = cpsl(&[
+        "render",
+        s(&layers),
+        "--pose",
+        "0.1,0,0,0,2,0",
+        "-o",
+        s(&gpu_png),
+        "--gpu",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("rendering on"),
+        "--gpu names its adapter or the fallback: {err}"
+    );
+    let gpu_img = cpsl_io::images::read_rgb8(&gpu_png, &Default::default()).unwrap();
+    let psnr = cpsl_eval::metrics::psnr(&gpu_img.data, &img.data);
+    assert!(psnr >= 45.0, "GPU render {psnr:.2} dB from the CPU's");
+
     let sweep = d.path().join("sweep");
     ok(&[
         "render",

@@ -14,6 +14,7 @@ mod serve;
 mod synth;
 mod util;
 mod video;
+mod view;
 
 use clap::{Parser, Subcommand};
 use std::process::ExitCode;
@@ -57,6 +58,9 @@ enum Command {
     /// Rate-distortion curves on a synthetic moving clip: CPSL packages under budgets against
     /// DIBR streaming (colour + depth) and a uniform MPI coded with the same codec.
     EvalRd(eval_rd::EvalRdArgs),
+    /// Play a package (or show a layer set) in an interactive window: drag to move the
+    /// viewpoint, play/pause/seek, side-by-side stereo, on-screen frame time.
+    View(view::ViewArgs),
     /// Serve packages and the browser player over HTTP (range requests, ETags, CORS).
     Serve(serve::ServeArgs),
     /// Benchmarks.
@@ -100,6 +104,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Eval(a) => eval::run(a),
         Command::EvalVideo(a) => eval_video::run(a),
         Command::EvalRd(a) => eval_rd::run(a),
+        Command::View(a) => view::run(a),
         Command::Serve(a) => serve::run(a),
         Command::Bench(b) => bench::run(b),
     }

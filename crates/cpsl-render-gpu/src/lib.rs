@@ -9,6 +9,8 @@
 //! lavapipe). [`GpuRenderer::new`] fails with [`GpuError::NoAdapter`] where there is none, so
 //! callers can fall back to the CPU renderer.
 
+pub use wgpu;
+
 use cpsl_core::{Camera, Edc, Homography, LayerSet, Pose, PremulImage};
 use cpsl_render::{strip_width, DpsConfig, EdgeOffsets};
 use std::time::Duration;
@@ -20,6 +22,8 @@ pub const COMMON_WGSL: &str = include_str!("common.wgsl");
 pub const COMPOSITE_WGSL: &str = include_str!("composite.wgsl");
 /// The Dynamic Pixel Strip pass.
 pub const DPS_WGSL: &str = include_str!("dps.wgsl");
+/// The blit onto a window's surface.
+pub const BLIT_WGSL: &str = include_str!("blit.wgsl");
 /// Most layers per frame.
 pub const MAX_LAYERS: usize = 16;
 const PARAMS_BYTES: usize = 16 + MAX_LAYERS * 48 + 64 + 128 * 16;
@@ -52,6 +56,7 @@ pub struct GpuRenderer {
     /// Bound as the composite where the composite pass itself runs (it reads nothing there).
     dummy: wgpu::TextureView,
     adapter: String,
+    handle: wgpu::Adapter,
 }
 
 /// Layers uploaded to the GPU, with what the strip needs.
@@ -68,8 +73,24 @@ impl GpuRenderer {
     pub fn new() -> Result<Self, GpuError> {
         let instance =
             wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle_from_env());
+        Self::open(&instance, None)
+    }
+
+    /// Opens an adapter of `instance` that can present to `surface` (a window's).
+    pub fn for_surface(
+        instance: &wgpu::Instance,
+        surface: &wgpu::Surface<'_>,
+    ) -> Result<Self, GpuError> {
+        Self::open(instance, Some(surface))
+    }
+
+    fn open(
+        instance: &wgpu::Instance,
+        surface: Option<&wgpu::Surface<'_>>,
+    ) -> Result<Self, GpuError> {
         let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
             power_preference: wgpu::PowerPreference::HighPerformance,
+            compatible_surface: surface,
             ..Default::default()
         }))
         .map_err(|e| GpuError::NoAdapter(e.to_string()))?;
@@ -164,7 +185,23 @@ impl GpuRenderer {
             dps,
             dummy,
             adapter: format!("{} ({:?}, {:?})", info.name, info.backend, info.device_type),
+            handle: adapter,
         })
+    }
+
+    /// The device.
+    pub fn device(&self) -> &wgpu::Device {
+        &self.device
+    }
+
+    /// The queue.
+    pub fn queue(&self) -> &wgpu::Queue {
+        &self.queue
+    }
+
+    /// The adapter (for a surface's capabilities).
+    pub fn adapter_handle(&self) -> &wgpu::Adapter {
+        &self.handle
     }
 
     /// The adapter's name, backend and type.
@@ -265,6 +302,16 @@ impl GpuRenderer {
         b
     }
 
+    /// A render target for [`GpuRenderer::draw`] (and for reading, copying and sampling).
+    pub fn target_texture(&self, cam: &Camera) -> wgpu::Texture {
+        self.target(
+            cam,
+            wgpu::TextureUsages::RENDER_ATTACHMENT
+                | wgpu::TextureUsages::TEXTURE_BINDING
+                | wgpu::TextureUsages::COPY_SRC,
+        )
+    }
+
     fn target(&self, cam: &Camera, usage: wgpu::TextureUsages) -> wgpu::Texture {
         self.device.create_texture(&wgpu::TextureDescriptor {
             label: Some("cpsl target"),
@@ -283,9 +330,10 @@ impl GpuRenderer {
     }
 
     /// Records the passes for one view into `encoder`; the result lands in `out` (and the
-    /// composite alone in `first`). Returns the strip half-width used (0 without the strip).
+    /// composite alone in `first`; both from [`GpuRenderer::target_texture`]). Returns the
+    /// strip half-width used (0 without the strip).
     #[allow(clippy::too_many_arguments)]
-    fn encode(
+    pub fn draw(
         &self,
         encoder: &mut wgpu::CommandEncoder,
         layers: &GpuLayers,
@@ -380,7 +428,7 @@ impl GpuRenderer {
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("cpsl"),
             });
-        self.encode(&mut encoder, layers, pose, target, dps, &first, &out);
+        self.draw(&mut encoder, layers, pose, target, dps, &first, &out);
         let (w, h) = (target.width as usize, target.height as usize);
         let row = (4 * w).next_multiple_of(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT as usize);
         let buffer = self.device.create_buffer(&wgpu::BufferDescriptor {
@@ -457,12 +505,146 @@ impl GpuRenderer {
                 .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                     label: Some("cpsl"),
                 });
-            self.encode(&mut encoder, layers, pose, target, dps, &first, &out);
+            self.draw(&mut encoder, layers, pose, target, dps, &first, &out);
             let t = std::time::Instant::now();
             self.queue.submit([encoder.finish()]);
             self.wait()?;
             times.push(t.elapsed().as_secs_f64());
         }
         Ok(times)
+    }
+}
+
+/// Copies an RGBA8 image onto a rectangle of a surface (or any target) of another format,
+/// nearest-neighbour, blending premultiplied colour over what is there.
+pub struct Blit {
+    pipeline: wgpu::RenderPipeline,
+    layout: wgpu::BindGroupLayout,
+}
+
+impl Blit {
+    /// A blit into targets of `format`.
+    pub fn new(device: &wgpu::Device, format: wgpu::TextureFormat) -> Self {
+        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("cpsl blit"),
+            entries: &[
+                wgpu::BindGroupLayoutEntry {
+                    binding: 0,
+                    visibility: wgpu::ShaderStages::FRAGMENT,
+                    ty: wgpu::BindingType::Texture {
+                        sample_type: wgpu::TextureSampleType::Float { filterable: false },
+                        view_dimension: wgpu::TextureViewDimension::D2,
+                        multisampled: false,
+                    },
+                    count: None,
+                },
+                wgpu::BindGroupLayoutEntry {
+                    binding: 1,
+                    visibility: wgpu::ShaderStages::FRAGMENT,
+                    ty: wgpu::BindingType::Buffer {
+                        ty: wgpu::BufferBindingType::Uniform,
+                        has_dynamic_offset: false,
+                        min_binding_size: None,
+                    },
+                    count: None,
+                },
+            ],
+        });
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("cpsl blit"),
+            source: wgpu::ShaderSource::Wgsl(BLIT_WGSL.into()),
+        });
+        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("cpsl blit"),
+            bind_group_layouts: &[Some(&layout)],
+            immediate_size: 0,
+        });
+        let pipeline = device.create_render_pipeline(&wgpu::RenderPipelineDescriptor {
+            label: Some("cpsl blit"),
+            layout: Some(&pipeline_layout),
+            vertex: wgpu::VertexState {
+                module: &module,
+                entry_point: Some("vs"),
+                compilation_options: Default::default(),
+                buffers: &[],
+            },
+            fragment: Some(wgpu::FragmentState {
+                module: &module,
+                entry_point: Some("fs"),
+                compilation_options: Default::default(),
+                targets: &[Some(wgpu::ColorTargetState {
+                    format,
+                    blend: Some(wgpu::BlendState::PREMULTIPLIED_ALPHA_BLENDING),
+                    write_mask: wgpu::ColorWrites::ALL,
+                })],
+            }),
+            primitive: Default::default(),
+            depth_stencil: None,
+            multisample: Default::default(),
+            multiview_mask: None,
+            cache: None,
+        });
+        Self { pipeline, layout }
+    }
+
+    /// Draws `src` into the rectangle `[x, y, width, height]` (pixels) of `dst`, clearing
+    /// `dst` to black first when `clear`.
+    #[allow(clippy::too_many_arguments)]
+    pub fn draw(
+        &self,
+        device: &wgpu::Device,
+        queue: &wgpu::Queue,
+        encoder: &mut wgpu::CommandEncoder,
+        src: &wgpu::TextureView,
+        dst: &wgpu::TextureView,
+        rect: [f32; 4],
+        clear: bool,
+    ) {
+        let rect_buf = device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("cpsl blit rect"),
+            size: 16,
+            usage: wgpu::BufferUsages::UNIFORM | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let bytes: Vec<u8> = rect.iter().flat_map(|v| v.to_le_bytes()).collect();
+        queue.write_buffer(&rect_buf, 0, &bytes);
+        let group = device.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("cpsl blit"),
+            layout: &self.layout,
+            entries: &[
+                wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: wgpu::BindingResource::TextureView(src),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: rect_buf.as_entire_binding(),
+                },
+            ],
+        });
+        let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+            label: Some("cpsl blit"),
+            color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                view: dst,
+                depth_slice: None,
+                resolve_target: None,
+                ops: wgpu::Operations {
+                    load: if clear {
+                        wgpu::LoadOp::Clear(wgpu::Color::BLACK)
+                    } else {
+                        wgpu::LoadOp::Load
+                    },
+                    store: wgpu::StoreOp::Store,
+                },
+            })],
+            depth_stencil_attachment: None,
+            timestamp_writes: None,
+            occlusion_query_set: None,
+            multiview_mask: None,
+        });
+        pass.set_viewport(rect[0], rect[1], rect[2], rect[3], 0.0, 1.0);
+        pass.set_pipeline(&self.pipeline);
+        pass.set_bind_group(0, &group, &[]);
+        pass.draw(0..3, 0..1);
     }
 }

@@ -5,7 +5,7 @@
 
 use cpsl_core::{Camera, Layer, LayerSet, Limits, Pose, PremulImage, Vec3};
 use cpsl_render::{DpsConfig, PreparedLayers};
-use cpsl_render_gpu::{GpuRenderer, COMMON_WGSL, COMPOSITE_WGSL, DPS_WGSL};
+use cpsl_render_gpu::{GpuRenderer, BLIT_WGSL, COMMON_WGSL, COMPOSITE_WGSL, DPS_WGSL};
 use cpsl_synth::layers::{synthetic_layer_set, Coverage};
 
 const MIN_PSNR: f64 = 45.0;
@@ -143,8 +143,11 @@ fn refuses_more_layers_than_it_takes() {
 
 #[test]
 fn shaders_validate() {
-    for (name, pass) in [("composite", COMPOSITE_WGSL), ("dps", DPS_WGSL)] {
-        let src = format!("{COMMON_WGSL}\n{pass}");
+    for (name, src) in [
+        ("composite", format!("{COMMON_WGSL}\n{COMPOSITE_WGSL}")),
+        ("dps", format!("{COMMON_WGSL}\n{DPS_WGSL}")),
+        ("blit", BLIT_WGSL.to_string()),
+    ] {
         let module = naga::front::wgsl::parse_str(&src)
             .unwrap_or_else(|e| panic!("{name}: {}", e.emit_to_string(&src)));
         naga::valid::Validator::new(

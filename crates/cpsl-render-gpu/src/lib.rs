@@ -95,8 +95,10 @@ impl GpuRenderer {
         }))
         .map_err(|e| GpuError::NoAdapter(e.to_string()))?;
         let info = adapter.get_info();
+        // GPU timestamps where the adapter has them (for `time_renders`).
         let (device, queue) = pollster::block_on(adapter.request_device(&wgpu::DeviceDescriptor {
             label: Some("cpsl"),
+            required_features: adapter.features() & wgpu::Features::TIMESTAMP_QUERY,
             ..Default::default()
         }))
         .map_err(|e| GpuError::Device(e.to_string()))?;
@@ -343,6 +345,23 @@ impl GpuRenderer {
         first: &wgpu::Texture,
         out: &wgpu::Texture,
     ) -> u32 {
+        self.draw_timed(encoder, layers, pose, target, dps, first, out, None)
+    }
+
+    /// [`GpuRenderer::draw`], writing GPU timestamps 0 (start of the first pass) and 1 (end of
+    /// the last) into `timestamps` when given.
+    #[allow(clippy::too_many_arguments)]
+    fn draw_timed(
+        &self,
+        encoder: &mut wgpu::CommandEncoder,
+        layers: &GpuLayers,
+        pose: &Pose,
+        target: &Camera,
+        dps: Option<&DpsConfig>,
+        first: &wgpu::Texture,
+        out: &wgpu::Texture,
+        timestamps: Option<&wgpu::QuerySet>,
+    ) -> u32 {
         let s = dps.map_or(0, |cfg| {
             strip_width(&layers.camera, &layers.depths, pose, target, cfg)
         });
@@ -383,8 +402,14 @@ impl GpuRenderer {
             ],
             None => vec![(&self.composite, out, bind(&self.dummy))],
         };
-        for (pipeline, into, group) in passes {
+        let last = passes.len() - 1;
+        for (i, (pipeline, into, group)) in passes.into_iter().enumerate() {
             let view = into.create_view(&Default::default());
+            let timestamp_writes = timestamps.map(|q| wgpu::RenderPassTimestampWrites {
+                query_set: q,
+                beginning_of_pass_write_index: (i == 0).then_some(0),
+                end_of_pass_write_index: (i == last).then_some(1),
+            });
             let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
                 label: Some("cpsl pass"),
                 color_attachments: &[Some(wgpu::RenderPassColorAttachment {
@@ -397,7 +422,7 @@ impl GpuRenderer {
                     },
                 })],
                 depth_stencil_attachment: None,
-                timestamp_writes: None,
+                timestamp_writes,
                 occlusion_query_set: None,
                 multiview_mask: None,
             });
@@ -486,8 +511,10 @@ impl GpuRenderer {
             .map_err(|e| GpuError::Readback(e.to_string()))
     }
 
-    /// Renders `frames` views (no readback), each submitted and waited for, and returns the
-    /// time of each in seconds: wall-clock from submission to completion.
+    /// Renders `frames` views (no readback), each submitted and waited for: per view the
+    /// wall-clock seconds from submission to completion and, where the adapter has timestamp
+    /// queries, the seconds the GPU spent between the start of the first pass and the end of
+    /// the last.
     pub fn time_renders(
         &self,
         layers: &GpuLayers,
@@ -495,24 +522,78 @@ impl GpuRenderer {
         target: &Camera,
         dps: Option<&DpsConfig>,
         frames: usize,
-    ) -> Result<Vec<f64>, GpuError> {
+    ) -> Result<RenderTimes, GpuError> {
         let usage = wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING;
         let (out, first) = (self.target(target, usage), self.target(target, usage));
-        let mut times = Vec::with_capacity(frames);
+        let stamps = self
+            .device
+            .features()
+            .contains(wgpu::Features::TIMESTAMP_QUERY)
+            .then(|| {
+                let set = self.device.create_query_set(&wgpu::QuerySetDescriptor {
+                    label: Some("cpsl timestamps"),
+                    ty: wgpu::QueryType::Timestamp,
+                    count: 2,
+                });
+                let buffer = |usage| {
+                    self.device.create_buffer(&wgpu::BufferDescriptor {
+                        label: Some("cpsl timestamps"),
+                        size: 16,
+                        usage,
+                        mapped_at_creation: false,
+                    })
+                };
+                let resolve =
+                    buffer(wgpu::BufferUsages::QUERY_RESOLVE | wgpu::BufferUsages::COPY_SRC);
+                let read = buffer(wgpu::BufferUsages::COPY_DST | wgpu::BufferUsages::MAP_READ);
+                (set, resolve, read)
+            });
+        let period = self.queue.get_timestamp_period() as f64 * 1e-9;
+        let mut times = RenderTimes {
+            wall: Vec::with_capacity(frames),
+            gpu: stamps.as_ref().map(|_| Vec::with_capacity(frames)),
+        };
         for _ in 0..frames {
             let mut encoder = self
                 .device
                 .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                     label: Some("cpsl"),
                 });
-            self.draw(&mut encoder, layers, pose, target, dps, &first, &out);
+            let q = stamps.as_ref().map(|s| &s.0);
+            self.draw_timed(&mut encoder, layers, pose, target, dps, &first, &out, q);
+            if let Some((set, resolve, read)) = &stamps {
+                encoder.resolve_query_set(set, 0..2, resolve, 0);
+                encoder.copy_buffer_to_buffer(resolve, 0, read, 0, 16);
+            }
             let t = std::time::Instant::now();
             self.queue.submit([encoder.finish()]);
             self.wait()?;
-            times.push(t.elapsed().as_secs_f64());
+            times.wall.push(t.elapsed().as_secs_f64());
+            if let (Some((_, _, read)), Some(gpu)) = (&stamps, &mut times.gpu) {
+                let slice = read.slice(..);
+                slice.map_async(wgpu::MapMode::Read, |_| ());
+                self.wait()?;
+                let data = slice
+                    .get_mapped_range()
+                    .map_err(|e| GpuError::Readback(e.to_string()))?;
+                let t0 = u64::from_le_bytes(data[0..8].try_into().expect("8 bytes"));
+                let t1 = u64::from_le_bytes(data[8..16].try_into().expect("8 bytes"));
+                drop(data);
+                read.unmap();
+                gpu.push(t1.saturating_sub(t0) as f64 * period);
+            }
         }
         Ok(times)
     }
+}
+
+/// Timings of [`GpuRenderer::time_renders`], seconds per view.
+#[derive(Debug, Clone)]
+pub struct RenderTimes {
+    /// From submission to completion, as the host sees it.
+    pub wall: Vec<f64>,
+    /// GPU timestamps from the first pass's start to the last pass's end, where available.
+    pub gpu: Option<Vec<f64>>,
 }
 
 /// Copies an RGBA8 image onto a rectangle of a surface (or any target) of another format,

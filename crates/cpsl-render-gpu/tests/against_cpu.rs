@@ -142,6 +142,23 @@ fn refuses_more_layers_than_it_takes() {
 }
 
 #[test]
+fn timed_renders_report_every_frame() {
+    let Some(gpu) = gpu() else { return };
+    let set = synthetic_layer_set(128, 96, 3, Coverage::Typical, 2);
+    let layers = gpu.prepare(&set, None).unwrap();
+    let pose = Pose::from_translation(Vec3::new(0.02, 0.0, 0.0));
+    let t = gpu
+        .time_renders(&layers, &pose, set.camera(), Some(&DpsConfig::default()), 4)
+        .unwrap();
+    assert_eq!(t.wall.len(), 4);
+    assert!(t.wall.iter().all(|&s| s > 0.0 && s < 10.0), "{t:?}");
+    if let Some(g) = &t.gpu {
+        assert_eq!(g.len(), 4);
+        assert!(g.iter().all(|&s| s > 0.0 && s < 10.0), "{t:?}");
+    }
+}
+
+#[test]
 fn shaders_validate() {
     for (name, src) in [
         ("composite", format!("{COMMON_WGSL}\n{COMPOSITE_WGSL}")),

@@ -48,6 +48,10 @@ try {
   const clip = join(work, "clip");
   run(["encode", join(clip, "frames"), "--depth-frames", join(clip, "depth"), "--camera", join(clip, "camera.json"),
        "--fps", "30", "--gop", "8", "--variants", "150k,1M", "-o", join(work, "set")]);
+  // The same clip coded with VP9 and AV1 (the demuxer's other configuration records).
+  for (const codec of ["vp9", "av1"])
+    run(["encode", join(clip, "frames"), "--depth-frames", join(clip, "depth"), "--camera", join(clip, "camera.json"),
+         "--fps", "30", "--codec", codec, "--quality", "30", "-o", join(work, `${codec}.cpsl`)]);
   server = await startServer(bin, work);
   browser = await launchChromium();
   const page = await browser.newPage({ viewport: { width: 800, height: 600 }, deviceScaleFactor: 1 });
@@ -87,6 +91,19 @@ try {
       `${ok ? "ok  " : "FAIL"} frame ${c.frame} pose ${c.pose} dps ${c.dps}: render ${r.psnr.toFixed(2)} dB (max diff ${r.max}), ` +
         `screenshot ${s.psnr.toFixed(2)} dB (max diff ${s.max}); need ${MIN_PSNR} / ${MIN_SCREENSHOT_PSNR} dB${strip}`,
     );
+  }
+  for (const codec of ["vp9", "av1"]) {
+    const ref = join(work, `ref_${codec}.png`);
+    const pose = "0.1,0,0,0,2,0";
+    run(["render", join(work, `${codec}.cpsl`), "--frame", "5", "--pose", pose, "-o", ref]);
+    const q = new URLSearchParams({ src: `/files/${codec}.cpsl/`, frame: "5", pose, paused: "1" });
+    await page.goto(`${server.url}/?${q}`);
+    await playerReady(page);
+    const got = Buffer.from(await page.evaluate(() => window.cpsl.pixels()), "base64");
+    const r = compare(got, readPng(readFileSync(ref)).rgba);
+    const ok = r.psnr >= MIN_PSNR;
+    if (!ok) failures++;
+    console.log(`${ok ? "ok  " : "FAIL"} ${codec} package, frame 5: render ${r.psnr.toFixed(2)} dB (max diff ${r.max}); need ${MIN_PSNR} dB`);
   }
   // Variants: a fixed variant renders like the CPU reference of that package; left to adapt,
   // the player starts on the cheapest and moves to the best once it has measured the link.
@@ -139,4 +156,4 @@ if (failures) {
   console.error(`${failures} of ${cases.length} player renders differ from the CPU reference`);
   process.exit(1);
 }
-console.log(`browser player matches the CPU reference on ${cases.length + 1} renders and adapts between variants; controls work`);
+console.log(`browser player matches the CPU reference on ${cases.length + 3} renders (H.264, VP9, AV1) and adapts between variants; controls work`);

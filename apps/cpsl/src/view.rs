@@ -69,6 +69,7 @@ struct Decoder {
     frames: Receiver<Result<Decoded, String>>,
     seek: Sender<(u64, u32)>,
     generation: u64,
+    pending: Option<Decoded>,
 }
 
 impl Decoder {
@@ -129,6 +130,7 @@ impl Decoder {
             frames: rx,
             seek: seek_tx,
             generation: 0,
+            pending: None,
         })
     }
 
@@ -136,9 +138,12 @@ impl Decoder {
     fn seek(&mut self, f: u32) {
         self.generation += 1;
         let _ = self.seek.send((self.generation, f));
-        // Unblock the decoder if it waits on a full queue.
+        // Unblock the decoder if it waits on a full queue (keeping a frame of the new
+        // generation, should one already be there).
+        self.pending = None;
         while let Ok(Ok(d)) = self.frames.try_recv() {
             if d.generation == self.generation {
+                self.pending = Some(d);
                 break;
             }
         }
@@ -146,6 +151,9 @@ impl Decoder {
 
     /// The next frame of the current generation, if decoded.
     fn next(&mut self) -> Result<Option<Decoded>> {
+        if let Some(d) = self.pending.take() {
+            return Ok(Some(d));
+        }
         loop {
             match self.frames.try_recv() {
                 Ok(Ok(d)) if d.generation == self.generation => return Ok(Some(d)),

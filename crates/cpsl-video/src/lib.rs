@@ -40,8 +40,11 @@ use cpsl_layering::matte::edge_depth_cache_from;
 use cpsl_layering::{layer_frame, LayeringConfig, LayeringError};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
+use std::borrow::Cow;
 use std::time::Instant;
 use thiserror::Error;
+
+mod kernels;
 
 /// Errors of video layering.
 #[derive(Debug, Error)]
@@ -382,10 +385,16 @@ impl VideoLayerer {
         }
         let set = with_tracks(layered.set, &tracks)?;
         let lz = layer_log_depths(&set);
-        let base: Vec<(f32, f32)> = (0..k)
-            .map(|l| agreement(&layered.owner, &cues.depth, &lz, l, w, h, &self.gop))
-            .collect();
-        let base_crack = crack_rate(&layered.owner, &cues.depth, w, h);
+        let ln_depth: Vec<f32> = cues.depth.par_iter().map(|z| z.ln()).collect();
+        let base = kernels::agreements(
+            &layered.owner,
+            &ln_depth,
+            &lz,
+            self.gop.depth_tolerance,
+            w,
+            h,
+        );
+        let base_crack = kernels::crack_rate(&layered.owner, &cues.depth, w, h);
         timings.push(("association", ms(t)));
         let maps = vec![identity_map(w, h, grey.width, grey.height); k];
         self.state = Some(State {
@@ -457,11 +466,11 @@ impl VideoLayerer {
         let (mut layers, hidden): (Vec<cpsl_core::Layer>, Vec<Vec<bool>>) = s
             .key
             .layers()
-            .par_iter()
+            .iter()
             .zip(&maps)
             .enumerate()
             .map(|(l, (key, m))| {
-                let (image, hidden) = warp_image(&key.image, m, gw, gh, &s.key_owner, l);
+                let (image, hidden) = kernels::warp_layer(&key.image, m, gw, gh, &s.key_owner, l);
                 let layer = cpsl_core::Layer {
                     image,
                     depth: key.depth,
@@ -470,52 +479,24 @@ impl VideoLayerer {
                 (layer, hidden)
             })
             .unzip();
-        // Hidden content that nothing covers any more was never seen: drop it so that the
-        // layers behind show (the back layer is opaque everywhere and stays).
-        {
-            let mut px: Vec<&mut [u8]> = layers[..k - 1]
-                .iter_mut()
-                .map(|l| l.image.as_bytes_mut())
-                .collect();
-            for p in 0..w * h {
-                let mut cover = 0f32;
-                for (l, img) in px.iter_mut().enumerate() {
-                    let a = img[p * 4 + 3] as f32 / 255.0;
-                    if a == 0.0 {
-                        continue;
-                    }
-                    if hidden[l][p] && cover < 0.5 {
-                        img[p * 4..p * 4 + 4].fill(0);
-                    } else {
-                        cover += (1.0 - cover) * a;
-                    }
-                }
-            }
-        }
-        // Owner: the nearest layer with alpha >= 1/2. With refinement, the pixels a layer
-        // shows fully opaque and unoccluded take the new frame's colour.
-        let owner: Vec<u8> = (0..w * h)
-            .into_par_iter()
-            .map(|p| {
-                layers
-                    .iter()
-                    .position(|l| l.image.as_bytes()[p * 4 + 3] >= 128)
-                    .unwrap_or(k - 1) as u8
-            })
-            .collect();
-        if g.refine {
-            layers.par_iter_mut().enumerate().for_each(|(l, layer)| {
-                let px = layer.image.as_bytes_mut();
-                for p in 0..w * h {
-                    if owner[p] as usize == l && px[p * 4 + 3] == 255 {
-                        px[p * 4..p * 4 + 3].copy_from_slice(&rgb[p * 3..p * 3 + 3]);
-                    }
-                }
-            });
-        }
+        timings.push(("warp", ms(t)));
+        // Hidden content that nothing covers any more was never seen: it is dropped so that
+        // the layers behind show. Owner: the nearest layer with alpha >= 1/2. With
+        // refinement, the pixels a layer shows fully opaque and unoccluded take the new
+        // frame's colour.
+        let t = Instant::now();
+        let owner = {
+            let mut images: Vec<&mut PremulImage> =
+                layers.iter_mut().map(|l| &mut l.image).collect();
+            kernels::settle(&mut images, &hidden, rgb, g.refine)
+        };
+        drop(hidden);
+        timings.push(("visibility", ms(t)));
         // Layer depths from the new depth: the median over each layer's pixels, smoothed
         // over time with refinement, kept in order.
-        let medians = median_depths(&owner, &depth, k);
+        let t = Instant::now();
+        let ln_depth: Vec<f32> = depth.par_iter().map(|z| z.ln()).collect();
+        let medians = kernels::median_depths(&owner, &ln_depth, k);
         let mut prev = 0.0f64;
         for (l, layer) in layers.iter_mut().enumerate() {
             let fresh = medians[l].unwrap_or(s.depths[l]);
@@ -529,12 +510,12 @@ impl VideoLayerer {
         }
         let set = LayerSet::new(*s.key.camera(), layers, &Limits::default())?;
         let edc = edge_depth_cache_from(&depth, w, h, &owner, &set, &self.layering.matte);
-        timings.push(("layers", ms(t)));
+        timings.push(("depths", ms(t)));
         // Temporal confidence and crack rate.
         let t = Instant::now();
         let lz = layer_log_depths(&set);
-        for l in 0..k {
-            let (o, b) = agreement(&owner, &depth, &lz, l, w, h, &g);
+        let now = kernels::agreements(&owner, &ln_depth, &lz, g.depth_tolerance, w, h);
+        for (l, &(o, b)) in now.iter().enumerate() {
             let (o0, b0) = s.base[l];
             let rel = |v: f32, v0: f32| if v0 > 0.0 { (v / v0).min(1.0) } else { 1.0 };
             let now = 0.5 * (rel(o, o0) + rel(b, b0));
@@ -545,7 +526,7 @@ impl VideoLayerer {
             .map(|l| s.confidence[l])
             .collect();
         let mean_conf = present.iter().sum::<f32>() / present.len().max(1) as f32;
-        let crack = (crack_rate(&owner, &depth, w, h) - s.base_crack).max(0.0);
+        let crack = (kernels::crack_rate(&owner, &depth, w, h) - s.base_crack).max(0.0);
         timings.push(("confidence", ms(t)));
         // Hysteresis: a condition must hold on `hysteresis` consecutive frames.
         s.since_i += 1;
@@ -622,77 +603,6 @@ fn layer_log_depths(set: &LayerSet) -> Vec<f32> {
     set.layers().iter().map(|l| l.depth.ln() as f32).collect()
 }
 
-/// Whether `p` lies on the boundary of the region where `inside` holds (4-neighbourhood).
-fn on_boundary(inside: &impl Fn(usize) -> bool, p: usize, w: usize, h: usize) -> bool {
-    let (x, y) = (p % w, p / w);
-    let me = inside(p);
-    (x > 0 && inside(p - 1) != me)
-        || (x + 1 < w && inside(p + 1) != me)
-        || (y > 0 && inside(p - w) != me)
-        || (y + 1 < h && inside(p + w) != me)
-}
-
-/// Mask overlap and boundary similarity of layer `l`'s mask with the region whose depth fits
-/// the layer (see the crate documentation).
-fn agreement(
-    owner: &[u8],
-    depth: &[f32],
-    lz: &[f32],
-    l: usize,
-    w: usize,
-    h: usize,
-    g: &GopConfig,
-) -> (f32, f32) {
-    let mask = |p: usize| owner[p] as usize == l;
-    let fits = |p: usize| (depth[p].ln() - lz[l]).abs() <= g.depth_tolerance;
-    let (mut area, mut agree, mut edge, mut near) = (0u32, 0u32, 0u32, 0u32);
-    for p in 0..w * h {
-        if !mask(p) {
-            continue;
-        }
-        area += 1;
-        agree += fits(p) as u32;
-        if on_boundary(&mask, p, w, h) {
-            edge += 1;
-            let (x, y) = (p % w, p / w);
-            let hit = (y.saturating_sub(1)..(y + 2).min(h)).any(|yy| {
-                (x.saturating_sub(1)..(x + 2).min(w))
-                    .any(|xx| on_boundary(&fits, yy * w + xx, w, h))
-            });
-            near += hit as u32;
-        }
-    }
-    let ratio = |a: u32, b: u32| if b > 0 { a as f32 / b as f32 } else { 1.0 };
-    (ratio(agree, area), ratio(near, edge))
-}
-
-/// Share of 4-neighbour pairs across layer boundaries whose depth order contradicts the layer
-/// order by more than 2 %.
-fn crack_rate(owner: &[u8], depth: &[f32], w: usize, h: usize) -> f32 {
-    let (mut pairs, mut bad) = (0u32, 0u32);
-    for y in 0..h {
-        for x in 0..w {
-            let p = y * w + x;
-            for q in [(x + 1 < w).then(|| p + 1), (y + 1 < h).then(|| p + w)]
-                .into_iter()
-                .flatten()
-            {
-                if owner[p] == owner[q] {
-                    continue;
-                }
-                pairs += 1;
-                let (near, far) = if owner[p] < owner[q] { (p, q) } else { (q, p) };
-                bad += (depth[near] > depth[far] * 1.02) as u32;
-            }
-        }
-    }
-    if pairs == 0 {
-        0.0
-    } else {
-        bad as f32 / pairs as f32
-    }
-}
-
 /// Motion from a frame to the previous one: on the flow grid, and at full resolution when
 /// given.
 struct Motion {
@@ -701,10 +611,10 @@ struct Motion {
 }
 
 impl Motion {
-    fn at_full(&self, w: usize, h: usize) -> Flow {
+    fn at_full(&self, w: usize, h: usize) -> Cow<'_, Flow> {
         match &self.full {
-            Some(f) => f.clone(),
-            None => self.grid.resize(w, h),
+            Some(f) => Cow::Borrowed(f),
+            None => Cow::Owned(self.grid.resize(w, h)),
         }
     }
 }
@@ -817,75 +727,6 @@ fn compose(map: &[f32], flow: &Flow, gw: usize, gh: usize) -> Vec<f32> {
             let (u, v) = flow.at(g % gw, g / gw);
             let (x, y) = ((g % gw) as f32 + u, (g / gw) as f32 + v);
             [sample2(map, gw, gh, x, y, 0), sample2(map, gw, gh, x, y, 1)]
-        })
-        .collect()
-}
-
-/// Layer `l` of the I-frame (`img`) sampled (bilinear) where `map` (on a `gw x gh` grid,
-/// bilinearly interpolated) sends every pixel, transparent outside the image; and per pixel
-/// whether that position was hidden behind a nearer layer in the I-frame (`owner < l`).
-fn warp_image(
-    img: &PremulImage,
-    map: &[f32],
-    gw: usize,
-    gh: usize,
-    owner: &[u8],
-    l: usize,
-) -> (PremulImage, Vec<bool>) {
-    let (w, h) = (img.width() as usize, img.height() as usize);
-    let (sx, sy) = (gw as f32 / w as f32, gh as f32 / h as f32);
-    let src = img.as_bytes();
-    let mut out = PremulImage::new(w as u32, h as u32);
-    let mut hidden = vec![false; w * h];
-    out.as_bytes_mut()
-        .par_chunks_mut(w * 4)
-        .zip(hidden.par_chunks_mut(w))
-        .enumerate()
-        .for_each(|(y, (row, hid))| {
-            let gy = (y as f32 + 0.5) * sy - 0.5;
-            for x in 0..w {
-                let gx = (x as f32 + 0.5) * sx - 0.5;
-                let px = sample2(map, gw, gh, gx, gy, 0);
-                let py = sample2(map, gw, gh, gx, gy, 1);
-                if px < -0.5 || py < -0.5 || px > w as f32 - 0.5 || py > h as f32 - 0.5 {
-                    continue;
-                }
-                let (px, py) = (px.clamp(0.0, (w - 1) as f32), py.clamp(0.0, (h - 1) as f32));
-                let (x0, y0) = (px.floor() as usize, py.floor() as usize);
-                let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
-                let (fx, fy) = (px - x0 as f32, py - y0 as f32);
-                let taps = [
-                    ((y0 * w + x0) * 4, (1.0 - fx) * (1.0 - fy)),
-                    ((y0 * w + x1) * 4, fx * (1.0 - fy)),
-                    ((y1 * w + x0) * 4, (1.0 - fx) * fy),
-                    ((y1 * w + x1) * 4, fx * fy),
-                ];
-                if taps.iter().all(|&(q, _)| src[q + 3] == 0) {
-                    continue;
-                }
-                for c in 0..4 {
-                    let v: f32 = taps.iter().map(|&(q, wt)| src[q + c] as f32 * wt).sum();
-                    row[x * 4 + c] = v.round() as u8;
-                }
-                hid[x] = (owner[py.round() as usize * w + px.round() as usize] as usize) < l;
-            }
-        });
-    (out, hidden)
-}
-
-/// Median depth of each label's pixels (`None` for a label without pixels).
-fn median_depths(owner: &[u8], depth: &[f32], k: usize) -> Vec<Option<f64>> {
-    let mut per: Vec<Vec<f32>> = vec![Vec::new(); k];
-    for (&o, &z) in owner.iter().zip(depth) {
-        per[o as usize].push(z);
-    }
-    per.into_iter()
-        .map(|mut v| {
-            if v.is_empty() {
-                return None;
-            }
-            let m = v.len() / 2;
-            Some(*v.select_nth_unstable_by(m, f32::total_cmp).1 as f64)
         })
         .collect()
 }

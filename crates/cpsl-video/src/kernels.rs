@@ -1,0 +1,476 @@
+//! Per-pixel work of a P-frame, written for speed: row-parallel, the grid maps interpolated
+//! once per row, layer samples in 8-bit fixed point (as the renderer does), one fused pass for
+//! everything that looks at all layers of a pixel.
+
+use cpsl_core::PremulImage;
+use rayon::prelude::*;
+
+/// Bilinear taps along one axis of a grid: for every full-resolution position, the two grid
+/// indices and the weight of the second, clamped at the border.
+fn grid_taps(n: usize, grid: usize) -> Vec<(usize, usize, f32)> {
+    let s = grid as f32 / n as f32;
+    (0..n)
+        .map(|i| {
+            let g = ((i as f32 + 0.5) * s - 0.5).clamp(0.0, (grid - 1) as f32);
+            let g0 = g.floor() as usize;
+            (g0, (g0 + 1).min(grid - 1), g - g0 as f32)
+        })
+        .collect()
+}
+
+/// Side of the blocks in which [`Occupancy`] records content.
+const BLOCK: usize = 8;
+
+/// Where an image holds content (alpha > 0), per `BLOCK x BLOCK` block, as a summed-area
+/// table so that any rectangle is answered in constant time.
+struct Occupancy {
+    bw: usize,
+    bh: usize,
+    sat: Vec<u32>,
+}
+
+impl Occupancy {
+    fn new(rgba: &[u8], w: usize, h: usize) -> Self {
+        let (bw, bh) = (w.div_ceil(BLOCK), h.div_ceil(BLOCK));
+        let rows: Vec<Vec<bool>> = (0..bh)
+            .into_par_iter()
+            .map(|by| {
+                let mut occ = vec![false; bw];
+                for y in by * BLOCK..((by + 1) * BLOCK).min(h) {
+                    let row = &rgba[y * w * 4..(y + 1) * w * 4];
+                    for (bx, block) in row.chunks(BLOCK * 4).enumerate() {
+                        occ[bx] |= block.iter().skip(3).step_by(4).any(|&a| a != 0);
+                    }
+                }
+                occ
+            })
+            .collect();
+        let mut sat = vec![0u32; (bw + 1) * (bh + 1)];
+        for (by, occ) in rows.iter().enumerate() {
+            let mut run = 0;
+            for (bx, &o) in occ.iter().enumerate() {
+                run += o as u32;
+                sat[(by + 1) * (bw + 1) + bx + 1] = sat[by * (bw + 1) + bx + 1] + run;
+            }
+        }
+        Self { bw, bh, sat }
+    }
+
+    fn is_empty(&self) -> bool {
+        self.sat[self.sat.len() - 1] == 0
+    }
+
+    /// Whether any pixel in `[x0, x1] x [y0, y1]` (clamped to the image) holds content.
+    fn any(&self, x0: f32, x1: f32, y0: f32, y1: f32) -> bool {
+        let block = |v: f32, n: usize| ((v.max(0.0) as usize) / BLOCK).min(n - 1);
+        let (bx0, bx1) = (block(x0, self.bw), block(x1, self.bw) + 1);
+        let (by0, by1) = (block(y0, self.bh), block(y1, self.bh) + 1);
+        let at = |x: usize, y: usize| self.sat[y * (self.bw + 1) + x];
+        at(bx1, by1) + at(bx0, by0) > at(bx0, by1) + at(bx1, by0)
+    }
+}
+
+/// The bilinear blend of four RGBA pixels (top left, top right, bottom left, bottom right)
+/// with 8-bit weights `ax`, `ay`: horizontally, then vertically, each step rounded, all four
+/// channels at once in the 16-bit lanes of a `u64` (lanes R, B, G, A; each stays below 2^16).
+/// Every channel goes through the same operations, so colour never exceeds alpha.
+#[inline]
+fn bilinear(taps: [u32; 4], ax: u64, ay: u64) -> u32 {
+    const MASK: u64 = 0x00FF_00FF_00FF_00FF;
+    const HALF: u64 = 0x0080_0080_0080_0080;
+    let spread = |p: u32| {
+        let x = p as u64;
+        (x | (x << 24)) & MASK
+    };
+    let lerp = |a: u64, b: u64, t: u64| ((a * (256 - t) + b * t + HALF) >> 8) & MASK;
+    let top = lerp(spread(taps[0]), spread(taps[1]), ax);
+    let bottom = lerp(spread(taps[2]), spread(taps[3]), ax);
+    let v = lerp(top, bottom, ay);
+    (v | (v >> 24)) as u32
+}
+
+/// Layer `l` of the I-frame (`img`) sampled (bilinear, 1/256 pixel) where `map` (on a
+/// `gw x gh` grid, bilinearly interpolated) sends every pixel, transparent outside the image;
+/// and per pixel whether that position was hidden behind a nearer layer in the I-frame
+/// (`owner < l`).
+pub(crate) fn warp_layer(
+    img: &PremulImage,
+    map: &[f32],
+    gw: usize,
+    gh: usize,
+    owner: &[u8],
+    l: usize,
+) -> (PremulImage, Vec<bool>) {
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    let mut out = PremulImage::new(w as u32, h as u32);
+    let mut hidden = vec![false; w * h];
+    let src = img.as_bytes();
+    let pixel = |i: usize| u32::from_le_bytes(src[i * 4..i * 4 + 4].try_into().expect("4 bytes"));
+    let occupancy = Occupancy::new(src, w, h);
+    if occupancy.is_empty() {
+        return (out, hidden);
+    }
+    let cols = grid_taps(w, gw);
+    let rows = grid_taps(h, gh);
+    let (maxx, maxy) = ((w - 1) as f32, (h - 1) as f32);
+    // Pixels are taken in runs; a run whose positions (within the hull of the grid nodes it
+    // interpolates) reach no content is skipped whole.
+    const RUN: usize = 32;
+    out.as_bytes_mut()
+        .par_chunks_mut(w * 4)
+        .zip(hidden.par_chunks_mut(w))
+        .enumerate()
+        .for_each(|(y, (row, hid))| {
+            let (g0, g1, fy) = rows[y];
+            let (a, b) = (&map[g0 * gw * 2..][..gw * 2], &map[g1 * gw * 2..][..gw * 2]);
+            let lerp = |c: usize| a[c] + (b[c] - a[c]) * fy;
+            let lx: Vec<f32> = (0..gw).map(|g| lerp(g * 2)).collect();
+            let ly: Vec<f32> = (0..gw).map(|g| lerp(g * 2 + 1)).collect();
+            for start in (0..w).step_by(RUN) {
+                let end = (start + RUN).min(w);
+                let nodes = cols[start].0..=cols[end - 1].1;
+                let hull = |v: &[f32]| {
+                    v[nodes.clone()]
+                        .iter()
+                        .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), &p| {
+                            (lo.min(p), hi.max(p))
+                        })
+                };
+                let ((x0, x1), (y0, y1)) = (hull(&lx), hull(&ly));
+                if !occupancy.any(x0, x1 + 1.0, y0, y1 + 1.0) {
+                    continue;
+                }
+                for x in start..end {
+                    let (c0, c1, fx) = cols[x];
+                    let px = lx[c0] + (lx[c1] - lx[c0]) * fx;
+                    let py = ly[c0] + (ly[c1] - ly[c0]) * fx;
+                    if px < -0.5 || py < -0.5 || px > w as f32 - 0.5 || py > h as f32 - 0.5 {
+                        continue;
+                    }
+                    let (px, py) = (px.clamp(0.0, maxx), py.clamp(0.0, maxy));
+                    let (fxp, fyp) = ((px * 256.0 + 0.5) as u32, (py * 256.0 + 0.5) as u32);
+                    let (x0, y0) = ((fxp >> 8) as usize, (fyp >> 8) as usize);
+                    let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
+                    let (ax, ay) = (fxp & 255, fyp & 255);
+                    let taps = [
+                        pixel(y0 * w + x0),
+                        pixel(y0 * w + x1),
+                        pixel(y1 * w + x0),
+                        pixel(y1 * w + x1),
+                    ];
+                    // Premultiplied: alpha 0 is an all-zero pixel.
+                    if taps[0] | taps[1] | taps[2] | taps[3] == 0 {
+                        continue;
+                    }
+                    row[x * 4..x * 4 + 4]
+                        .copy_from_slice(&bilinear(taps, ax as u64, ay as u64).to_le_bytes());
+                    let (rx, ry) = (x0 + (ax >= 128) as usize, y0 + (ay >= 128) as usize);
+                    hid[x] = (owner[ry.min(h - 1) * w + rx.min(w - 1)] as usize) < l;
+                }
+            }
+        });
+    (out, hidden)
+}
+
+/// One pass over every pixel of the carried layers:
+/// - hidden content (`hidden[l]`) that nothing in front covers (cover below 1/2) is dropped,
+///   so that the layers behind show (the back layer is opaque everywhere and keeps its own);
+/// - the owner is the nearest layer with alpha >= 1/2 (the back layer where none is);
+/// - with `refresh`, the pixels the owner shows fully opaque take the new frame's colour
+///   `rgb`.
+///
+/// Returns the owner per pixel.
+pub(crate) fn settle(
+    images: &mut [&mut PremulImage],
+    hidden: &[Vec<bool>],
+    rgb: &[u8],
+    refresh: bool,
+) -> Vec<u8> {
+    let k = images.len();
+    let w = images[0].width() as usize;
+    let h = images[0].height() as usize;
+    let mut rows: Vec<Vec<&mut [u8]>> = (0..h).map(|_| Vec::with_capacity(k)).collect();
+    for img in images.iter_mut() {
+        for (r, chunk) in rows.iter_mut().zip(img.as_bytes_mut().chunks_mut(w * 4)) {
+            r.push(chunk);
+        }
+    }
+    let mut owner = vec![0u8; w * h];
+    rows.into_par_iter()
+        .zip(owner.par_chunks_mut(w))
+        .enumerate()
+        .for_each(|(y, (mut layers, own))| {
+            for (x, o) in own.iter_mut().enumerate() {
+                let p = y * w + x;
+                let mut cover = 0u32; // 0..=255 * 255
+                let mut first = k - 1;
+                for (l, row) in layers[..k - 1].iter_mut().enumerate() {
+                    let a = row[x * 4 + 3] as u32;
+                    if a == 0 {
+                        continue;
+                    }
+                    if hidden[l][p] && cover * 2 < 255 * 255 {
+                        row[x * 4..x * 4 + 4].fill(0);
+                        continue;
+                    }
+                    cover += (255 * 255 - cover) * a / 255;
+                    if a >= 128 && first == k - 1 {
+                        first = l;
+                    }
+                }
+                *o = first as u8;
+                let px = &mut layers[first][x * 4..x * 4 + 4];
+                if refresh && px[3] == 255 {
+                    px[..3].copy_from_slice(&rgb[p * 3..p * 3 + 3]);
+                }
+            }
+        });
+    owner
+}
+
+/// Median of each label's depths (`None` for a label without pixels), from a histogram of
+/// `ln z` (`ln_depth`, non-finite values ignored) in 4096 bins over the frame's range (to
+/// 1/4096 of that range).
+pub(crate) fn median_depths(owner: &[u8], ln_depth: &[f32], k: usize) -> Vec<Option<f64>> {
+    const BINS: usize = 4096;
+    let valid = |v: f32| v.is_finite();
+    let (lo, hi) = ln_depth
+        .par_iter()
+        .filter(|&&v| valid(v))
+        .map(|&v| (v, v))
+        .reduce(
+            || (f32::INFINITY, f32::NEG_INFINITY),
+            |a, b| (a.0.min(b.0), a.1.max(b.1)),
+        );
+    if lo > hi {
+        return vec![None; k];
+    }
+    let scale = (BINS - 1) as f32 / (hi - lo).max(1e-6);
+    let counts = owner
+        .par_chunks(1 << 14)
+        .zip(ln_depth.par_chunks(1 << 14))
+        .fold(
+            || vec![0u32; k * BINS],
+            |mut acc, (o, d)| {
+                for (&o, &v) in o.iter().zip(d) {
+                    if valid(v) {
+                        acc[o as usize * BINS + ((v - lo) * scale) as usize] += 1;
+                    }
+                }
+                acc
+            },
+        )
+        .reduce_with(|mut a, b| {
+            a.iter_mut().zip(&b).for_each(|(x, y)| *x += y);
+            a
+        })
+        .unwrap_or_else(|| vec![0; k * BINS]);
+    counts
+        .chunks(BINS)
+        .map(|hist| {
+            let n: u32 = hist.iter().sum();
+            if n == 0 {
+                return None;
+            }
+            let mut seen = 0;
+            let bin = hist.iter().position(|&c| {
+                seen += c;
+                seen * 2 > n
+            })?;
+            Some(((bin as f32 + 0.5) / scale + lo).exp() as f64)
+        })
+        .collect()
+}
+
+/// Per layer, the mask overlap and boundary similarity of the layer's pixels (`owner`) with
+/// the region whose depth fits the layer (`|ln z - lz[l]| <= tolerance`, `ln` the log depth;
+/// see the crate documentation). One row-parallel pass for all layers.
+pub(crate) fn agreements(
+    owner: &[u8],
+    ln: &[f32],
+    lz: &[f32],
+    tolerance: f32,
+    w: usize,
+    h: usize,
+) -> Vec<(f32, f32)> {
+    let k = lz.len();
+    let fits = |p: usize, l: usize| (ln[p] - lz[l]).abs() <= tolerance;
+    // Whether p lies on the boundary of the region where `inside` holds (4-neighbourhood).
+    let boundary = |inside: &dyn Fn(usize) -> bool, p: usize| {
+        let (x, y) = (p % w, p / w);
+        let me = inside(p);
+        (x > 0 && inside(p - 1) != me)
+            || (x + 1 < w && inside(p + 1) != me)
+            || (y > 0 && inside(p - w) != me)
+            || (y + 1 < h && inside(p + w) != me)
+    };
+    // Per layer: area, depth agreement, boundary pixels, boundary pixels near a depth edge.
+    let sums = (0..h)
+        .into_par_iter()
+        .fold(
+            || vec![[0u32; 4]; k],
+            |mut acc, y| {
+                for x in 0..w {
+                    let p = y * w + x;
+                    let l = owner[p] as usize;
+                    let s = &mut acc[l];
+                    s[0] += 1;
+                    s[1] += fits(p, l) as u32;
+                    if boundary(&|q| owner[q] as usize == l, p) {
+                        s[2] += 1;
+                        let hit = (y.saturating_sub(1)..(y + 2).min(h)).any(|yy| {
+                            (x.saturating_sub(1)..(x + 2).min(w))
+                                .any(|xx| boundary(&|q| fits(q, l), yy * w + xx))
+                        });
+                        s[3] += hit as u32;
+                    }
+                }
+                acc
+            },
+        )
+        .reduce(
+            || vec![[0u32; 4]; k],
+            |mut a, b| {
+                for (x, y) in a.iter_mut().zip(&b) {
+                    for i in 0..4 {
+                        x[i] += y[i];
+                    }
+                }
+                a
+            },
+        );
+    let ratio = |a: u32, b: u32| if b > 0 { a as f32 / b as f32 } else { 1.0 };
+    sums.iter()
+        .map(|s| (ratio(s[1], s[0]), ratio(s[3], s[2])))
+        .collect()
+}
+
+/// Share of 4-neighbour pairs across layer boundaries whose depth order contradicts the layer
+/// order by more than 2 %.
+pub(crate) fn crack_rate(owner: &[u8], depth: &[f32], w: usize, h: usize) -> f32 {
+    let (pairs, bad) = (0..h)
+        .into_par_iter()
+        .map(|y| {
+            let (mut pairs, mut bad) = (0u32, 0u32);
+            for x in 0..w {
+                let p = y * w + x;
+                for q in [(x + 1 < w).then(|| p + 1), (y + 1 < h).then(|| p + w)]
+                    .into_iter()
+                    .flatten()
+                {
+                    if owner[p] == owner[q] {
+                        continue;
+                    }
+                    pairs += 1;
+                    let (near, far) = if owner[p] < owner[q] { (p, q) } else { (q, p) };
+                    bad += (depth[near] > depth[far] * 1.02) as u32;
+                }
+            }
+            (pairs, bad)
+        })
+        .reduce(|| (0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
+    if pairs == 0 {
+        0.0
+    } else {
+        bad as f32 / pairs as f32
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn bilinear_is_within_one_level_of_exact_and_stays_premultiplied() {
+        let mut seed = 7u64;
+        let mut next = || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (seed >> 33) as u32
+        };
+        for _ in 0..20000 {
+            let taps: [[u8; 4]; 4] = std::array::from_fn(|_| {
+                let a = (next() % 256) as u8;
+                [0, 1, 2]
+                    .map(|_| (next() % (a as u32 + 1)) as u8)
+                    .into_iter()
+                    .chain([a])
+                    .collect::<Vec<_>>()
+                    .try_into()
+                    .unwrap()
+            });
+            let (ax, ay) = (next() % 256, next() % 256);
+            let got = bilinear(taps.map(u32::from_le_bytes), ax as u64, ay as u64).to_le_bytes();
+            let (fx, fy) = (ax as f32 / 256.0, ay as f32 / 256.0);
+            for c in 0..4 {
+                let v = |t: usize| taps[t][c] as f32;
+                let want = (v(0) * (1.0 - fx) + v(1) * fx) * (1.0 - fy)
+                    + (v(2) * (1.0 - fx) + v(3) * fx) * fy;
+                assert!(
+                    (got[c] as f32 - want).abs() <= 1.0,
+                    "{taps:?} {ax} {ay}: {got:?}"
+                );
+            }
+            assert!(got[..3].iter().all(|&c| c <= got[3]), "{got:?}");
+        }
+    }
+
+    #[test]
+    fn medians_match_sorting_within_a_bin() {
+        let (w, h, k) = (97, 61, 3);
+        let owner: Vec<u8> = (0..w * h).map(|p| ((p * 7) % 5 % k) as u8).collect();
+        let depth: Vec<f32> = (0..w * h)
+            .map(|p| 1.0 + ((p * 2654435761usize) % 1000) as f32 / 100.0)
+            .collect();
+        let ln: Vec<f32> = depth.iter().map(|z| z.ln()).collect();
+        let got = median_depths(&owner, &ln, k);
+        for (l, m) in got.iter().enumerate() {
+            let mut v: Vec<f32> = (0..w * h)
+                .filter(|&p| owner[p] as usize == l)
+                .map(|p| depth[p])
+                .collect();
+            v.sort_by(f32::total_cmp);
+            let want = v[v.len() / 2] as f64;
+            let m = m.expect("pixels");
+            // One bin of ln z over [ln 1, ln 11].
+            assert!(
+                (m / want).ln().abs() <= 11f64.ln() / 4095.0,
+                "{m} vs {want}"
+            );
+        }
+        assert_eq!(median_depths(&[0, 0], &[0.7, 0.7], 2)[1], None);
+    }
+
+    #[test]
+    fn identity_warp_keeps_the_layer() {
+        let (w, h, gw, gh) = (40usize, 30usize, 10usize, 8usize);
+        let mut img = PremulImage::new(w as u32, h as u32);
+        for y in 5..20 {
+            for x in 8..30 {
+                img.set_pixel(x, y, [(x * 4) as u8, (y * 5) as u8, 60, 200]);
+            }
+        }
+        let (sx, sy) = (w as f32 / gw as f32, h as f32 / gh as f32);
+        let map: Vec<f32> = (0..gw * gh)
+            .flat_map(|g| {
+                [
+                    ((g % gw) as f32 + 0.5) * sx - 0.5,
+                    ((g / gw) as f32 + 0.5) * sy - 0.5,
+                ]
+            })
+            .collect();
+        let owner = vec![1u8; w * h];
+        let (out, hidden) = warp_layer(&img, &map, gw, gh, &owner, 1);
+        // The grid's border clamps the map within half a grid cell of the edge; inside it the
+        // warp is exact.
+        for y in 2..h - 2 {
+            for x in 3..w - 3 {
+                assert_eq!(out.pixel(x as u32, y as u32), img.pixel(x as u32, y as u32));
+            }
+        }
+        assert!(hidden.iter().all(|&h| !h));
+        let (_, hidden) = warp_layer(&img, &map, gw, gh, &owner, 2);
+        assert!(hidden[10 * w + 10]);
+    }
+}

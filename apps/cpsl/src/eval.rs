@@ -1,17 +1,20 @@
 //! `cpsl eval`: layer real reference views, render their target views, score them against the
 //! real images (PSNR, SSIM, LPIPS, crack and hole ratios) and report as a table, JSON and HTML.
 
+use crate::encode::CodecArg;
 use crate::layer::{layer_image, InstanceMode};
 use crate::progress::Bars;
 use crate::synth::estimate_depth;
 use anyhow::{Context, Result};
 use clap::{Args, ValueEnum};
-use cpsl_core::{FixedDepth, NoProgress, PremulImage, Progress, ProgressEvent};
+use cpsl_codec::{CodingOptions, PackageWriter, RateControl, SegmentFrame};
+use cpsl_core::{Edc, FixedDepth, LayerSet, NoProgress, PremulImage, Progress, ProgressEvent};
 use cpsl_eval::baselines::dibr;
 use cpsl_eval::coverage::{covisible, crack_ratio, edge_band, hole_ratio};
 use cpsl_eval::datasets::{self, align_median, Dataset, Target};
 use cpsl_eval::metrics::{psnr_masked, ssim};
 use cpsl_layering::{slice_by_depth, Bins, LayeringConfig, SliceConfig};
+use cpsl_package::{Codec, RefreshReason};
 use cpsl_render::PreparedLayers;
 use serde::Serialize;
 use std::path::{Path, PathBuf};
@@ -112,6 +115,103 @@ pub struct EvalArgs {
     /// Write an HTML report (tables, per-view plots, image crops) into this folder.
     #[arg(long)]
     pub html: Option<PathBuf>,
+    /// Code the layers of every layered method (the CPSL ones, depth slicing, the MPIs, the
+    /// single plane) as a one-frame package with this codec and decode the package before
+    /// rendering, so that the scores include the coding loss (DIBR stays uncoded).
+    #[arg(long, value_enum)]
+    pub codec: Option<CodecArg>,
+    /// Budget for --codec in bits per second of a 30 frames/s stream (the frame gets a
+    /// thirtieth of it), e.g. `3M`; without it every stream is coded at the codec's default
+    /// quality.
+    #[arg(long, value_parser = crate::encode::parse_bitrate, requires = "codec")]
+    pub bitrate: Option<f64>,
+    /// Keep the packages of --codec in this folder (`<dataset>_<method>.cpsl`; by default they
+    /// go to a temporary folder).
+    #[arg(long, requires = "codec")]
+    pub keep_packages: Option<PathBuf>,
+}
+
+/// Frame rate the budget of `cpsl eval --bitrate` refers to.
+const CODED_FPS: f64 = 30.0;
+
+/// Where `cpsl eval --codec` writes its packages, and how it codes them.
+struct Coding {
+    opts: CodingOptions,
+    dir: PathBuf,
+    _temp: Option<tempfile::TempDir>,
+}
+
+impl Coding {
+    fn new(a: &EvalArgs) -> Result<Option<Self>> {
+        let Some(codec) = a.codec.map(Codec::from) else {
+            return Ok(None);
+        };
+        anyhow::ensure!(
+            cpsl_codec::has_encoder(codec),
+            "this FFmpeg has no {} encoder (scripts/setup-system.sh installs Debian's, which has all four)",
+            codec.name()
+        );
+        let rate = match a.bitrate {
+            Some(b) => RateControl::Budget(b),
+            None => RateControl::Quality(cpsl_codec::quality_range(codec).2),
+        };
+        let (dir, temp) = match &a.keep_packages {
+            Some(d) => {
+                std::fs::create_dir_all(d).with_context(|| format!("creating {}", d.display()))?;
+                (d.clone(), None)
+            }
+            None => {
+                let t = tempfile::tempdir().context("creating a temporary folder")?;
+                (t.path().to_path_buf(), Some(t))
+            }
+        };
+        Ok(Some(Self {
+            opts: CodingOptions {
+                codec,
+                rate,
+                fps: CODED_FPS,
+            },
+            dir,
+            _temp: temp,
+        }))
+    }
+
+    /// Codes `set` (with its Edge-Depth Cache, if any) as the one frame of a package named
+    /// after `dataset` and `method`, decodes it and returns the decoded layers, their cache
+    /// and the bits the frame took.
+    fn round_trip(
+        &self,
+        dataset: &str,
+        method: &str,
+        set: &LayerSet,
+        edc: Option<&Edc>,
+    ) -> Result<(LayerSet, Edc, f64)> {
+        let path = self.dir.join(format!("{}_{method}.cpsl", slug(dataset)));
+        let edc = edc.cloned().unwrap_or_else(|| Edc {
+            width: set.camera().width,
+            height: set.camera().height,
+            layers: set.len() as u16,
+            step: cpsl_layering::matte::MatteConfig::default().edc_step,
+            samples: Vec::new(),
+        });
+        let mut writer = PackageWriter::create(&path, *set.camera(), set.len() as u32, self.opts)?;
+        writer.push_segment(&[SegmentFrame {
+            index: 0,
+            refresh: Some(RefreshReason::First),
+            set: set.clone(),
+            edc,
+            confidence: vec![1.0; set.len()],
+        }])?;
+        let manifest = writer.finish()?;
+        let pkg = cpsl_package::Package::open(&path)
+            .with_context(|| format!("opening {}", path.display()))?;
+        let frame = cpsl_codec::decode_segment(&pkg, 0)
+            .with_context(|| format!("decoding {}", path.display()))?
+            .into_iter()
+            .next()
+            .context("the package has no frame")?;
+        Ok((frame.set, frame.side.edc, manifest.bitrate() / CODED_FPS))
+    }
 }
 
 /// Scores of one rendered view.
@@ -141,6 +241,8 @@ struct MethodReport {
     method: String,
     layers: usize,
     depth: String,
+    /// Bits the coded frame took (`--codec`), null when uncoded.
+    bits: Option<f64>,
     mean_psnr: f64,
     mean_ssim: f64,
     mean_lpips: Option<f64>,
@@ -291,6 +393,7 @@ pub fn run(a: EvalArgs) -> Result<()> {
         Method::All => Method::EVERY.to_vec(),
         m => vec![m],
     };
+    let coding = Coding::new(&a)?;
     let bars = Bars::default();
     let lpips = if a.no_lpips {
         None
@@ -309,8 +412,17 @@ pub fn run(a: EvalArgs) -> Result<()> {
     let mut reports = Vec::new();
     let mut crops = Vec::new();
     println!(
-        "{:<22} {:<16} {:>3} {:>8} {:>7} {:>7} {:>7} {:>7} {:>5}",
-        "dataset", "method", "K", "PSNR dB", "SSIM", "LPIPS", "crack", "hole", "views"
+        "{:<22} {:<16} {:>3} {:>8} {:>7} {:>7} {:>7} {:>7} {:>5}{}",
+        "dataset",
+        "method",
+        "K",
+        "PSNR dB",
+        "SSIM",
+        "LPIPS",
+        "crack",
+        "hole",
+        "views",
+        if coding.is_some() { "  kbit/frame" } else { "" }
     );
     for name in names {
         let ds = datasets::load(&a.data, name).with_context(|| format!("loading {name}"))?;
@@ -333,7 +445,27 @@ pub fn run(a: EvalArgs) -> Result<()> {
             lpips: lpips.as_ref(),
         };
         for &method in &methods {
-            let sliced = |k: usize, bins: Bins| -> Result<(PreparedLayers, usize)> {
+            // The layers as rendered: the set itself, or the set coded and decoded again.
+            let prepare =
+                |set: &LayerSet, edc: Option<&Edc>| -> Result<(PreparedLayers, Option<f64>)> {
+                    Ok(match &coding {
+                        None => {
+                            let p = PreparedLayers::new(set);
+                            (
+                                match edc {
+                                    Some(e) => p.with_edc(e),
+                                    None => p,
+                                },
+                                None,
+                            )
+                        }
+                        Some(c) => {
+                            let (set, edc, bits) = c.round_trip(name, method.name(), set, edc)?;
+                            (PreparedLayers::new(&set).with_edc(&edc), Some(bits))
+                        }
+                    })
+                };
+            let sliced = |k: usize, bins: Bins| -> Result<(PreparedLayers, usize, Option<f64>)> {
                 let config = SliceConfig {
                     layers: k,
                     bins,
@@ -341,9 +473,10 @@ pub fn run(a: EvalArgs) -> Result<()> {
                 };
                 let set = slice_by_depth(&ds.rgb, &depth, ds.camera, &config)
                     .with_context(|| format!("layering {name}"))?;
-                Ok((PreparedLayers::new(&set), set.len()))
+                let (prepared, bits) = prepare(&set, None)?;
+                Ok((prepared, set.len(), bits))
             };
-            let ((views, crop), layers) = match method {
+            let ((views, crop), layers, bits) = match method {
                 Method::Cpsl | Method::CpslNoDps | Method::CpslDepthOnly => {
                     let mut cfg = LayeringConfig {
                         layers: a.layers as usize,
@@ -371,11 +504,12 @@ pub fn run(a: EvalArgs) -> Result<()> {
                         &NoProgress,
                     )
                     .with_context(|| format!("layering {name}"))?;
-                    let prepared = PreparedLayers::new(&run.layered.set).with_edc(&run.layered.edc);
+                    let (prepared, bits) = prepare(&run.layered.set, Some(&run.layered.edc))?;
                     let dps = method != Method::CpslNoDps;
                     (
                         scorer.score(|t| render_layers(&prepared, t, dps), &bars)?,
                         run.layered.set.len(),
+                        bits,
                     )
                 }
                 Method::DepthSlice | Method::Mpi | Method::MpiK | Method::SinglePlane => {
@@ -385,10 +519,11 @@ pub fn run(a: EvalArgs) -> Result<()> {
                         Method::MpiK => (a.layers as usize, Bins::UniformInverse),
                         _ => (1, Bins::KMeans),
                     };
-                    let (prepared, n) = sliced(k, bins)?;
+                    let (prepared, n, bits) = sliced(k, bins)?;
                     (
                         scorer.score(|t| render_layers(&prepared, t, false), &bars)?,
                         n,
+                        bits,
                     )
                 }
                 Method::Dibr | Method::DibrFill => {
@@ -403,7 +538,7 @@ pub fn run(a: EvalArgs) -> Result<()> {
                         },
                         &bars,
                     )?;
-                    (scored, 0)
+                    (scored, 0, None)
                 }
                 Method::All => unreachable!("expanded above"),
             };
@@ -412,6 +547,7 @@ pub fn run(a: EvalArgs) -> Result<()> {
                 method: method.name().into(),
                 layers,
                 depth: depth_name.clone(),
+                bits,
                 mean_psnr: mean(
                     views
                         .iter()
@@ -427,7 +563,7 @@ pub fn run(a: EvalArgs) -> Result<()> {
                 views,
             };
             println!(
-                "{:<22} {:<16} {:>3} {:>8.2} {:>7.4} {:>7} {:>7.4} {:>7.4} {:>5}",
+                "{:<22} {:<16} {:>3} {:>8.2} {:>7.4} {:>7} {:>7.4} {:>7.4} {:>5}{}",
                 r.dataset,
                 r.method,
                 r.layers,
@@ -436,7 +572,9 @@ pub fn run(a: EvalArgs) -> Result<()> {
                 r.mean_lpips.map_or("-".to_string(), |l| format!("{l:.4}")),
                 r.mean_crack,
                 r.mean_hole,
-                r.views.len()
+                r.views.len(),
+                r.bits
+                    .map_or(String::new(), |b| format!(" {:>12.1}", b / 1e3))
             );
             if a.html.is_some() {
                 let t = &ds.targets[farthest(&ds)];
@@ -581,13 +719,13 @@ fn write_html(dir: &Path, reports: &[MethodReport], crops: &[Crop], a: &EvalArgs
     for name in names {
         let rs: Vec<&MethodReport> = reports.iter().filter(|r| r.dataset == name).collect();
         html += &format!(
-            "<h2>{}</h2><p>depth: {}</p><table><tr><th>method</th><th>K</th><th>PSNR dB</th><th>SSIM</th><th>LPIPS</th><th>crack</th><th>hole</th><th>views</th></tr>",
+            "<h2>{}</h2><p>depth: {}</p><table><tr><th>method</th><th>K</th><th>PSNR dB</th><th>SSIM</th><th>LPIPS</th><th>crack</th><th>hole</th><th>views</th><th>kbit/frame</th></tr>",
             esc(name),
             esc(&rs[0].depth)
         );
         for r in &rs {
             html += &format!(
-                "<tr><th>{}</th><td>{}</td><td>{:.2}</td><td>{:.4}</td><td>{}</td><td>{:.4}</td><td>{:.4}</td><td>{}</td></tr>",
+                "<tr><th>{}</th><td>{}</td><td>{:.2}</td><td>{:.4}</td><td>{}</td><td>{:.4}</td><td>{:.4}</td><td>{}</td><td>{}</td></tr>",
                 esc(&r.method),
                 r.layers,
                 r.mean_psnr,
@@ -595,7 +733,8 @@ fn write_html(dir: &Path, reports: &[MethodReport], crops: &[Crop], a: &EvalArgs
                 r.mean_lpips.map_or("-".into(), |l| format!("{l:.4}")),
                 r.mean_crack,
                 r.mean_hole,
-                r.views.len()
+                r.views.len(),
+                r.bits.map_or("-".into(), |b| format!("{:.1}", b / 1e3))
             );
         }
         html += "</table>";

@@ -432,6 +432,57 @@ fn eval_on_real_data_and_its_errors() {
     assert!(html
         .join("crops/middlebury2003_Teddy_ground_truth.png")
         .is_file());
+    // Coded: the layers go through a one-frame package and are decoded before rendering.
+    fails(
+        &[
+            "eval",
+            "middlebury2003/Teddy",
+            "--data",
+            s(&data),
+            "--bitrate",
+            "3M",
+        ],
+        "--codec",
+    );
+    let kept = d.path().join("packages");
+    let coded_json = d.path().join("coded.json");
+    let run = |budget: &str| {
+        ok(&[
+            "eval",
+            "middlebury2003/Teddy",
+            "--data",
+            s(&data),
+            "--method",
+            "cpsl",
+            "--no-lpips",
+            "--codec",
+            "h264",
+            "--bitrate",
+            budget,
+            "--keep-packages",
+            s(&kept),
+            "--json",
+            s(&coded_json),
+        ]);
+        let r: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(&coded_json).unwrap()).unwrap();
+        (
+            r[0]["mean_psnr"].as_f64().unwrap(),
+            r[0]["bits"].as_f64().unwrap(),
+        )
+    };
+    let (low_psnr, low_bits) = run("2M");
+    let (high_psnr, high_bits) = run("30M");
+    let pkg = kept.join("middlebury2003_Teddy_cpsl.cpsl");
+    assert!(ok(&["verify", s(&pkg)]).contains("ok"));
+    let uncoded = first["mean_psnr"].as_f64().unwrap();
+    // The coded frame costs more bits at the higher budget and gets closer to the uncoded
+    // layers; coding never adds quality.
+    assert!(high_bits > 2.0 * low_bits, "{low_bits} vs {high_bits}");
+    assert!(
+        low_psnr < high_psnr && high_psnr <= uncoded + 0.05 && high_psnr > uncoded - 1.0,
+        "{low_psnr} {high_psnr} {uncoded}"
+    );
 }
 
 /// The README's main job, small: a still layered and swept, then a moving clip encoded into a

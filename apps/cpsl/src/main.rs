@@ -1,6 +1,11 @@
 //! `cpsl`: turn 2D frames into Content-Promoted Scene Layers and render them from new
 //! viewpoints.
 
+/// mimalloc keeps freed frame buffers for reuse; with the system allocator every frame's
+/// multi-megabyte layers were fresh pages that the kernel had to fault in and clear.
+#[global_allocator]
+static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 mod bench;
 mod demo;
 mod encode;

@@ -70,12 +70,12 @@ pub fn push_pull(
         for y in 0..fh {
             // Bilinear sample of the coarse level at the fine pixel centre.
             let sy = ((y as f32 + 0.5) / 2.0 - 0.5).clamp(0.0, (ch - 1) as f32);
-            let y0 = sy.floor() as usize;
+            let y0 = sy as usize; // non-negative: truncation is the floor (no libm call)
             let y1 = (y0 + 1).min(ch - 1);
             let fy = sy - y0 as f32;
             for x in 0..fw {
                 let sx = ((x as f32 + 0.5) / 2.0 - 0.5).clamp(0.0, (cw - 1) as f32);
-                let x0 = sx.floor() as usize;
+                let x0 = sx as usize;
                 let x1 = (x0 + 1).min(cw - 1);
                 let fx = sx - x0 as f32;
                 let i = y * fw + x;

@@ -1,22 +1,10 @@
 //! Per-pixel work of a P-frame, written for speed: row-parallel, the grid maps interpolated
-//! once per row, layer samples in 8-bit fixed point (as the renderer does), one fused pass for
-//! everything that looks at all layers of a pixel.
+//! once per row and stepped in 16.16 fixed point along each grid interval, layer samples in
+//! 8-bit fixed point (as the renderer does), one fused pass for everything that looks at all
+//! layers of a pixel.
 
 use cpsl_core::PremulImage;
 use rayon::prelude::*;
-
-/// Bilinear taps along one axis of a grid: for every full-resolution position, the two grid
-/// indices and the weight of the second, clamped at the border.
-fn grid_taps(n: usize, grid: usize) -> Vec<(usize, usize, f32)> {
-    let s = grid as f32 / n as f32;
-    (0..n)
-        .map(|i| {
-            let g = ((i as f32 + 0.5) * s - 0.5).clamp(0.0, (grid - 1) as f32);
-            let g0 = g.floor() as usize;
-            (g0, (g0 + 1).min(grid - 1), g - g0 as f32)
-        })
-        .collect()
-}
 
 /// Side of the blocks in which [`Occupancy`] records content.
 const BLOCK: usize = 8;
@@ -70,11 +58,47 @@ impl Occupancy {
     }
 }
 
+/// An I-frame layer prepared once for the warps of its whole GOP: texels (RGBA8, R in the
+/// low byte) with a one-pixel border that repeats the edge, so that all four taps of any
+/// position within half a pixel of the image lie inside and the edge is clamped; and where
+/// the layer holds content.
+pub(crate) struct KeyLayer {
+    texels: Vec<u32>,
+    w: usize,
+    h: usize,
+    occupancy: Occupancy,
+}
+
+impl KeyLayer {
+    pub(crate) fn new(img: &PremulImage) -> Self {
+        let (w, h) = (img.width() as usize, img.height() as usize);
+        let src = img.as_bytes();
+        let pitch = w + 2;
+        let mut texels = vec![0u32; pitch * (h + 2)];
+        texels
+            .par_chunks_mut(pitch)
+            .enumerate()
+            .for_each(|(py, row)| {
+                let y = py.clamp(1, h) - 1;
+                for (px, t) in row.iter_mut().enumerate() {
+                    let i = (y * w + px.clamp(1, w) - 1) * 4;
+                    *t = u32::from_le_bytes([src[i], src[i + 1], src[i + 2], src[i + 3]]);
+                }
+            });
+        Self {
+            texels,
+            w,
+            h,
+            occupancy: Occupancy::new(src, w, h),
+        }
+    }
+}
+
 /// The bilinear blend of four RGBA pixels (top left, top right, bottom left, bottom right)
 /// with 8-bit weights `ax`, `ay`: horizontally, then vertically, each step rounded, all four
 /// channels at once in the 16-bit lanes of a `u64` (lanes R, B, G, A; each stays below 2^16).
 /// Every channel goes through the same operations, so colour never exceeds alpha.
-#[inline]
+#[inline(always)]
 fn bilinear(taps: [u32; 4], ax: u64, ay: u64) -> u32 {
     const MASK: u64 = 0x00FF_00FF_00FF_00FF;
     const HALF: u64 = 0x0080_0080_0080_0080;
@@ -89,33 +113,74 @@ fn bilinear(taps: [u32; 4], ax: u64, ay: u64) -> u32 {
     (v | (v >> 24)) as u32
 }
 
-/// Layer `l` of the I-frame (`img`) sampled (bilinear, 1/256 pixel) where `map` (on a
-/// `gw x gh` grid, bilinearly interpolated) sends every pixel, transparent outside the image;
-/// and per pixel whether that position was hidden behind a nearer layer in the I-frame
-/// (`owner < l`).
+/// Pixels `[x0, x1)` of a row whose grid weights are linear in x: grid nodes `c0` and `c1`,
+/// the weight of `c1` at `x0` and its change per pixel (0 where the border clamps it).
+struct Segment {
+    x0: usize,
+    x1: usize,
+    c0: usize,
+    c1: usize,
+    f0: f32,
+    df: f32,
+    clamped: bool,
+}
+
+/// The segments of a row of `n` pixels over a grid of `grid` nodes (pixel centres mapped to
+/// grid coordinates, clamped to the outer nodes).
+fn segments(n: usize, grid: usize) -> Vec<Segment> {
+    let s = grid as f32 / n as f32;
+    let last = (grid - 1) as f32;
+    let mut out: Vec<Segment> = Vec::new();
+    for x in 0..n {
+        let g = (x as f32 + 0.5) * s - 0.5;
+        let clamped = !(0.0..=last).contains(&g);
+        let g = g.clamp(0.0, last);
+        let c0 = (g.floor() as usize).min(grid.saturating_sub(2));
+        match out.last_mut() {
+            Some(seg) if seg.c0 == c0 && seg.clamped == clamped => seg.x1 = x + 1,
+            _ => out.push(Segment {
+                x0: x,
+                x1: x + 1,
+                c0,
+                c1: (c0 + 1).min(grid - 1),
+                f0: g - c0 as f32,
+                df: if clamped { 0.0 } else { s },
+                clamped,
+            }),
+        }
+    }
+    out
+}
+
+/// Layer `l` of the I-frame (`key`) sampled (bilinear, 1/256 pixel) where `map` (on a
+/// `gw x gh` grid, bilinearly interpolated) sends every pixel, transparent where that lies
+/// more than half a pixel outside the image; and per pixel whether that position was hidden
+/// behind a nearer layer in the I-frame (`owner < l`).
 pub(crate) fn warp_layer(
-    img: &PremulImage,
+    key: &KeyLayer,
     map: &[f32],
     gw: usize,
     gh: usize,
     owner: &[u8],
     l: usize,
 ) -> (PremulImage, Vec<bool>) {
-    let (w, h) = (img.width() as usize, img.height() as usize);
+    let (w, h) = (key.w, key.h);
     let mut out = PremulImage::new(w as u32, h as u32);
     let mut hidden = vec![false; w * h];
-    let src = img.as_bytes();
-    let pixel = |i: usize| u32::from_le_bytes(src[i * 4..i * 4 + 4].try_into().expect("4 bytes"));
-    let occupancy = Occupancy::new(src, w, h);
-    if occupancy.is_empty() {
+    if key.occupancy.is_empty() {
         return (out, hidden);
     }
-    let cols = grid_taps(w, gw);
-    let rows = grid_taps(h, gh);
-    let (maxx, maxy) = ((w - 1) as f32, (h - 1) as f32);
-    // Pixels are taken in runs; a run whose positions (within the hull of the grid nodes it
-    // interpolates) reach no content is skipped whole.
-    const RUN: usize = 32;
+    let pitch = w + 2;
+    let segs = segments(w, gw);
+    // Rows use the same construction along y.
+    let rows: Vec<(usize, usize, f32)> = segments(h, gh)
+        .iter()
+        .flat_map(|s| (s.x0..s.x1).map(move |y| (s.c0, s.c1, s.f0 + s.df * (y - s.x0) as f32)))
+        .collect();
+    let (lim_x, lim_y) = ((w * 256) as i64 - 128, (h * 256) as i64 - 128);
+    // Segments are taken in groups; a group whose positions (within the hull of the grid
+    // nodes it interpolates) reach no content is skipped whole.
+    const GROUP: usize = 8;
     out.as_bytes_mut()
         .par_chunks_mut(w * 4)
         .zip(hidden.par_chunks_mut(w))
@@ -126,9 +191,8 @@ pub(crate) fn warp_layer(
             let lerp = |c: usize| a[c] + (b[c] - a[c]) * fy;
             let lx: Vec<f32> = (0..gw).map(|g| lerp(g * 2)).collect();
             let ly: Vec<f32> = (0..gw).map(|g| lerp(g * 2 + 1)).collect();
-            for start in (0..w).step_by(RUN) {
-                let end = (start + RUN).min(w);
-                let nodes = cols[start].0..=cols[end - 1].1;
+            for group in segs.chunks(GROUP) {
+                let nodes = group[0].c0..=group[group.len() - 1].c1;
                 let hull = |v: &[f32]| {
                     v[nodes.clone()]
                         .iter()
@@ -137,35 +201,42 @@ pub(crate) fn warp_layer(
                         })
                 };
                 let ((x0, x1), (y0, y1)) = (hull(&lx), hull(&ly));
-                if !occupancy.any(x0, x1 + 1.0, y0, y1 + 1.0) {
+                if !key.occupancy.any(x0, x1 + 1.0, y0, y1 + 1.0) {
                     continue;
                 }
-                for x in start..end {
-                    let (c0, c1, fx) = cols[x];
-                    let px = lx[c0] + (lx[c1] - lx[c0]) * fx;
-                    let py = ly[c0] + (ly[c1] - ly[c0]) * fx;
-                    if px < -0.5 || py < -0.5 || px > w as f32 - 0.5 || py > h as f32 - 0.5 {
-                        continue;
+                for seg in group {
+                    // Positions in 16.16 fixed point, stepped along the segment.
+                    // (Truncation: no libm call on the baseline target; 1/65536 px.)
+                    let fixed = |v: f32| (v as f64 * 65536.0) as i64;
+                    let (dx, dy) = (lx[seg.c1] - lx[seg.c0], ly[seg.c1] - ly[seg.c0]);
+                    let (mut px, mut py) = (
+                        fixed(lx[seg.c0] + dx * seg.f0),
+                        fixed(ly[seg.c0] + dy * seg.f0),
+                    );
+                    let (sx, sy) = (fixed(dx * seg.df), fixed(dy * seg.df));
+                    for x in seg.x0..seg.x1 {
+                        // 1/256 px, rounded.
+                        let (xi, yi) = ((px + 128) >> 8, (py + 128) >> 8);
+                        px += sx;
+                        py += sy;
+                        if xi < -128 || yi < -128 || xi > lim_x || yi > lim_y {
+                            continue;
+                        }
+                        // Within half a pixel of the image: the taps lie in the padded texture.
+                        let (tx, ty) = ((xi >> 8) + 1, (yi >> 8) + 1);
+                        let i = ty as usize * pitch + tx as usize;
+                        let t = &key.texels[i..i + pitch + 2];
+                        let taps = [t[0], t[1], t[pitch], t[pitch + 1]];
+                        // Premultiplied: alpha 0 is an all-zero pixel.
+                        if taps[0] | taps[1] | taps[2] | taps[3] == 0 {
+                            continue;
+                        }
+                        let v = bilinear(taps, (xi & 255) as u64, (yi & 255) as u64);
+                        row[x * 4..x * 4 + 4].copy_from_slice(&v.to_le_bytes());
+                        let rx = (((xi + 128) >> 8).max(0) as usize).min(w - 1);
+                        let ry = (((yi + 128) >> 8).max(0) as usize).min(h - 1);
+                        hid[x] = (owner[ry * w + rx] as usize) < l;
                     }
-                    let (px, py) = (px.clamp(0.0, maxx), py.clamp(0.0, maxy));
-                    let (fxp, fyp) = ((px * 256.0 + 0.5) as u32, (py * 256.0 + 0.5) as u32);
-                    let (x0, y0) = ((fxp >> 8) as usize, (fyp >> 8) as usize);
-                    let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
-                    let (ax, ay) = (fxp & 255, fyp & 255);
-                    let taps = [
-                        pixel(y0 * w + x0),
-                        pixel(y0 * w + x1),
-                        pixel(y1 * w + x0),
-                        pixel(y1 * w + x1),
-                    ];
-                    // Premultiplied: alpha 0 is an all-zero pixel.
-                    if taps[0] | taps[1] | taps[2] | taps[3] == 0 {
-                        continue;
-                    }
-                    row[x * 4..x * 4 + 4]
-                        .copy_from_slice(&bilinear(taps, ax as u64, ay as u64).to_le_bytes());
-                    let (rx, ry) = (x0 + (ax >= 128) as usize, y0 + (ay >= 128) as usize);
-                    hid[x] = (owner[ry.min(h - 1) * w + rx.min(w - 1)] as usize) < l;
                 }
             }
         });
@@ -443,6 +514,24 @@ mod tests {
     }
 
     #[test]
+    fn segments_reproduce_the_grid_weights() {
+        for (n, grid) in [(1280, 320), (720, 180), (37, 11), (5, 2), (9, 1)] {
+            let segs = segments(n, grid);
+            assert_eq!(segs.first().map(|s| s.x0), Some(0));
+            assert_eq!(segs.last().map(|s| s.x1), Some(n));
+            let s = grid as f32 / n as f32;
+            for seg in &segs {
+                for x in seg.x0..seg.x1 {
+                    let g = ((x as f32 + 0.5) * s - 0.5).clamp(0.0, (grid - 1) as f32);
+                    let f = seg.f0 + seg.df * (x - seg.x0) as f32;
+                    let got = seg.c0 as f32 + f * (seg.c1 - seg.c0) as f32;
+                    assert!((got - g).abs() < 1e-3, "{n} {grid} {x}: {got} vs {g}");
+                }
+            }
+        }
+    }
+
+    #[test]
     fn identity_warp_keeps_the_layer() {
         let (w, h, gw, gh) = (40usize, 30usize, 10usize, 8usize);
         let mut img = PremulImage::new(w as u32, h as u32);
@@ -461,7 +550,8 @@ mod tests {
             })
             .collect();
         let owner = vec![1u8; w * h];
-        let (out, hidden) = warp_layer(&img, &map, gw, gh, &owner, 1);
+        let key = KeyLayer::new(&img);
+        let (out, hidden) = warp_layer(&key, &map, gw, gh, &owner, 1);
         // The grid's border clamps the map within half a grid cell of the edge; inside it the
         // warp is exact.
         for y in 2..h - 2 {
@@ -470,7 +560,7 @@ mod tests {
             }
         }
         assert!(hidden.iter().all(|&h| !h));
-        let (_, hidden) = warp_layer(&img, &map, gw, gh, &owner, 2);
+        let (_, hidden) = warp_layer(&key, &map, gw, gh, &owner, 2);
         assert!(hidden[10 * w + 10]);
     }
 }

@@ -219,6 +219,8 @@ struct State {
     /// The last I-frame's layers and owner.
     key: LayerSet,
     key_owner: Vec<u8>,
+    /// The last I-frame's layers prepared for warping.
+    key_layers: Vec<kernels::KeyLayer>,
     /// Per layer, on the flow grid: where each grid pixel's point of the previous frame lies
     /// in the I-frame (full-resolution pixels, x and y interleaved).
     maps: Vec<Vec<f32>>,
@@ -403,6 +405,11 @@ impl VideoLayerer {
             owner: layered.owner.clone(),
             key: set.clone(),
             key_owner: layered.owner.clone(),
+            key_layers: set
+                .layers()
+                .par_iter()
+                .map(|l| kernels::KeyLayer::new(&l.image))
+                .collect(),
             maps,
             depths: set.layers().iter().map(|l| l.depth).collect(),
             tracks,
@@ -453,7 +460,7 @@ impl VideoLayerer {
         // A model may leave pixels without depth: they keep the depth carried along.
         let depth: Vec<f32> = match depth {
             Some(d) => d
-                .iter()
+                .par_iter()
                 .zip(&carried)
                 .map(|(&z, &c)| if z.is_finite() && z > 0.0 { z } else { c })
                 .collect(),
@@ -470,7 +477,8 @@ impl VideoLayerer {
             .zip(&maps)
             .enumerate()
             .map(|(l, (key, m))| {
-                let (image, hidden) = kernels::warp_layer(&key.image, m, gw, gh, &s.key_owner, l);
+                let (image, hidden) =
+                    kernels::warp_layer(&s.key_layers[l], m, gw, gh, &s.key_owner, l);
                 let layer = cpsl_core::Layer {
                     image,
                     depth: key.depth,
@@ -569,8 +577,9 @@ fn ms(t: Instant) -> f64 {
 #[inline]
 fn source(flow: &Flow, x: usize, y: usize, w: usize, h: usize) -> usize {
     let (u, v) = flow.at(x, y);
-    let sx = (x as f32 + u).round().clamp(0.0, (w - 1) as f32) as usize;
-    let sy = (y as f32 + v).round().clamp(0.0, (h - 1) as f32) as usize;
+    // Rounded to nearest by truncating after the clamp (no libm call on the baseline target).
+    let sx = (x as f32 + u + 0.5).clamp(0.0, (w - 1) as f32) as usize;
+    let sy = (y as f32 + v + 0.5).clamp(0.0, (h - 1) as f32) as usize;
     sy * w + sx
 }
 
@@ -659,17 +668,20 @@ fn identity_map(w: usize, h: usize, gw: usize, gh: usize) -> Vec<f32> {
         .collect()
 }
 
-/// Bilinear sample of channel `c` of a 2-channel grid at `(x, y)` (clamped).
+/// Bilinear sample of both channels of a 2-channel grid at `(x, y)` (clamped).
 #[inline]
-fn sample2(d: &[f32], gw: usize, gh: usize, x: f32, y: f32, c: usize) -> f32 {
+fn sample2(d: &[f32], gw: usize, gh: usize, x: f32, y: f32) -> [f32; 2] {
     let x = x.clamp(0.0, (gw - 1) as f32);
     let y = y.clamp(0.0, (gh - 1) as f32);
-    let (x0, y0) = (x.floor() as usize, y.floor() as usize);
+    // Non-negative after the clamp: truncation is the floor.
+    let (x0, y0) = (x as usize, y as usize);
     let (x1, y1) = ((x0 + 1).min(gw - 1), (y0 + 1).min(gh - 1));
     let (fx, fy) = (x - x0 as f32, y - y0 as f32);
-    let at = |xx: usize, yy: usize| d[(yy * gw + xx) * 2 + c];
-    (at(x0, y0) * (1.0 - fx) + at(x1, y0) * fx) * (1.0 - fy)
-        + (at(x0, y1) * (1.0 - fx) + at(x1, y1) * fx) * fy
+    let at = |xx: usize, yy: usize, c: usize| d[(yy * gw + xx) * 2 + c];
+    [0, 1].map(|c| {
+        (at(x0, y0, c) * (1.0 - fx) + at(x1, y0, c) * fx) * (1.0 - fy)
+            + (at(x0, y1, c) * (1.0 - fx) + at(x1, y1, c) * fx) * fy
+    })
 }
 
 /// Per layer, the grid flow of its own interior: grid pixels whose match in the previous
@@ -682,8 +694,8 @@ fn layer_flows(prev_owner: &[u8], flow: &Flow, w: usize, h: usize, k: usize) -> 
     // The previous owner on the grid: a layer index, or 255 where the cell is mixed.
     let cell: Vec<u8> = (0..gw * gh)
         .map(|g| {
-            let x = (grid_to_full((g % gw) as f32, sx).round() as usize).min(w - 1);
-            let y = (grid_to_full((g / gw) as f32, sy).round() as usize).min(h - 1);
+            let x = ((grid_to_full((g % gw) as f32, sx) + 0.5) as usize).min(w - 1);
+            let y = ((grid_to_full((g / gw) as f32, sy) + 0.5) as usize).min(h - 1);
             prev_owner[y * w + x]
         })
         .collect();
@@ -696,8 +708,9 @@ fn layer_flows(prev_owner: &[u8], flow: &Flow, w: usize, h: usize, k: usize) -> 
             let mut weight = vec![0f32; gw * gh];
             for g in 0..gw * gh {
                 let (u, v) = flow.at(g % gw, g / gw);
-                let qx = ((g % gw) as f32 + u).round();
-                let qy = ((g / gw) as f32 + v).round();
+                // Nearest grid pixel (floor of +1/2; negatives fail the test first).
+                let qx = (g % gw) as f32 + u + 0.5;
+                let qy = (g / gw) as f32 + v + 0.5;
                 if qx < 0.0 || qy < 0.0 || qx >= gw as f32 || qy >= gh as f32 {
                     continue;
                 }
@@ -726,7 +739,7 @@ fn compose(map: &[f32], flow: &Flow, gw: usize, gh: usize) -> Vec<f32> {
         .flat_map(|g| {
             let (u, v) = flow.at(g % gw, g / gw);
             let (x, y) = ((g % gw) as f32 + u, (g / gw) as f32 + v);
-            [sample2(map, gw, gh, x, y, 0), sample2(map, gw, gh, x, y, 1)]
+            sample2(map, gw, gh, x, y)
         })
         .collect()
 }

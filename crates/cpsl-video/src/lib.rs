@@ -45,6 +45,8 @@ use std::time::Instant;
 use thiserror::Error;
 
 mod kernels;
+#[cfg(target_arch = "x86_64")]
+mod simd;
 
 /// Errors of video layering.
 #[derive(Debug, Error)]

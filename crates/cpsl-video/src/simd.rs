@@ -1,0 +1,170 @@
+//! AVX2 kernel of the P-frame warp: eight samples per step.
+//!
+//! It computes exactly what the scalar kernel (`kernels::sample_scalar`) computes: the same
+//! range test, the same taps from the edge-padded texels, the same two-stage 8-bit bilinear
+//! filter in 16-bit lanes. A test checks bit-identity on random layers and positions.
+#![allow(unsafe_code)]
+
+use std::arch::x86_64::*;
+
+/// Whether the running CPU has AVX2.
+pub(crate) fn available() -> bool {
+    std::arch::is_x86_feature_detected!("avx2")
+}
+
+/// Samples whole groups of eight of the positions `xs`, `ys` (1/256 px) from `texels` (a
+/// `w x h` layer with a one-pixel edge-repeating border, pitch `w + 2`) into `out` (RGBA,
+/// four bytes per position); where a sample has content, `hid` says whether `owner` at the
+/// nearest pixel is below `l`. Returns how many positions it handled; the caller finishes
+/// the rest.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn sample_span(
+    texels: &[u32],
+    w: usize,
+    h: usize,
+    xs: &[i32],
+    ys: &[i32],
+    out: &mut [u8],
+    hid: &mut [bool],
+    owner: &[u8],
+    l: usize,
+) -> usize {
+    assert_eq!(owner.len(), w * h);
+    assert!(texels.len() >= (w + 2) * (h + 2) && w >= 1 && h >= 1);
+    assert!((w + 2) * (h + 2) < i32::MAX as usize && w * 256 < i32::MAX as usize / 2);
+    assert!(h * 256 < i32::MAX as usize / 2);
+    let n = xs.len().min(ys.len()).min(out.len() / 4).min(hid.len());
+    assert!(available());
+    // SAFETY: AVX2 is present (checked above); the kernel reads `xs`, `ys` and writes `out`
+    // only within the first `n / 8` groups of eight, which fit all three; it reads texels
+    // only at indices that the range test proves to be inside the padded texture (invalid
+    // lanes read index 0).
+    unsafe { sample_avx2(texels, w, h, &xs[..n], &ys[..n], out, hid, owner, l) }
+}
+
+#[allow(clippy::too_many_arguments)]
+#[target_feature(enable = "avx2")]
+unsafe fn sample_avx2(
+    texels: &[u32],
+    w: usize,
+    h: usize,
+    xs: &[i32],
+    ys: &[i32],
+    out: &mut [u8],
+    hid: &mut [bool],
+    owner: &[u8],
+    l: usize,
+) -> usize {
+    let groups = xs.len() / 8;
+    let pitch = w + 2;
+    let one = _mm256_set1_epi32(1);
+    let below = _mm256_set1_epi32(-129);
+    let lim_x = _mm256_set1_epi32((w * 256) as i32 - 127);
+    let lim_y = _mm256_set1_epi32((h * 256) as i32 - 127);
+    let pitch_v = _mm256_set1_epi32(pitch as i32);
+    let byte = _mm256_set1_epi32(255);
+    let lanes16 = _mm256_set1_epi32(0x00FF_00FF);
+    let w256 = _mm256_set1_epi32(0x0100_0100);
+    let round = _mm256_set1_epi32(0x0080_0080);
+    let zero = _mm256_setzero_si256();
+    let base = texels.as_ptr() as *const i32;
+    for g in 0..groups {
+        let o = g * 8;
+        let xi = _mm256_loadu_si256(xs.as_ptr().add(o) as *const __m256i);
+        let yi = _mm256_loadu_si256(ys.as_ptr().add(o) as *const __m256i);
+        // -128 <= xi <= 256 w - 128 and the same for y: within half a pixel of the image.
+        let valid = _mm256_and_si256(
+            _mm256_and_si256(_mm256_cmpgt_epi32(xi, below), _mm256_cmpgt_epi32(lim_x, xi)),
+            _mm256_and_si256(_mm256_cmpgt_epi32(yi, below), _mm256_cmpgt_epi32(lim_y, yi)),
+        );
+        let tx = _mm256_add_epi32(_mm256_srai_epi32(xi, 8), one);
+        let ty = _mm256_add_epi32(_mm256_srai_epi32(yi, 8), one);
+        let idx = _mm256_and_si256(_mm256_add_epi32(_mm256_mullo_epi32(ty, pitch_v), tx), valid);
+        let mut lane_idx = [0i32; 8];
+        _mm256_storeu_si256(lane_idx.as_mut_ptr() as *mut __m256i, idx);
+        // Each row's two taps are adjacent: one 64-bit load per pixel and row.
+        let row = |off: usize| {
+            // SAFETY: every index is 0 or a valid lane's, whose taps (idx, idx + 1,
+            // idx + pitch, idx + pitch + 1) lie inside the padded texture.
+            let q =
+                |k: usize| (base.add(lane_idx[k] as usize + off) as *const i64).read_unaligned();
+            (
+                _mm256_setr_epi64x(q(0), q(1), q(2), q(3)),
+                _mm256_setr_epi64x(q(4), q(5), q(6), q(7)),
+            )
+        };
+        let (t_lo, t_hi) = row(0);
+        let (u_lo, u_hi) = row(pitch);
+        // Even dwords are left taps, odd dwords right taps; restore pixel order 0..7.
+        let split = |lo: __m256i, hi: __m256i| {
+            let (a, b) = (_mm256_castsi256_ps(lo), _mm256_castsi256_ps(hi));
+            let even = _mm256_castps_si256(_mm256_shuffle_ps::<0x88>(a, b));
+            let odd = _mm256_castps_si256(_mm256_shuffle_ps::<0xDD>(a, b));
+            (
+                _mm256_and_si256(_mm256_permute4x64_epi64::<0xD8>(even), valid),
+                _mm256_and_si256(_mm256_permute4x64_epi64::<0xD8>(odd), valid),
+            )
+        };
+        let (p00, p01) = split(t_lo, t_hi);
+        let (p10, p11) = split(u_lo, u_hi);
+        let any = _mm256_or_si256(_mm256_or_si256(p00, p01), _mm256_or_si256(p10, p11));
+        let content = _mm256_xor_si256(_mm256_cmpeq_epi32(any, zero), _mm256_set1_epi32(-1));
+        let mask = _mm256_movemask_ps(_mm256_castsi256_ps(content)) as u32;
+        if mask == 0 {
+            continue;
+        }
+        let fx = _mm256_and_si256(xi, byte);
+        let fy = _mm256_and_si256(yi, byte);
+        // Weights replicated into both 16-bit halves: (256 - f, f).
+        let wx1 = _mm256_or_si256(fx, _mm256_slli_epi32(fx, 16));
+        let wx0 = _mm256_sub_epi16(w256, wx1);
+        let wy1 = _mm256_or_si256(fy, _mm256_slli_epi32(fy, 16));
+        let wy0 = _mm256_sub_epi16(w256, wy1);
+        let lerp = |a: __m256i, b: __m256i, w0: __m256i, w1: __m256i| {
+            _mm256_srli_epi16(
+                _mm256_add_epi16(
+                    _mm256_add_epi16(_mm256_mullo_epi16(a, w0), _mm256_mullo_epi16(b, w1)),
+                    round,
+                ),
+                8,
+            )
+        };
+        // Even bytes (R, B) and odd bytes (G, A) in 16-bit lanes.
+        let rb = |p: __m256i| _mm256_and_si256(p, lanes16);
+        let ga = |p: __m256i| _mm256_srli_epi16(p, 8);
+        let v_rb = lerp(
+            lerp(rb(p00), rb(p01), wx0, wx1),
+            lerp(rb(p10), rb(p11), wx0, wx1),
+            wy0,
+            wy1,
+        );
+        let v_ga = lerp(
+            lerp(ga(p00), ga(p01), wx0, wx1),
+            lerp(ga(p10), ga(p11), wx0, wx1),
+            wy0,
+            wy1,
+        );
+        let v = _mm256_or_si256(v_rb, _mm256_slli_epi32(v_ga, 8));
+        // Lanes without content are zero, as the output already is.
+        _mm256_storeu_si256(out.as_mut_ptr().add(o * 4) as *mut __m256i, v);
+        // The owner at the nearest pixel, clamped to the image.
+        let half = _mm256_set1_epi32(128);
+        let near = |v: __m256i, n: usize| {
+            let p = _mm256_srai_epi32(_mm256_add_epi32(v, half), 8);
+            _mm256_min_epi32(_mm256_max_epi32(p, zero), _mm256_set1_epi32(n as i32 - 1))
+        };
+        let at = _mm256_add_epi32(
+            _mm256_mullo_epi32(near(yi, h), _mm256_set1_epi32(w as i32)),
+            near(xi, w),
+        );
+        let mut at_idx = [0i32; 8];
+        _mm256_storeu_si256(at_idx.as_mut_ptr() as *mut __m256i, at);
+        let mut m = mask;
+        while m != 0 {
+            let k = m.trailing_zeros() as usize;
+            hid[o + k] = (owner[at_idx[k] as usize] as usize) < l;
+            m &= m - 1;
+        }
+    }
+    groups * 8
+}

@@ -33,7 +33,10 @@ pub use homography::Homography;
 pub use image::PremulImage;
 pub use layer::{Layer, LayerMeta, LayerRole, LayerSet};
 pub use limits::Limits;
-pub use manifest::{CameraSpec, LayerEntry, Manifest, ManifestError, FORMAT_NAME, FORMAT_VERSION};
+pub use manifest::{
+    check_head, CameraSpec, HeadError, LayerEntry, Manifest, ManifestError, FORMAT_NAME,
+    FORMAT_VERSION,
+};
 pub use math::{Mat3, Vec3};
 pub use pose::Pose;
 pub use progress::{NoProgress, Progress, ProgressEvent};

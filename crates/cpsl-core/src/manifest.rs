@@ -58,6 +58,49 @@ pub struct Manifest {
     pub layers: Vec<LayerEntry>,
 }
 
+/// Why the head of a versioned JSON document (its `format` and `version` fields) was rejected.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum HeadError {
+    /// Not JSON, or the field is missing.
+    Json(String),
+    /// Another format.
+    Format(String),
+    /// A version this build does not read.
+    Version(u32),
+}
+
+/// Checks the `format` and `version` fields of a versioned JSON document before anything else,
+/// so that a file of a newer version gets a version error rather than an unknown-field error;
+/// versions `1..=max_version` are read.
+pub fn check_head(bytes: &[u8], format: &str, max_version: u32) -> Result<(), HeadError> {
+    #[derive(Deserialize)]
+    struct Head {
+        format: Option<String>,
+        version: Option<u32>,
+    }
+    let head: Head = serde_json::from_slice(bytes).map_err(|e| HeadError::Json(e.to_string()))?;
+    match head.format.as_deref() {
+        Some(f) if f == format => {}
+        Some(other) => return Err(HeadError::Format(other.into())),
+        None => return Err(HeadError::Json("missing field `format`".into())),
+    }
+    match head.version {
+        Some(v) if (1..=max_version).contains(&v) => Ok(()),
+        Some(v) => Err(HeadError::Version(v)),
+        None => Err(HeadError::Json("missing field `version`".into())),
+    }
+}
+
+impl From<HeadError> for ManifestError {
+    fn from(e: HeadError) -> Self {
+        match e {
+            HeadError::Json(m) => Self::Json(m),
+            HeadError::Format(f) => Self::Format(f),
+            HeadError::Version(v) => Self::Version(v),
+        }
+    }
+}
+
 /// Why a manifest was rejected.
 #[derive(Debug, Error, Clone, PartialEq)]
 pub enum ManifestError {
@@ -86,25 +129,7 @@ impl Manifest {
     /// Parses and checks a manifest: shape, format name, version and file names. Camera,
     /// depths and sizes are checked when the layer set is built.
     pub fn parse(bytes: &[u8]) -> Result<Self, ManifestError> {
-        // Look at format and version first so that a newer file gets a version error rather
-        // than an unknown-field error.
-        #[derive(Deserialize)]
-        struct Head {
-            format: Option<String>,
-            version: Option<u32>,
-        }
-        let head: Head =
-            serde_json::from_slice(bytes).map_err(|e| ManifestError::Json(e.to_string()))?;
-        match head.format.as_deref() {
-            Some(FORMAT_NAME) => {}
-            Some(other) => return Err(ManifestError::Format(other.into())),
-            None => return Err(ManifestError::Json("missing field `format`".into())),
-        }
-        match head.version {
-            Some(v) if (1..=FORMAT_VERSION).contains(&v) => {}
-            Some(v) => return Err(ManifestError::Version(v)),
-            None => return Err(ManifestError::Json("missing field `version`".into())),
-        }
+        check_head(bytes, FORMAT_NAME, FORMAT_VERSION)?;
         let m: Manifest =
             serde_json::from_slice(bytes).map_err(|e| ManifestError::Json(e.to_string()))?;
         let mut seen = std::collections::HashSet::new();

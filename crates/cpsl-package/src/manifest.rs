@@ -5,7 +5,7 @@
 //! manifest's bytes with the 64 hex digits of its `checksum` field replaced by `0`s. Paths are
 //! relative, made of `[A-Za-z0-9._-]` components separated by `/`, never `..`.
 
-use cpsl_core::Camera;
+use cpsl_core::{Camera, HeadError};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 use thiserror::Error;
@@ -236,23 +236,11 @@ impl PackageManifest {
     /// consistency of its numbers (segments contiguous from frame 0 and adding up to `frames`,
     /// at least one stream per segment, a positive frame rate, a valid camera).
     pub fn parse(bytes: &[u8]) -> Result<Self, ManifestError> {
-        #[derive(Deserialize)]
-        struct Head {
-            format: Option<String>,
-            version: Option<u32>,
-        }
-        let head: Head =
-            serde_json::from_slice(bytes).map_err(|e| ManifestError::Json(e.to_string()))?;
-        match head.format.as_deref() {
-            Some(PACKAGE_FORMAT) => {}
-            Some(other) => return Err(ManifestError::Format(other.into())),
-            None => return Err(ManifestError::Json("missing field `format`".into())),
-        }
-        match head.version {
-            Some(v) if (1..=PACKAGE_VERSION).contains(&v) => {}
-            Some(v) => return Err(ManifestError::Version(v)),
-            None => return Err(ManifestError::Json("missing field `version`".into())),
-        }
+        cpsl_core::check_head(bytes, PACKAGE_FORMAT, PACKAGE_VERSION).map_err(|e| match e {
+            HeadError::Json(m) => ManifestError::Json(m),
+            HeadError::Format(f) => ManifestError::Format(f),
+            HeadError::Version(v) => ManifestError::Version(v),
+        })?;
         let (zeroed, found) = split_checksum(bytes)
             .ok_or_else(|| field("checksum", "missing, repeated or not 64 characters"))?;
         if sha256_hex(&zeroed) != found {

@@ -62,10 +62,15 @@ pub struct EncodeArgs {
     /// Input: a video file (any container and codec FFmpeg reads), an image, or a folder of
     /// PNG/JPEG frames.
     pub input: PathBuf,
-    /// Output package (a folder, by convention `NAME.cpsl`). Written beside it first and moved
-    /// into place when complete; an existing package is replaced, anything else is refused.
+    /// Output package (a folder, by convention `NAME.cpsl`; one file with --archive). Written
+    /// beside it first and moved into place when complete; an existing package is replaced,
+    /// anything else is refused.
     #[arg(short, long)]
     pub output: PathBuf,
+    /// Write the package as one archive file (an uncompressed tar of the folder, which every
+    /// command reads like the folder) instead of a folder.
+    #[arg(long, conflicts_with = "variants")]
+    pub archive: bool,
     /// Codec of the layer streams.
     #[arg(long, value_enum, default_value_t = CodecArg::H264)]
     pub codec: CodecArg,
@@ -115,14 +120,24 @@ pub fn run(a: EncodeArgs) -> Result<()> {
         (None, None) => RateControl::Quality(q_default),
     };
     // One (package, rate) per output: the package itself, or one per variant.
+    // With --archive the folder is written to a hidden sibling and packed into --output.
+    let unpacked = a.archive.then(|| {
+        let name = a.output.file_name().unwrap_or_default().to_string_lossy();
+        a.output.with_file_name(format!(".{name}.folder"))
+    });
     let outputs: Vec<(PathBuf, RateControl)> = if a.variants.is_empty() {
-        if a.output.exists() && !cpsl_package::is_package(&a.output) {
+        let replaceable = match a.archive {
+            true => cpsl_package::is_archive(&a.output),
+            false => cpsl_package::is_package(&a.output) && a.output.is_dir(),
+        };
+        if a.output.exists() && !replaceable {
             bail!(
-                "{} exists and is not a CPSL package; not replacing it",
-                a.output.display()
+                "{} exists and is not a CPSL package{}; not replacing it",
+                a.output.display(),
+                if a.archive { " archive" } else { "" }
             );
         }
-        vec![(a.output.clone(), rate)]
+        vec![(unpacked.clone().unwrap_or_else(|| a.output.clone()), rate)]
     } else {
         let set = a.output.join(cpsl_server::VARIANTS_FILE);
         if a.output.exists() && !set.is_file() {
@@ -236,6 +251,16 @@ pub fn run(a: EncodeArgs) -> Result<()> {
     let secs = t.elapsed().as_secs_f64();
     for (w, (path, _)) in writers.into_iter().zip(&outputs) {
         let m = w.finish()?;
+        let path = match &unpacked {
+            Some(folder) => {
+                let packed = cpsl_package::pack(folder, &a.output);
+                std::fs::remove_dir_all(folder)
+                    .with_context(|| format!("removing {}", folder.display()))?;
+                packed.with_context(|| format!("packing {}", a.output.display()))?;
+                &a.output
+            }
+            None => path,
+        };
         println!(
             "wrote {} ({} frames, {} segments, {} at {:.0} kbit/s{}) in {secs:.1} s ({:.1} frames/s; coding {coding:.1} s, {:.1} frames/s)",
             path.display(),
@@ -279,8 +304,34 @@ fn write_variant_set(dir: &Path, outputs: &[(PathBuf, RateControl)]) -> Result<(
 /// Arguments of `cpsl info` and `cpsl verify`.
 #[derive(Args)]
 pub struct PackageArgs {
+    /// The package (a folder, or an archive from `cpsl pack` or `cpsl encode --archive`).
+    pub package: PathBuf,
+}
+
+/// Arguments of `cpsl pack`.
+#[derive(Args)]
+pub struct PackArgs {
     /// The package folder.
     pub package: PathBuf,
+    /// The archive to write (replaced if it is one; anything else is refused).
+    #[arg(short, long)]
+    pub output: PathBuf,
+}
+
+/// Runs `cpsl pack`.
+pub fn pack(a: PackArgs) -> Result<()> {
+    anyhow::ensure!(
+        a.package.is_dir(),
+        "{}: not a package folder",
+        a.package.display()
+    );
+    let bytes = cpsl_package::pack(&a.package, &a.output)?;
+    println!(
+        "wrote {} ({:.1} kB)",
+        a.output.display(),
+        bytes as f64 / 1e3
+    );
+    Ok(())
 }
 
 /// Runs `cpsl info`.

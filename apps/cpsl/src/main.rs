@@ -50,6 +50,9 @@ enum Command {
     Info(encode::PackageArgs),
     /// Check every checksum and reference of a package.
     Verify(encode::PackageArgs),
+    /// Write a package folder as one archive file (an uncompressed tar that every command
+    /// reads like the folder).
+    Pack(encode::PackArgs),
     /// Build a layer set from an image and its depth map by depth slicing (a baseline).
     Slice(synth::SliceArgs),
     /// The main job end to end on the built-in scene: synthesise, layer, render a sweep, score.
@@ -104,6 +107,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Encode(a) => encode::run(a),
         Command::Info(a) => encode::info(a),
         Command::Verify(a) => encode::verify(a),
+        Command::Pack(a) => encode::pack(a),
         Command::Slice(a) => synth::run_slice(a),
         Command::Demo(a) => demo::run(a),
         Command::Eval(a) => eval::run(a),

@@ -77,11 +77,52 @@ fn encodes_verifies_and_renders_a_package() {
     assert!(!o.status.success());
     let o = cpsl(&["info", s(&dir.path().join("nothing"))]);
     assert!(!o.status.success());
+    // The single-file form: written by encode --archive or pack, read by every command.
+    let archive = dir.path().join("clip_one.cpsl");
+    let msg = ok(&[
+        "encode",
+        s(&clip),
+        "-o",
+        s(&archive),
+        "--archive",
+        "--gop",
+        "4",
+        "--layers",
+        "4",
+    ]);
+    assert!(msg.contains("7 frames, 2 segments"), "{msg}");
+    assert!(archive.is_file());
+    assert!(ok(&["info", s(&archive)]).contains("192x128"));
+    assert!(ok(&["verify", s(&archive)]).contains("ok"));
+    ok(&[
+        "render",
+        s(&archive),
+        "--frame",
+        "5",
+        "--pose",
+        "0.05,0,0,0,0,0",
+        "-o",
+        s(&png),
+    ]);
+    let packed = dir.path().join("packed.cpsl");
+    assert!(ok(&["pack", s(&pkg), "-o", s(&packed)]).contains("wrote"));
+    assert!(ok(&["verify", s(&packed)]).contains("ok"));
+    // An archive never replaces a folder, nor a folder an archive.
+    assert!(!cpsl(&["encode", s(&clip), "-o", s(&pkg), "--archive"])
+        .status
+        .success());
+    assert!(!cpsl(&["encode", s(&clip), "-o", s(&archive)])
+        .status
+        .success());
+    assert!(archive.is_file() && pkg.is_dir());
     // No staging folder is left behind.
     let left: Vec<_> = std::fs::read_dir(dir.path())
         .unwrap()
         .filter_map(|e| e.ok())
-        .filter(|e| e.file_name().to_string_lossy().ends_with(".partial"))
+        .filter(|e| {
+            let n = e.file_name().to_string_lossy().into_owned();
+            n.ends_with(".partial") || n.ends_with(".folder")
+        })
         .collect();
     assert!(left.is_empty());
 }

@@ -509,12 +509,12 @@ impl PackageWriter {
             let path = path.to_path_buf();
             move |source| CodecError::Io { path, source }
         };
-        if out.exists() && !cpsl_package::is_package(out) {
+        if out.exists() && !(out.is_dir() && cpsl_package::is_package(out)) {
             return Err(CodecError::Io {
                 path: out.to_path_buf(),
                 source: std::io::Error::new(
                     std::io::ErrorKind::AlreadyExists,
-                    "exists and is not a CPSL package; not replacing it",
+                    "exists and is not a CPSL package folder; not replacing it",
                 ),
             });
         }

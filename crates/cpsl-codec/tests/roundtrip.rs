@@ -235,3 +235,62 @@ fn every_codec_round_trips_a_layer_stream() {
         }
     }
 }
+
+#[test]
+fn a_package_archive_reads_like_its_folder() {
+    let segs = segments(4);
+    let dir = tempfile::tempdir().unwrap();
+    let folder = dir.path().join("clip.cpsl");
+    let opts = CodingOptions {
+        codec: Codec::H264,
+        rate: RateControl::Quality(30.0),
+        fps: FPS,
+    };
+    write(&folder, &segs, opts);
+    let archive = dir.path().join("clip.tar.cpsl");
+    let size = cpsl_package::pack(&folder, &archive).unwrap();
+    assert!(cpsl_package::is_archive(&archive) && cpsl_package::is_package(&archive));
+    assert!(!cpsl_package::is_archive(&folder));
+    // Deterministic: packing again gives the same bytes.
+    let again = dir.path().join("again.cpsl");
+    cpsl_package::pack(&folder, &again).unwrap();
+    assert_eq!(
+        std::fs::read(&archive).unwrap(),
+        std::fs::read(&again).unwrap()
+    );
+    assert_eq!(std::fs::metadata(&archive).unwrap().len(), size);
+    let (a, b) = (
+        Package::open(&folder).unwrap(),
+        Package::open(&archive).unwrap(),
+    );
+    assert_eq!(a.manifest(), b.manifest());
+    assert!(b.verify().is_empty());
+    let (fa, fb) = (
+        decode_segment(&a, 0).unwrap(),
+        decode_segment(&b, 0).unwrap(),
+    );
+    assert_eq!(fa.len(), fb.len());
+    for (x, y) in fa.iter().zip(&fb) {
+        assert_eq!(x.set, y.set);
+    }
+    // The unpacked copy goes away with the package.
+    let unpacked = b.root().to_path_buf();
+    drop(b);
+    assert!(!unpacked.exists());
+    // A flipped byte inside a stream is caught by the checksums, as in a folder.
+    let mut bytes = std::fs::read(&archive).unwrap();
+    let at = bytes.len() / 2;
+    bytes[at] ^= 0x20;
+    std::fs::write(&again, &bytes).unwrap();
+    let detected = match Package::open(&again) {
+        Err(_) => true,
+        Ok(p) => !p.verify().is_empty(),
+    };
+    assert!(detected);
+    // Packing refuses to replace something that is not an archive, and a damaged package.
+    assert!(cpsl_package::pack(&folder, &folder.join("manifest.json")).is_err());
+    let side = folder.join(&a.manifest().segments[0].side.path);
+    std::fs::write(&side, b"damaged").unwrap();
+    assert!(cpsl_package::pack(&folder, &dir.path().join("new.cpsl")).is_err());
+    assert!(!dir.path().join("new.cpsl").exists());
+}

@@ -11,14 +11,19 @@
 //!   seg_000001/...
 //! ```
 //!
+//! The same package can also travel as one file, an uncompressed tar of that directory
+//! ([`pack`]); [`Package::open`] reads either form.
+//!
 //! A segment is one group of pictures: it starts with an I-frame and decodes without any other
 //! segment, so a player can start or seek at any segment and a cache can keep segments as
 //! immutable objects. This crate reads and checks packages and writes manifests and side
 //! streams; the layer streams themselves are coded by `cpsl-codec`.
 
+mod archive;
 mod manifest;
 mod side;
 
+pub use archive::{is_archive, pack, unpack};
 pub use manifest::{
     sha256_hex, unsafe_path, Codec, FileEntry, Layout, ManifestError, PackageManifest, Segment,
     StreamEntry, MANIFEST_FILE, PACKAGE_FORMAT, PACKAGE_VERSION,
@@ -29,6 +34,7 @@ pub use side::{
 };
 
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 use thiserror::Error;
 
 /// Errors of reading a package.
@@ -73,10 +79,16 @@ pub enum PackageError {
 pub struct Package {
     root: PathBuf,
     manifest: PackageManifest,
+    /// Where an archive was unpacked (removed when the last clone is dropped).
+    _unpacked: Option<Arc<tempfile::TempDir>>,
 }
 
-/// Whether `path` looks like a package (a directory with a package manifest).
+/// Whether `path` looks like a package: a directory with a package manifest, or a package
+/// archive ([`pack`]).
 pub fn is_package(path: &Path) -> bool {
+    if is_archive(path) {
+        return true;
+    }
     std::fs::read(path.join(MANIFEST_FILE))
         .map(|b| {
             serde_json::from_slice::<serde_json::Value>(&b)
@@ -86,8 +98,28 @@ pub fn is_package(path: &Path) -> bool {
 }
 
 impl Package {
-    /// Opens a package directory and checks its manifest (files are checked when read).
+    /// Opens a package directory, or a package archive (unpacked into a private temporary
+    /// folder), and checks its manifest (files are checked when read).
     pub fn open(root: &Path) -> Result<Self, PackageError> {
+        if root.is_file() {
+            if !is_archive(root) {
+                return Err(PackageError::Mismatch {
+                    path: root.to_path_buf(),
+                    reason: "a file that is not a package archive".into(),
+                });
+            }
+            let dir = tempfile::Builder::new()
+                .prefix("cpsl-package-")
+                .tempdir()
+                .map_err(|source| PackageError::Io {
+                    path: std::env::temp_dir(),
+                    source,
+                })?;
+            unpack(root, dir.path())?;
+            let mut pkg = Self::open(dir.path())?;
+            pkg._unpacked = Some(Arc::new(dir));
+            return Ok(pkg);
+        }
         let path = root.join(MANIFEST_FILE);
         let bytes = std::fs::read(&path).map_err(|source| PackageError::Io {
             path: path.clone(),
@@ -98,6 +130,7 @@ impl Package {
         Ok(Self {
             root: root.to_path_buf(),
             manifest,
+            _unpacked: None,
         })
     }
 

@@ -114,7 +114,27 @@ impl LayerSet {
                 }
             }
             previous = Some(layer.depth);
-            layer.image.check_premultiplied(&format!("layer {index}"))?;
+        }
+        let check = |(index, layer): (usize, &Layer)| {
+            layer.image.check_premultiplied(&format!("layer {index}"))
+        };
+        let pixels = camera.width as usize * camera.height as usize * layers.len();
+        if pixels < 1 << 20 {
+            layers.iter().enumerate().try_for_each(check)?;
+        } else {
+            // Large sets (a video frame's layers): one thread per layer; the first error in
+            // layer order is reported.
+            std::thread::scope(|s| {
+                let checks: Vec<_> = layers
+                    .iter()
+                    .enumerate()
+                    .map(|l| s.spawn(move || check(l)))
+                    .collect();
+                checks
+                    .into_iter()
+                    .map(|c| c.join().expect("premultiplied check"))
+                    .collect::<Result<Vec<()>, CoreError>>()
+            })?;
         }
         Ok(Self { camera, layers })
     }

@@ -391,6 +391,12 @@ pub fn edge_depth_cache(cues: &Cues, owner: &[u8], set: &LayerSet, cfg: &MatteCo
 }
 
 /// [`edge_depth_cache`] from a `w x h` z-depth map.
+///
+/// Every 4-neighbour pair of pixels with different owners is a candidate, keyed by the
+/// `edc_cell` cell of its front pixel and its layer pair; the first candidate of each key in
+/// scan order is kept. Bands of `edc_cell` rows are scanned in parallel: a key belongs to the
+/// band of its front pixel, so only a band's vertical pairs across its last row can meet a
+/// key of the next band, and the merge keeps the earlier candidate, as one serial scan would.
 pub fn edge_depth_cache_from(
     depth: &[f32],
     w: usize,
@@ -409,12 +415,85 @@ pub fn edge_depth_cache_from(
     };
     let cell = cfg.edc_cell.max(1) as usize;
     let cols = w.div_ceil(cell);
-    let mut seen = HashSet::new();
     let z = depth;
-    let depth = |l: usize| set.layers()[l].depth;
-    for y in 0..h {
-        for x in 0..w {
-            let p = y * w + x;
+    let layer_depth: Vec<f64> = set.layers().iter().map(|l| l.depth).collect();
+    let quantise = |v: f64| edc.quantise(v);
+    let bands: Vec<Vec<(usize, usize, EdcSample)>> = (0..h.div_ceil(cell))
+        .into_par_iter()
+        .map(|band| {
+            let mut seen = HashSet::new();
+            let mut out = Vec::new();
+            for y in band * cell..((band + 1) * cell).min(h) {
+                for x in 0..w {
+                    let p = y * w + x;
+                    for (dir, q) in [(x + 1 < w).then(|| p + 1), (y + 1 < h).then(|| p + w)]
+                        .into_iter()
+                        .enumerate()
+                    {
+                        let Some(q) = q else { continue };
+                        let (a, b) = (owner[p] as usize, owner[q] as usize);
+                        if a == b {
+                            continue;
+                        }
+                        let (fp, bp) = if a < b { (p, q) } else { (q, p) };
+                        let (f, bk) = (a.min(b), a.max(b));
+                        let (fx, fy) = (fp % w, fp / w);
+                        let key = (((fy / cell) * cols + fx / cell) * k + f) * k + bk;
+                        if !seen.insert(key) {
+                            continue;
+                        }
+                        let sample = EdcSample {
+                            x: fx as u16,
+                            y: fy as u16,
+                            front: f as u8,
+                            back: bk as u8,
+                            front_offset: quantise((z[fp] as f64 / layer_depth[f]).ln()),
+                            back_offset: quantise((z[bp] as f64 / layer_depth[bk]).ln()),
+                        };
+                        out.push((key, p * 2 + dir, sample));
+                    }
+                }
+            }
+            out
+        })
+        .collect();
+    let mut all: Vec<(usize, usize, EdcSample)> = bands.into_iter().flatten().collect();
+    all.sort_unstable_by_key(|&(key, order, _)| (key, order));
+    all.dedup_by_key(|c| c.0);
+    edc.samples = all.into_iter().map(|(_, _, s)| s).collect();
+    edc.samples.sort_by_key(|s| (s.y, s.x, s.front, s.back));
+    edc.samples.dedup();
+    edc
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use cpsl_core::{Camera, Layer, PremulImage};
+
+    /// The cache as one serial scan: the first candidate of each key wins.
+    fn serial(
+        depth: &[f32],
+        w: usize,
+        h: usize,
+        owner: &[u8],
+        set: &LayerSet,
+        cfg: &MatteConfig,
+    ) -> Vec<EdcSample> {
+        let k = set.len();
+        let edc = Edc {
+            width: w as u32,
+            height: h as u32,
+            layers: k as u16,
+            step: cfg.edc_step,
+            samples: Vec::new(),
+        };
+        let cell = cfg.edc_cell.max(1) as usize;
+        let cols = w.div_ceil(cell);
+        let mut seen = HashSet::new();
+        let mut out = Vec::new();
+        for p in 0..w * h {
+            let (x, y) = (p % w, p / w);
             for q in [(x + 1 < w).then(|| p + 1), (y + 1 < h).then(|| p + w)]
                 .into_iter()
                 .flatten()
@@ -425,23 +504,54 @@ pub fn edge_depth_cache_from(
                 }
                 let (fp, bp) = if a < b { (p, q) } else { (q, p) };
                 let (f, bk) = (a.min(b), a.max(b));
-                let (fx, fy) = (fp % w, fp / w);
-                let key = (((fy / cell) * cols + fx / cell) * k + f) * k + bk;
-                if !seen.insert(key) {
-                    continue;
+                let key = ((((fp / w) / cell) * cols + (fp % w) / cell) * k + f) * k + bk;
+                if seen.insert(key) {
+                    out.push(EdcSample {
+                        x: (fp % w) as u16,
+                        y: (fp / w) as u16,
+                        front: f as u8,
+                        back: bk as u8,
+                        front_offset: edc.quantise((depth[fp] as f64 / set.layers()[f].depth).ln()),
+                        back_offset: edc.quantise((depth[bp] as f64 / set.layers()[bk].depth).ln()),
+                    });
                 }
-                edc.samples.push(EdcSample {
-                    x: fx as u16,
-                    y: fy as u16,
-                    front: f as u8,
-                    back: bk as u8,
-                    front_offset: edc.quantise((z[fp] as f64 / depth(f)).ln()),
-                    back_offset: edc.quantise((z[bp] as f64 / depth(bk)).ln()),
-                });
             }
         }
+        out.sort_by_key(|s| (s.y, s.x, s.front, s.back));
+        out.dedup();
+        out
     }
-    edc.samples.sort_by_key(|s| (s.y, s.x, s.front, s.back));
-    edc.samples.dedup();
-    edc
+
+    #[test]
+    fn the_banded_cache_equals_one_serial_scan() {
+        let (w, h, k) = (67usize, 45usize, 4usize);
+        let camera = Camera::from_fov(w as u32, h as u32, 60.0);
+        let layers = (0..k)
+            .map(|i| Layer::new(PremulImage::new(w as u32, h as u32), 1.0 + i as f64))
+            .collect();
+        let set = LayerSet::new(camera, layers, &Limits::default()).unwrap();
+        let mut seed = 3u64;
+        let mut next = move || {
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
+            (seed >> 33) as usize
+        };
+        // Blocky owners with noisy edges, so that keys repeat within and across bands.
+        let owner: Vec<u8> = (0..w * h)
+            .map(|p| (((p % w) / 9 + (p / w) / 7 + (next() % 3 == 0) as usize) % k) as u8)
+            .collect();
+        let depth: Vec<f32> = (0..w * h)
+            .map(|_| 1.0 + (next() % 400) as f32 / 100.0)
+            .collect();
+        for cell in [1, 3, 4, 8] {
+            let cfg = MatteConfig {
+                edc_cell: cell,
+                ..MatteConfig::default()
+            };
+            let got = edge_depth_cache_from(&depth, w, h, &owner, &set, &cfg).samples;
+            assert_eq!(got, serial(&depth, w, h, &owner, &set, &cfg), "cell {cell}");
+            assert!(!got.is_empty());
+        }
+    }
 }

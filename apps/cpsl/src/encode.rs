@@ -36,6 +36,17 @@ impl From<CodecArg> for Codec {
     }
 }
 
+/// Fails clearly when this FFmpeg cannot encode `codec`.
+pub fn require_encoder(codec: Codec) -> Result<()> {
+    if !cpsl_codec::has_encoder(codec) {
+        bail!(
+            "this FFmpeg has no {} encoder (scripts/setup-system.sh installs Debian's, which has all four)",
+            codec.name()
+        );
+    }
+    Ok(())
+}
+
 /// Parses a bitrate: `3M`, `800k`, `2.5M`, `1500000` (bits per second).
 pub fn parse_bitrate(s: &str) -> Result<f64, String> {
     let t = s.trim();
@@ -106,12 +117,7 @@ pub(crate) fn refresh_reason(r: Refresh) -> RefreshReason {
 /// Runs `cpsl encode`.
 pub fn run(a: EncodeArgs) -> Result<()> {
     let codec = Codec::from(a.codec);
-    if !cpsl_codec::has_encoder(codec) {
-        bail!(
-            "this FFmpeg has no {} encoder (scripts/setup-system.sh installs Debian's, which has all four)",
-            codec.name()
-        );
-    }
+    require_encoder(codec)?;
     let (q_min, q_max, q_default) = cpsl_codec::quality_range(codec);
     let rate = match (a.bitrate, a.quality) {
         (Some(b), _) => RateControl::Budget(b),

@@ -146,11 +146,7 @@ impl Coding {
         let Some(codec) = a.codec.map(Codec::from) else {
             return Ok(None);
         };
-        anyhow::ensure!(
-            cpsl_codec::has_encoder(codec),
-            "this FFmpeg has no {} encoder (scripts/setup-system.sh installs Debian's, which has all four)",
-            codec.name()
-        );
+        crate::encode::require_encoder(codec)?;
         let rate = match a.bitrate {
             Some(b) => RateControl::Budget(b),
             None => RateControl::Quality(cpsl_codec::quality_range(codec).2),

@@ -448,11 +448,7 @@ fn spearman(x: &[f64], y: &[f64]) -> Option<f64> {
 /// Runs `cpsl eval-rd`.
 pub fn run(a: EvalRdArgs) -> Result<()> {
     let codec = Codec::from(a.codec);
-    anyhow::ensure!(
-        cpsl_codec::has_encoder(codec),
-        "this FFmpeg has no {} encoder",
-        codec.name()
-    );
+    crate::encode::require_encoder(codec)?;
     let (q_min, q_max, _) = cpsl_codec::quality_range(codec);
     let qualities = match &a.qualities {
         Some(q) => q.clone(),

@@ -68,12 +68,8 @@ pub fn pack(root: &Path, out: &Path) -> Result<u64, PackageError> {
         let file = std::fs::File::create(&tmp).map_err(io(&tmp))?;
         let mut tar = tar::Builder::new(std::io::BufWriter::new(file));
         tar.mode(tar::HeaderMode::Deterministic);
-        let mut files = vec![MANIFEST_FILE.to_string()];
-        for seg in &pkg.manifest().segments {
-            files.extend(seg.streams.iter().map(|s| s.file.path.clone()));
-            files.push(seg.side.path.clone());
-        }
-        for rel in &files {
+        let files = pkg.manifest().files().map(|f| f.path.as_str());
+        for rel in std::iter::once(MANIFEST_FILE).chain(files) {
             let path = root.join(rel);
             let bytes = std::fs::read(&path).map_err(io(&path))?;
             let mut header = tar::Header::new_ustar();

@@ -12,7 +12,18 @@ pub fn push_pull(
     height: usize,
     channels: usize,
 ) -> bool {
-    assert_eq!(data.len(), width * height * channels);
+    // The common channel counts get their own copy of the loops, with constant strides.
+    match channels {
+        1 => fill(data, weight, width, height, 1),
+        2 => fill(data, weight, width, height, 2),
+        3 => fill(data, weight, width, height, 3),
+        c => fill(data, weight, width, height, c),
+    }
+}
+
+#[inline(always)]
+fn fill(data: &mut [f32], weight: &[f32], width: usize, height: usize, ch: usize) -> bool {
+    assert_eq!(data.len(), width * height * ch);
     assert_eq!(weight.len(), width * height);
     if !weight.iter().any(|&w| w > 0.0) {
         return false;
@@ -20,7 +31,7 @@ pub fn push_pull(
     // Level 0 premultiplied by weight.
     let mut levels: Vec<(usize, usize, Vec<f32>, Vec<f32>)> = Vec::new();
     let mut c: Vec<f32> = data
-        .chunks_exact(channels)
+        .chunks_exact(ch)
         .zip(weight)
         .flat_map(|(p, &w)| p.iter().map(move |v| v * w))
         .collect();
@@ -28,25 +39,26 @@ pub fn push_pull(
     let (mut lw, mut lh) = (width, height);
     while lw > 1 || lh > 1 {
         let (nw, nh) = (lw.div_ceil(2), lh.div_ceil(2));
-        let mut nc = vec![0f32; nw * nh * channels];
+        let mut nc = vec![0f32; nw * nh * ch];
         let mut nwt = vec![0f32; nw * nh];
+        // Each coarse pixel sums its 2x2 block, row by row.
         for y in 0..lh {
-            for x in 0..lw {
-                let (i, j) = (y * lw + x, (y / 2) * nw + x / 2);
-                nwt[j] += w[i];
-                for k in 0..channels {
-                    nc[j * channels + k] += c[i * channels + k];
+            let j = (y / 2) * nw;
+            let (dst_c, dst_w) = (&mut nc[j * ch..(j + nw) * ch], &mut nwt[j..j + nw]);
+            let (src_c, src_w) = (&c[y * lw * ch..(y + 1) * lw * ch], &w[y * lw..(y + 1) * lw]);
+            for (x, (p, &wt)) in src_c.chunks_exact(ch).zip(src_w).enumerate() {
+                dst_w[x / 2] += wt;
+                for (d, v) in dst_c[(x / 2) * ch..(x / 2 + 1) * ch].iter_mut().zip(p) {
+                    *d += v;
                 }
             }
         }
         // Normalise to weight <= 1, keeping colour premultiplied by the clamped weight.
-        for j in 0..nw * nh {
-            if nwt[j] > 1.0 {
-                let s = 1.0 / nwt[j];
-                for k in 0..channels {
-                    nc[j * channels + k] *= s;
-                }
-                nwt[j] = 1.0;
+        for (p, wt) in nc.chunks_exact_mut(ch).zip(&mut nwt) {
+            if *wt > 1.0 {
+                let s = 1.0 / *wt;
+                p.iter_mut().for_each(|v| *v *= s);
+                *wt = 1.0;
             }
         }
         levels.push((
@@ -60,43 +72,51 @@ pub fn push_pull(
     }
     // Top level: normalise (weight > 0 guaranteed since some pixel is known).
     let mut coarse: Vec<f32> = c
-        .chunks_exact(channels)
+        .chunks_exact(ch)
         .zip(&w)
         .flat_map(|(p, &wt)| p.iter().map(move |v| if wt > 0.0 { v / wt } else { 0.0 }))
         .collect();
-    let (mut cw, mut ch) = (lw, lh);
+    let (mut cw, mut chh) = (lw, lh);
+    // Where a fine pixel centre falls on the coarse level: the two taps and the weight of
+    // the second (non-negative after the clamp: truncation is the floor, no libm call).
+    let taps = |i: usize, n: usize| {
+        let s = ((i as f32 + 0.5) / 2.0 - 0.5).clamp(0.0, (n - 1) as f32);
+        let i0 = s as usize;
+        (i0, (i0 + 1).min(n - 1), s - i0 as f32)
+    };
     for (fw, fh, fc, fwt) in levels.into_iter().rev() {
-        let mut out = vec![0f32; fw * fh * channels];
+        let mut out = vec![0f32; fw * fh * ch];
+        let cols: Vec<(usize, usize, f32)> = (0..fw).map(|x| taps(x, cw)).collect();
         for y in 0..fh {
             // Bilinear sample of the coarse level at the fine pixel centre.
-            let sy = ((y as f32 + 0.5) / 2.0 - 0.5).clamp(0.0, (ch - 1) as f32);
-            let y0 = sy as usize; // non-negative: truncation is the floor (no libm call)
-            let y1 = (y0 + 1).min(ch - 1);
-            let fy = sy - y0 as f32;
-            for x in 0..fw {
-                let sx = ((x as f32 + 0.5) / 2.0 - 0.5).clamp(0.0, (cw - 1) as f32);
-                let x0 = sx as usize;
-                let x1 = (x0 + 1).min(cw - 1);
-                let fx = sx - x0 as f32;
-                let i = y * fw + x;
-                let wt = fwt[i];
-                for k in 0..channels {
-                    let s = |yy: usize, xx: usize| coarse[(yy * cw + xx) * channels + k];
-                    let up = (s(y0, x0) * (1.0 - fx) + s(y0, x1) * fx) * (1.0 - fy)
-                        + (s(y1, x0) * (1.0 - fx) + s(y1, x1) * fx) * fy;
+            let (y0, y1, fy) = taps(y, chh);
+            let (r0, r1) = (
+                &coarse[y0 * cw * ch..][..cw * ch],
+                &coarse[y1 * cw * ch..][..cw * ch],
+            );
+            let row = y * fw;
+            let (out_row, fc_row) = (&mut out[row * ch..][..fw * ch], &fc[row * ch..][..fw * ch]);
+            for (x, &(x0, x1, fx)) in cols.iter().enumerate() {
+                let wt = fwt[row + x];
+                for k in 0..ch {
+                    let up = (r0[x0 * ch + k] * (1.0 - fx) + r0[x1 * ch + k] * fx) * (1.0 - fy)
+                        + (r1[x0 * ch + k] * (1.0 - fx) + r1[x1 * ch + k] * fx) * fy;
                     // fc is premultiplied by wt: known part plus the missing share from above.
-                    out[i * channels + k] = fc[i * channels + k] + (1.0 - wt) * up;
+                    out_row[x * ch + k] = fc_row[x * ch + k] + (1.0 - wt) * up;
                 }
             }
         }
         coarse = out;
         cw = fw;
-        ch = fh;
+        chh = fh;
     }
-    for (i, wt) in weight.iter().enumerate() {
+    for ((d, p), wt) in data
+        .chunks_exact_mut(ch)
+        .zip(coarse.chunks_exact(ch))
+        .zip(weight)
+    {
         if *wt < 1.0 {
-            data[i * channels..(i + 1) * channels]
-                .copy_from_slice(&coarse[i * channels..(i + 1) * channels]);
+            d.copy_from_slice(p);
         }
     }
     true

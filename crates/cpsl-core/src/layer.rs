@@ -75,6 +75,27 @@ pub struct LayerSet {
 impl LayerSet {
     /// Validates and builds a layer set.
     pub fn new(camera: Camera, layers: Vec<Layer>, limits: &Limits) -> Result<Self, CoreError> {
+        Self::build(camera, layers, limits, true)
+    }
+
+    /// [`LayerSet::new`] for layers whose images are premultiplied by construction (for
+    /// example resampled from a layer set with a filter that treats every channel alike):
+    /// every other invariant is checked, premultiplication only in debug builds. It saves a
+    /// pass over every pixel of every layer, about 3 ms per 720p video frame of six layers.
+    pub fn new_premultiplied(
+        camera: Camera,
+        layers: Vec<Layer>,
+        limits: &Limits,
+    ) -> Result<Self, CoreError> {
+        Self::build(camera, layers, limits, cfg!(debug_assertions))
+    }
+
+    fn build(
+        camera: Camera,
+        layers: Vec<Layer>,
+        limits: &Limits,
+        check_premultiplied: bool,
+    ) -> Result<Self, CoreError> {
         camera.validate()?;
         limits.check_size("camera", camera.width, camera.height)?;
         if layers.is_empty() {
@@ -114,6 +135,9 @@ impl LayerSet {
                 }
             }
             previous = Some(layer.depth);
+        }
+        if !check_premultiplied {
+            return Ok(Self { camera, layers });
         }
         let check = |(index, layer): (usize, &Layer)| {
             layer.image.check_premultiplied(&format!("layer {index}"))
@@ -189,6 +213,24 @@ mod tests {
     }
     fn layer(d: f64) -> Layer {
         Layer::new(PremulImage::new(4, 3), d)
+    }
+
+    #[test]
+    fn trusting_premultiplication_checks_everything_else() {
+        let l = Limits::default();
+        let ok = LayerSet::new_premultiplied(cam(), vec![layer(1.0), layer(2.0)], &l);
+        assert_eq!(ok, LayerSet::new(cam(), vec![layer(1.0), layer(2.0)], &l));
+        assert!(matches!(
+            LayerSet::new_premultiplied(cam(), vec![layer(2.0), layer(2.0)], &l),
+            Err(CoreError::DepthOrder { index: 1, .. })
+        ));
+        let mut bad = layer(1.0);
+        bad.image.set_pixel(1, 1, [200, 0, 0, 100]);
+        // Checked in debug builds only.
+        assert_eq!(
+            LayerSet::new_premultiplied(cam(), vec![bad], &l).is_err(),
+            cfg!(debug_assertions)
+        );
     }
 
     #[test]

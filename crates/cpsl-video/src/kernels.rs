@@ -407,7 +407,7 @@ pub(crate) fn median_depths(owner: &[u8], ln_depth: &[f32], k: usize) -> Vec<Opt
             |mut acc, (o, d)| {
                 for (&o, &v) in o.iter().zip(d) {
                     if valid(v) {
-                        acc[o as usize * BINS + ((v - lo) * scale) as usize] += 1;
+                        acc[o as usize * BINS + ((v - lo) * scale) as i32 as usize] += 1;
                     }
                 }
                 acc
@@ -448,14 +448,14 @@ pub(crate) fn agreements(
 ) -> Vec<(f32, f32)> {
     let k = lz.len();
     let fits = |p: usize, l: usize| (ln[p] - lz[l]).abs() <= tolerance;
-    // Whether p lies on the boundary of the region where `inside` holds (4-neighbourhood).
-    let boundary = |inside: &dyn Fn(usize) -> bool, p: usize| {
+    // Whether p lies on the boundary of the region whose depth fits layer l (4-neighbourhood).
+    let depth_edge = |l: usize, p: usize| {
         let (x, y) = (p % w, p / w);
-        let me = inside(p);
-        (x > 0 && inside(p - 1) != me)
-            || (x + 1 < w && inside(p + 1) != me)
-            || (y > 0 && inside(p - w) != me)
-            || (y + 1 < h && inside(p + w) != me)
+        let me = fits(p, l);
+        (x > 0 && fits(p - 1, l) != me)
+            || (x + 1 < w && fits(p + 1, l) != me)
+            || (y > 0 && fits(p - w, l) != me)
+            || (y + 1 < h && fits(p + w, l) != me)
     };
     // Per layer: area, depth agreement, boundary pixels, boundary pixels near a depth edge.
     let sums = (0..h)
@@ -463,17 +463,33 @@ pub(crate) fn agreements(
         .fold(
             || vec![[0u32; 4]; k],
             |mut acc, y| {
-                for x in 0..w {
-                    let p = y * w + x;
-                    let l = owner[p] as usize;
+                let row = &owner[y * w..(y + 1) * w];
+                let up = if y > 0 {
+                    &owner[(y - 1) * w..y * w]
+                } else {
+                    row
+                };
+                let down = if y + 1 < h {
+                    &owner[(y + 1) * w..(y + 2) * w]
+                } else {
+                    row
+                };
+                for (x, &o) in row.iter().enumerate() {
+                    let (p, l) = (y * w + x, o as usize);
                     let s = &mut acc[l];
                     s[0] += 1;
                     s[1] += fits(p, l) as u32;
-                    if boundary(&|q| owner[q] as usize == l, p) {
+                    // On the layer's boundary: a 4-neighbour (rows out of the image stand in
+                    // for themselves) belongs to another layer.
+                    let across = (x > 0 && row[x - 1] != o)
+                        || (x + 1 < w && row[x + 1] != o)
+                        || up[x] != o
+                        || down[x] != o;
+                    if across {
                         s[2] += 1;
                         let hit = (y.saturating_sub(1)..(y + 2).min(h)).any(|yy| {
                             (x.saturating_sub(1)..(x + 2).min(w))
-                                .any(|xx| boundary(&|q| fits(q, l), yy * w + xx))
+                                .any(|xx| depth_edge(l, yy * w + xx))
                         });
                         s[3] += hit as u32;
                     }
@@ -505,18 +521,19 @@ pub(crate) fn crack_rate(owner: &[u8], depth: &[f32], w: usize, h: usize) -> f32
         .into_par_iter()
         .map(|y| {
             let (mut pairs, mut bad) = (0u32, 0u32);
-            for x in 0..w {
-                let p = y * w + x;
-                for q in [(x + 1 < w).then(|| p + 1), (y + 1 < h).then(|| p + w)]
-                    .into_iter()
-                    .flatten()
-                {
-                    if owner[p] == owner[q] {
-                        continue;
-                    }
+            let mut pair = |p: usize, q: usize| {
+                if owner[p] != owner[q] {
                     pairs += 1;
                     let (near, far) = if owner[p] < owner[q] { (p, q) } else { (q, p) };
                     bad += (depth[near] > depth[far] * 1.02) as u32;
+                }
+            };
+            for p in y * w..(y + 1) * w - 1 {
+                pair(p, p + 1);
+            }
+            if y + 1 < h {
+                for p in y * w..(y + 1) * w {
+                    pair(p, p + w);
                 }
             }
             (pairs, bad)
@@ -617,20 +634,38 @@ mod tests {
         let key = KeyLayer::new(&img);
         let owner: Vec<u8> = (0..w * h).map(|_| (next() % 4) as u8).collect();
         let n = 4000;
-        // Positions over and well beyond the image, in 1/256 px.
-        let xs: Vec<i32> = (0..n)
-            .map(|_| (next() % ((w as u32 + 4) * 256)) as i32 - 512)
-            .collect();
-        let ys: Vec<i32> = (0..n)
-            .map(|_| (next() % ((h as u32 + 4) * 256)) as i32 - 512)
-            .collect();
-        let (mut a, mut ha) = (vec![0u8; n * 4], vec![false; n]);
-        let (mut b, mut hb) = (vec![0u8; n * 4], vec![false; n]);
-        sample_scalar(&key, &xs, &ys, &mut a, &mut ha, &owner, 2);
-        sample_span(&key, &xs, &ys, &mut b, &mut hb, &owner, 2);
-        assert_eq!(a, b);
-        assert_eq!(ha, hb);
-        assert!(a.iter().any(|&v| v != 0) && a.contains(&0));
+        // Positions over and well beyond the image, in 1/256 px: scattered, and in runs of
+        // near-unit steps (the kernel's contiguous case) that also cross the image's edges.
+        let scattered: (Vec<i32>, Vec<i32>) = (0..n)
+            .map(|_| {
+                let x = (next() % ((w as u32 + 4) * 256)) as i32 - 512;
+                (x, (next() % ((h as u32 + 4) * 256)) as i32 - 512)
+            })
+            .unzip();
+        let mut runs = (Vec::new(), Vec::new());
+        while runs.0.len() < n {
+            let (mut x, mut y) = (
+                (next() % ((w as u32 + 4) * 256)) as i32 - 512,
+                (next() % ((h as u32 + 4) * 256)) as i32 - 512,
+            );
+            let (dx, dy) = (192 + (next() % 160) as i32, (next() % 9) as i32 - 4);
+            for _ in 0..8 + next() % 40 {
+                runs.0.push(x);
+                runs.1.push(y);
+                x += dx;
+                y += dy;
+            }
+        }
+        for (xs, ys) in [scattered, runs] {
+            let n = xs.len();
+            let (mut a, mut ha) = (vec![0u8; n * 4], vec![false; n]);
+            let (mut b, mut hb) = (vec![0u8; n * 4], vec![false; n]);
+            sample_scalar(&key, &xs, &ys, &mut a, &mut ha, &owner, 2);
+            sample_span(&key, &xs, &ys, &mut b, &mut hb, &owner, 2);
+            assert_eq!(a, b);
+            assert_eq!(ha, hb);
+            assert!(a.iter().any(|&v| v != 0) && a.contains(&0));
+        }
         #[cfg(target_arch = "x86_64")]
         if !crate::simd::available() {
             eprintln!("no AVX2 here: only the scalar kernel was exercised");

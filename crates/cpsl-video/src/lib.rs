@@ -475,7 +475,7 @@ impl VideoLayerer {
         let (mut layers, hidden): (Vec<cpsl_core::Layer>, Vec<Vec<bool>>) = s
             .key
             .layers()
-            .iter()
+            .par_iter()
             .zip(&maps)
             .enumerate()
             .map(|(l, (key, m))| {
@@ -518,7 +518,9 @@ impl VideoLayerer {
             layer.depth = z.max(prev * (1.0 + 1e-6));
             prev = layer.depth;
         }
-        let set = LayerSet::new(*s.key.camera(), layers, &Limits::default())?;
+        // The warp blends premultiplied texels alike in every channel, and the refresh only
+        // recolours opaque pixels: the layers are premultiplied by construction.
+        let set = LayerSet::new_premultiplied(*s.key.camera(), layers, &Limits::default())?;
         let edc = edge_depth_cache_from(&depth, w, h, &owner, &set, &self.layering.matte);
         timings.push(("depths", ms(t)));
         // Temporal confidence and crack rate.
@@ -575,31 +577,40 @@ fn ms(t: Instant) -> f64 {
     t.elapsed().as_secs_f64() * 1e3
 }
 
-/// The pixel of the previous frame that `(x, y)` of this frame shows.
-#[inline]
-fn source(flow: &Flow, x: usize, y: usize, w: usize, h: usize) -> usize {
-    let (u, v) = flow.at(x, y);
-    // Rounded to nearest by truncating after the clamp (no libm call on the baseline target).
-    let sx = (x as f32 + u + 0.5).clamp(0.0, (w - 1) as f32) as usize;
-    let sy = (y as f32 + v + 0.5).clamp(0.0, (h - 1) as f32) as usize;
-    sy * w + sx
-}
-
 /// Carries labels of the previous frame to this one (nearest).
 pub fn warp_labels(prev: &[u8], flow: &Flow, w: usize, h: usize) -> Vec<u8> {
-    (0..w * h)
-        .into_par_iter()
-        .map(|p| prev[source(flow, p % w, p / w, w, h)])
-        .collect()
+    warp_nearest(prev, flow, w, h)
 }
 
 /// Carries per-pixel values of the previous frame to this one (nearest, so depth is never
 /// mixed across an edge).
 pub fn warp_values(prev: &[f32], flow: &Flow, w: usize, h: usize) -> Vec<f32> {
-    (0..w * h)
-        .into_par_iter()
-        .map(|p| prev[source(flow, p % w, p / w, w, h)])
-        .collect()
+    warp_nearest(prev, flow, w, h)
+}
+
+/// Every pixel of this frame takes the value of the previous frame's pixel nearest to where
+/// the flow says it was (clamped to the image).
+fn warp_nearest<T: Copy + Default + Send + Sync>(
+    prev: &[T],
+    flow: &Flow,
+    w: usize,
+    h: usize,
+) -> Vec<T> {
+    let mut out = vec![T::default(); w * h];
+    let (xmax, ymax) = ((w - 1) as f32, (h - 1) as f32);
+    out.par_chunks_mut(w)
+        .zip(flow.data.par_chunks(w * 2))
+        .enumerate()
+        .for_each(|(y, (row, f))| {
+            for (x, (o, uv)) in row.iter_mut().zip(f.chunks_exact(2)).enumerate() {
+                // Rounded to nearest by truncating after the clamp (no libm call on the
+                // baseline target).
+                let sx = (x as f32 + uv[0] + 0.5).clamp(0.0, xmax) as i32 as usize;
+                let sy = (y as f32 + uv[1] + 0.5).clamp(0.0, ymax) as i32 as usize;
+                *o = prev[sy * w + sx];
+            }
+        });
+    out
 }
 
 fn with_tracks(set: LayerSet, tracks: &[u32]) -> Result<LayerSet, VideoError> {
@@ -671,18 +682,22 @@ fn identity_map(w: usize, h: usize, gw: usize, gh: usize) -> Vec<f32> {
 }
 
 /// Bilinear sample of both channels of a 2-channel grid at `(x, y)` (clamped).
-#[inline]
+#[inline(always)]
 fn sample2(d: &[f32], gw: usize, gh: usize, x: f32, y: f32) -> [f32; 2] {
     let x = x.clamp(0.0, (gw - 1) as f32);
     let y = y.clamp(0.0, (gh - 1) as f32);
     // Non-negative after the clamp: truncation is the floor.
-    let (x0, y0) = (x as usize, y as usize);
-    let (x1, y1) = ((x0 + 1).min(gw - 1), (y0 + 1).min(gh - 1));
+    let (x0, y0) = (x as i32 as usize, y as i32 as usize);
     let (fx, fy) = (x - x0 as f32, y - y0 as f32);
-    let at = |xx: usize, yy: usize, c: usize| d[(yy * gw + xx) * 2 + c];
-    [0, 1].map(|c| {
-        (at(x0, y0, c) * (1.0 - fx) + at(x1, y0, c) * fx) * (1.0 - fy)
-            + (at(x0, y1, c) * (1.0 - fx) + at(x1, y1, c) * fx) * fy
+    // Offsets of the right and lower taps (the same tap at the last column or row).
+    let dx = if x0 + 1 < gw { 2 } else { 0 };
+    let dy = if y0 + 1 < gh { gw * 2 } else { 0 };
+    let i = (y0 * gw + x0) * 2;
+    let t = &d[i..i + dy + dx + 2];
+    let (a, b) = (&t[..2], &t[dx..dx + 2]);
+    let (c, e) = (&t[dy..dy + 2], &t[dy + dx..dy + dx + 2]);
+    [0, 1].map(|k| {
+        (a[k] * (1.0 - fx) + b[k] * fx) * (1.0 - fy) + (c[k] * (1.0 - fx) + e[k] * fx) * fy
     })
 }
 
@@ -703,26 +718,34 @@ fn layer_flows(prev_owner: &[u8], flow: &Flow, w: usize, h: usize, k: usize) -> 
         .collect();
     let lo = min_filter(&cell, gw, gh, 1);
     let hi = max_filter(&cell, gw, gh, 1);
-    (0..k)
-        .into_par_iter()
-        .map(|l| {
-            let mut data = vec![0f32; gw * gh * 2];
-            let mut weight = vec![0f32; gw * gh];
-            for g in 0..gw * gh {
-                let (u, v) = flow.at(g % gw, g / gw);
+    // The layer whose interior each grid pixel's match lies in (255: none).
+    let mut inside = vec![u8::MAX; gw * gh];
+    inside
+        .par_chunks_mut(gw)
+        .zip(flow.data.par_chunks(gw * 2))
+        .enumerate()
+        .for_each(|(gy, (row, f))| {
+            for (gx, (o, uv)) in row.iter_mut().zip(f.chunks_exact(2)).enumerate() {
                 // Nearest grid pixel (floor of +1/2; negatives fail the test first).
-                let qx = (g % gw) as f32 + u + 0.5;
-                let qy = (g / gw) as f32 + v + 0.5;
+                let qx = gx as f32 + uv[0] + 0.5;
+                let qy = gy as f32 + uv[1] + 0.5;
                 if qx < 0.0 || qy < 0.0 || qx >= gw as f32 || qy >= gh as f32 {
                     continue;
                 }
                 let q = qy as usize * gw + qx as usize;
-                if lo[q] as usize == l && hi[q] as usize == l {
-                    data[g * 2] = u;
-                    data[g * 2 + 1] = v;
-                    weight[g] = 1.0;
+                if lo[q] == hi[q] {
+                    *o = lo[q];
                 }
             }
+        });
+    (0..k)
+        .into_par_iter()
+        .map(|l| {
+            let mut data = flow.data.clone();
+            let weight: Vec<f32> = inside
+                .iter()
+                .map(|&i| (i as usize == l) as u8 as f32)
+                .collect();
             if !cpsl_layering::fill::push_pull(&mut data, &weight, gw, gh, 2) {
                 data.fill(0.0);
             }
@@ -737,13 +760,16 @@ fn layer_flows(prev_owner: &[u8], flow: &Flow, w: usize, h: usize, k: usize) -> 
 
 /// A layer's new map: the previous map sampled at each grid pixel's match.
 fn compose(map: &[f32], flow: &Flow, gw: usize, gh: usize) -> Vec<f32> {
-    (0..gw * gh)
-        .flat_map(|g| {
-            let (u, v) = flow.at(g % gw, g / gw);
-            let (x, y) = ((g % gw) as f32 + u, (g / gw) as f32 + v);
-            sample2(map, gw, gh, x, y)
-        })
-        .collect()
+    let mut out = vec![0f32; gw * gh * 2];
+    out.par_chunks_mut(gw * 2)
+        .zip(flow.data.par_chunks(gw * 2))
+        .enumerate()
+        .for_each(|(y, (row, f))| {
+            for (x, (o, uv)) in row.chunks_exact_mut(2).zip(f.chunks_exact(2)).enumerate() {
+                o.copy_from_slice(&sample2(map, gw, gh, x as f32 + uv[0], y as f32 + uv[1]));
+            }
+        });
+    out
 }
 
 /// Minimum of `v` over the `(2r+1)^2` window around every pixel, separably.

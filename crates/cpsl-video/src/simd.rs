@@ -67,6 +67,8 @@ unsafe fn sample_avx2(
     let w256 = _mm256_set1_epi32(0x0100_0100);
     let round = _mm256_set1_epi32(0x0080_0080);
     let zero = _mm256_setzero_si256();
+    let seven = _mm256_set1_epi32(7);
+    let eight = _mm256_set1_epi32(8);
     let base = texels.as_ptr() as *const i32;
     for g in 0..groups {
         let o = g * 8;
@@ -80,33 +82,70 @@ unsafe fn sample_avx2(
         let tx = _mm256_add_epi32(_mm256_srai_epi32(xi, 8), one);
         let ty = _mm256_add_epi32(_mm256_srai_epi32(yi, 8), one);
         let idx = _mm256_and_si256(_mm256_add_epi32(_mm256_mullo_epi32(ty, pitch_v), tx), valid);
-        let mut lane_idx = [0i32; 8];
-        _mm256_storeu_si256(lane_idx.as_mut_ptr() as *mut __m256i, idx);
-        // Each row's two taps are adjacent: one 64-bit load per pixel and row.
-        let row = |off: usize| {
-            // SAFETY: every index is 0 or a valid lane's, whose taps (idx, idx + 1,
-            // idx + pitch, idx + pitch + 1) lie inside the padded texture.
-            let q =
-                |k: usize| (base.add(lane_idx[k] as usize + off) as *const i64).read_unaligned();
+        // Where all eight positions are inside, on one texel row, and their left taps lie
+        // within eight texels of the first (a near-unit step, the usual case), all taps come
+        // from sixteen consecutive texels of each row: four loads and lane permutes instead
+        // of sixteen scalar loads.
+        let i0 = _mm256_cvtsi256_si32(idx);
+        let d = _mm256_sub_epi32(idx, _mm256_set1_epi32(i0));
+        // Left taps i0 .. i0 + 8 (right taps up to i0 + 9, still among the sixteen).
+        let spread = _mm256_or_si256(_mm256_cmpgt_epi32(zero, d), _mm256_cmpgt_epi32(d, eight));
+        let contiguous = _mm256_movemask_ps(_mm256_castsi256_ps(valid)) == 0xFF
+            && _mm256_testz_si256(spread, spread) == 1
+            && i0 as usize + pitch + 16 <= texels.len();
+        let (p00, p01, p10, p11) = if contiguous {
+            // SAFETY: i0 is a valid lane's index, and the last texel read, i0 + pitch + 15,
+            // is inside the texture (checked just above).
+            let load = |i: usize| _mm256_loadu_si256(base.add(i) as *const __m256i);
+            let (a0, a1) = (load(i0 as usize), load(i0 as usize + 8));
+            let (b0, b1) = (load(i0 as usize + pitch), load(i0 as usize + pitch + 8));
+            let d1 = _mm256_add_epi32(d, one);
+            // Texel i0 + d from the pair (lo: 0..8, hi: 8..16).
+            let pick = |lo: __m256i, hi: __m256i, d: __m256i| {
+                let high = _mm256_cmpgt_epi32(d, seven);
+                _mm256_blendv_epi8(
+                    _mm256_permutevar8x32_epi32(lo, d),
+                    _mm256_permutevar8x32_epi32(hi, d),
+                    high,
+                )
+            };
             (
-                _mm256_setr_epi64x(q(0), q(1), q(2), q(3)),
-                _mm256_setr_epi64x(q(4), q(5), q(6), q(7)),
+                pick(a0, a1, d),
+                pick(a0, a1, d1),
+                pick(b0, b1, d),
+                pick(b0, b1, d1),
             )
+        } else {
+            let mut lane_idx = [0i32; 8];
+            _mm256_storeu_si256(lane_idx.as_mut_ptr() as *mut __m256i, idx);
+            // Each row's two taps are adjacent: one 64-bit load per pixel and row.
+            let row = |off: usize| {
+                // SAFETY: every index is 0 or a valid lane's, whose taps (idx, idx + 1,
+                // idx + pitch, idx + pitch + 1) lie inside the padded texture.
+                let q = |k: usize| {
+                    (base.add(lane_idx[k] as usize + off) as *const i64).read_unaligned()
+                };
+                (
+                    _mm256_setr_epi64x(q(0), q(1), q(2), q(3)),
+                    _mm256_setr_epi64x(q(4), q(5), q(6), q(7)),
+                )
+            };
+            let (t_lo, t_hi) = row(0);
+            let (u_lo, u_hi) = row(pitch);
+            // Even dwords are left taps, odd dwords right taps; restore pixel order 0..7.
+            let split = |lo: __m256i, hi: __m256i| {
+                let (a, b) = (_mm256_castsi256_ps(lo), _mm256_castsi256_ps(hi));
+                let even = _mm256_castps_si256(_mm256_shuffle_ps::<0x88>(a, b));
+                let odd = _mm256_castps_si256(_mm256_shuffle_ps::<0xDD>(a, b));
+                (
+                    _mm256_and_si256(_mm256_permute4x64_epi64::<0xD8>(even), valid),
+                    _mm256_and_si256(_mm256_permute4x64_epi64::<0xD8>(odd), valid),
+                )
+            };
+            let (p00, p01) = split(t_lo, t_hi);
+            let (p10, p11) = split(u_lo, u_hi);
+            (p00, p01, p10, p11)
         };
-        let (t_lo, t_hi) = row(0);
-        let (u_lo, u_hi) = row(pitch);
-        // Even dwords are left taps, odd dwords right taps; restore pixel order 0..7.
-        let split = |lo: __m256i, hi: __m256i| {
-            let (a, b) = (_mm256_castsi256_ps(lo), _mm256_castsi256_ps(hi));
-            let even = _mm256_castps_si256(_mm256_shuffle_ps::<0x88>(a, b));
-            let odd = _mm256_castps_si256(_mm256_shuffle_ps::<0xDD>(a, b));
-            (
-                _mm256_and_si256(_mm256_permute4x64_epi64::<0xD8>(even), valid),
-                _mm256_and_si256(_mm256_permute4x64_epi64::<0xD8>(odd), valid),
-            )
-        };
-        let (p00, p01) = split(t_lo, t_hi);
-        let (p10, p11) = split(u_lo, u_hi);
         let any = _mm256_or_si256(_mm256_or_si256(p00, p01), _mm256_or_si256(p10, p11));
         let content = _mm256_xor_si256(_mm256_cmpeq_epi32(any, zero), _mm256_set1_epi32(-1));
         let mask = _mm256_movemask_ps(_mm256_castsi256_ps(content)) as u32;
@@ -147,6 +186,10 @@ unsafe fn sample_avx2(
         let v = _mm256_or_si256(v_rb, _mm256_slli_epi32(v_ga, 8));
         // Lanes without content are zero, as the output already is.
         _mm256_storeu_si256(out.as_mut_ptr().add(o * 4) as *mut __m256i, v);
+        if l == 0 {
+            // No layer is nearer than the first.
+            continue;
+        }
         // The owner at the nearest pixel, clamped to the image.
         let half = _mm256_set1_epi32(128);
         let near = |v: __m256i, n: usize| {
@@ -159,11 +202,10 @@ unsafe fn sample_avx2(
         );
         let mut at_idx = [0i32; 8];
         _mm256_storeu_si256(at_idx.as_mut_ptr() as *mut __m256i, at);
-        let mut m = mask;
-        while m != 0 {
-            let k = m.trailing_zeros() as usize;
-            hid[o + k] = (owner[at_idx[k] as usize] as usize) < l;
-            m &= m - 1;
+        // All eight lanes without branches (the content mask is irregular); lanes without
+        // content stay false, as they already are.
+        for (k, (hid, &at)) in hid[o..o + 8].iter_mut().zip(&at_idx).enumerate() {
+            *hid = ((mask >> k) & 1 == 1) & ((owner[at as usize] as usize) < l);
         }
     }
     groups * 8

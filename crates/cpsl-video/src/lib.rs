@@ -451,12 +451,7 @@ impl VideoLayerer {
         let k = s.key.len();
         // Each layer moves with the flow of its own interior, filled in elsewhere, so that
         // motion never bleeds across a layer boundary; its map into the I-frame follows.
-        let flows = layer_flows(&s.owner, &motion.grid, w, h, k);
-        let maps: Vec<Vec<f32>> = flows
-            .par_iter()
-            .zip(&s.maps)
-            .map(|(f, m)| compose(m, f, gw, gh))
-            .collect();
+        let maps = layer_maps(&s.owner, &motion.grid, &s.maps, w, h);
         let depth_propagated = depth.is_none();
         let carried = warp_values(&s.depth, &motion.at_full(w, h), w, h);
         // A model may leave pixels without depth: they keep the depth carried along.
@@ -704,8 +699,15 @@ fn sample2(d: &[f32], gw: usize, gh: usize, x: f32, y: f32) -> [f32; 2] {
 /// Per layer, the grid flow of its own interior: grid pixels whose match in the previous
 /// frame lies inside the layer (one grid pixel from any other layer) keep their flow, and
 /// push-pull fills the rest, so each layer moves with its own content; a layer without such
-/// pixels stays where it is.
-fn layer_flows(prev_owner: &[u8], flow: &Flow, w: usize, h: usize, k: usize) -> Vec<Flow> {
+/// pixels stays where it is. Returns each layer's new map into the I-frame: its previous
+/// map (`maps`) composed with that flow.
+fn layer_maps(
+    prev_owner: &[u8],
+    flow: &Flow,
+    maps: &[Vec<f32>],
+    w: usize,
+    h: usize,
+) -> Vec<Vec<f32>> {
     let (gw, gh) = (flow.width, flow.height);
     let (sx, sy) = (w as f32 / gw as f32, h as f32 / gh as f32);
     // The previous owner on the grid: a layer index, or 255 where the cell is mixed.
@@ -738,9 +740,9 @@ fn layer_flows(prev_owner: &[u8], flow: &Flow, w: usize, h: usize, k: usize) -> 
                 }
             }
         });
-    (0..k)
-        .into_par_iter()
-        .map(|l| {
+    maps.par_iter()
+        .enumerate()
+        .map(|(l, map)| {
             let mut data = flow.data.clone();
             let weight: Vec<f32> = inside
                 .iter()
@@ -749,26 +751,20 @@ fn layer_flows(prev_owner: &[u8], flow: &Flow, w: usize, h: usize, k: usize) -> 
             if !cpsl_layering::fill::push_pull(&mut data, &weight, gw, gh, 2) {
                 data.fill(0.0);
             }
-            Flow {
-                width: gw,
-                height: gh,
-                data,
-            }
+            compose(map, &data, gw, gh)
         })
         .collect()
 }
 
-/// A layer's new map: the previous map sampled at each grid pixel's match.
-fn compose(map: &[f32], flow: &Flow, gw: usize, gh: usize) -> Vec<f32> {
+/// A layer's new map: the previous map sampled at each grid pixel's match (`flow`, on the
+/// same grid).
+fn compose(map: &[f32], flow: &[f32], gw: usize, gh: usize) -> Vec<f32> {
     let mut out = vec![0f32; gw * gh * 2];
-    out.par_chunks_mut(gw * 2)
-        .zip(flow.data.par_chunks(gw * 2))
-        .enumerate()
-        .for_each(|(y, (row, f))| {
-            for (x, (o, uv)) in row.chunks_exact_mut(2).zip(f.chunks_exact(2)).enumerate() {
-                o.copy_from_slice(&sample2(map, gw, gh, x as f32 + uv[0], y as f32 + uv[1]));
-            }
-        });
+    for (y, (row, f)) in out.chunks_mut(gw * 2).zip(flow.chunks(gw * 2)).enumerate() {
+        for (x, (o, uv)) in row.chunks_exact_mut(2).zip(f.chunks_exact(2)).enumerate() {
+            o.copy_from_slice(&sample2(map, gw, gh, x as f32 + uv[0], y as f32 + uv[1]));
+        }
+    }
     out
 }
 

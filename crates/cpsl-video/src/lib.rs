@@ -572,13 +572,14 @@ fn ms(t: Instant) -> f64 {
     t.elapsed().as_secs_f64() * 1e3
 }
 
-/// Carries labels of the previous frame to this one (nearest).
+/// Carries labels of the previous frame to this one (nearest). Panics unless `prev` and
+/// `flow` are `w x h`.
 pub fn warp_labels(prev: &[u8], flow: &Flow, w: usize, h: usize) -> Vec<u8> {
     warp_nearest(prev, flow, w, h)
 }
 
 /// Carries per-pixel values of the previous frame to this one (nearest, so depth is never
-/// mixed across an edge).
+/// mixed across an edge). Panics unless `prev` and `flow` are `w x h`.
 pub fn warp_values(prev: &[f32], flow: &Flow, w: usize, h: usize) -> Vec<f32> {
     warp_nearest(prev, flow, w, h)
 }
@@ -591,6 +592,12 @@ fn warp_nearest<T: Copy + Default + Send + Sync>(
     w: usize,
     h: usize,
 ) -> Vec<T> {
+    assert_eq!(prev.len(), w * h, "values for every pixel");
+    assert_eq!(
+        (flow.width, flow.height, flow.data.len()),
+        (w, h, w * h * 2),
+        "a flow of the frame's size"
+    );
     let mut out = vec![T::default(); w * h];
     let (xmax, ymax) = ((w - 1) as f32, (h - 1) as f32);
     out.par_chunks_mut(w)

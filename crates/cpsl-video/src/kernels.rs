@@ -326,8 +326,10 @@ fn sample_scalar(
 }
 
 /// One pass over every pixel of the carried layers:
-/// - hidden content (`hidden[l]`) that nothing in front covers (cover below 1/2) is dropped,
-///   so that the layers behind show (the back layer is opaque everywhere and keeps its own);
+/// - hidden content (`hidden[l]`) that nothing in front covers (cover below 1/2) is dropped
+///   unless the new depth (`depth`) lies within the layer's span (`spans[l]`, z bounds), so
+///   that the layers behind show where the guess was wrong (the back layer is opaque
+///   everywhere and keeps its own);
 /// - the owner is the nearest layer with alpha >= 1/2 (the back layer where none is);
 /// - with `refresh`, the pixels the owner shows fully opaque take the new frame's colour
 ///   `rgb`.
@@ -336,6 +338,8 @@ fn sample_scalar(
 pub(crate) fn settle(
     images: &mut [&mut PremulImage],
     hidden: &[Vec<bool>],
+    depth: &[f32],
+    spans: &[(f32, f32)],
     rgb: &[u8],
     refresh: bool,
 ) -> Vec<u8> {
@@ -362,7 +366,9 @@ pub(crate) fn settle(
                     if a == 0 {
                         continue;
                     }
-                    if hidden[l][p] && cover * 2 < 255 * 255 {
+                    let (lo, hi) = spans[l];
+                    if hidden[l][p] && cover * 2 < 255 * 255 && !(depth[p] >= lo && depth[p] <= hi)
+                    {
                         row[x * 4..x * 4 + 4].fill(0);
                         continue;
                     }
@@ -381,10 +387,25 @@ pub(crate) fn settle(
     owner
 }
 
-/// Median of each label's depths (`None` for a label without pixels), from a histogram of
-/// `ln z` (`ln_depth`, non-finite values ignored) in 4096 bins over the frame's range (to
-/// 1/4096 of that range).
+/// Median of each label's depths (`None` for a label without pixels), see
+/// [`ln_depth_quantiles`].
 pub(crate) fn median_depths(owner: &[u8], ln_depth: &[f32], k: usize) -> Vec<Option<f64>> {
+    ln_depth_quantiles(owner, ln_depth, k, [0.5])
+        .into_iter()
+        .map(|q| q.map(|[m]| (m as f64).exp()))
+        .collect()
+}
+
+/// Quantiles `qs` (increasing, below 1) of each label's `ln z` (`None` for a label without
+/// pixels), from a
+/// histogram of `ln_depth` (non-finite values ignored) in 4096 bins over the frame's range (to
+/// 1/4096 of that range).
+pub(crate) fn ln_depth_quantiles<const N: usize>(
+    owner: &[u8],
+    ln_depth: &[f32],
+    k: usize,
+    qs: [f32; N],
+) -> Vec<Option<[f32; N]>> {
     const BINS: usize = 4096;
     let valid = |v: f32| v.is_finite();
     let (lo, hi) = ln_depth
@@ -425,12 +446,19 @@ pub(crate) fn median_depths(owner: &[u8], ln_depth: &[f32], k: usize) -> Vec<Opt
             if n == 0 {
                 return None;
             }
-            let mut seen = 0;
-            let bin = hist.iter().position(|&c| {
-                seen += c;
-                seen * 2 > n
-            })?;
-            Some(((bin as f32 + 0.5) / scale + lo).exp() as f64)
+            let mut cum = hist.iter().scan(0u32, |seen, &c| {
+                *seen += c;
+                Some(*seen)
+            });
+            let (mut bin, mut seen) = (0, 0);
+            Some(qs.map(|q| {
+                // Quantiles in increasing order continue the same walk.
+                while seen as f32 <= q * n as f32 {
+                    seen = cum.next().expect("the last bin holds all n");
+                    bin += 1;
+                }
+                (bin as f32 - 0.5) / scale + lo
+            }))
         })
         .collect()
 }
@@ -610,6 +638,20 @@ mod tests {
             );
         }
         assert_eq!(median_depths(&[0, 0], &[0.7, 0.7], 2)[1], None);
+        // Other quantiles walk the same histogram.
+        let qs = ln_depth_quantiles(&owner, &ln, k, [0.05, 0.5, 0.95]);
+        for (l, q) in qs.iter().enumerate() {
+            let mut v: Vec<f32> = (0..w * h)
+                .filter(|&p| owner[p] as usize == l)
+                .map(|p| ln[p])
+                .collect();
+            v.sort_by(f32::total_cmp);
+            let q = q.expect("pixels");
+            for (got, f) in q.iter().zip([0.05, 0.5, 0.95]) {
+                let want = v[(f * v.len() as f32) as usize];
+                assert!((got - want).abs() <= 11f32.ln() / 4095.0, "{got} vs {want}");
+            }
+        }
     }
 
     #[test]

@@ -45,6 +45,7 @@ use std::time::Instant;
 use thiserror::Error;
 
 mod kernels;
+mod robust;
 #[cfg(target_arch = "x86_64")]
 mod simd;
 
@@ -95,6 +96,9 @@ pub struct GopConfig {
     pub depth_ema: f32,
     /// `|ln z - ln z_k|` within which a pixel agrees with layer `k`.
     pub depth_tolerance: f32,
+    /// `|ln z_t - ln z_t-1|` beyond which a pixel no longer shows the surface its motion
+    /// points to (a moving occluder uncovered it), so it does not move that surface's layer.
+    pub occlusion_tolerance: f32,
     /// Weight of the past in the temporal confidence.
     pub confidence_ema: f32,
     /// Refresh when the mean temporal confidence falls below this.
@@ -118,6 +122,7 @@ impl Default for GopConfig {
             adaptive_refresh: true,
             depth_ema: 0.7,
             depth_tolerance: 0.05,
+            occlusion_tolerance: 0.5,
             confidence_ema: 0.7,
             refresh_confidence: 0.75,
             refresh_crack: 0.05,
@@ -168,8 +173,13 @@ impl GopConfig {
                 return bad(&format!("{name} must be in [0, 1], not {v}"));
             }
         }
-        if !(self.depth_tolerance.is_finite() && self.depth_tolerance >= 0.0) {
-            return bad("depth_tolerance must be finite and >= 0");
+        for (name, v) in [
+            ("depth_tolerance", self.depth_tolerance),
+            ("occlusion_tolerance", self.occlusion_tolerance),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return bad(&format!("{name} must be finite and >= 0, not {v}"));
+            }
         }
         Ok(())
     }
@@ -228,6 +238,8 @@ struct State {
     maps: Vec<Vec<f32>>,
     /// The previous frame's layer depths.
     depths: Vec<f64>,
+    /// Per layer, the 5 % and 95 % quantiles of `ln z` over its pixels at the I-frame.
+    spans: Vec<(f32, f32)>,
     tracks: Vec<u32>,
     /// Per layer: (overlap, boundary similarity) at the last I-frame.
     base: Vec<(f32, f32)>,
@@ -399,6 +411,11 @@ impl VideoLayerer {
             h,
         );
         let base_crack = kernels::crack_rate(&layered.owner, &cues.depth, w, h);
+        let spans = kernels::ln_depth_quantiles(&layered.owner, &ln_depth, k, [0.05, 0.95])
+            .into_iter()
+            .zip(&lz)
+            .map(|(q, &z)| q.map_or((z, z), |[lo, hi]| (lo, hi)))
+            .collect();
         timings.push(("association", ms(t)));
         let maps = vec![identity_map(w, h, grey.width, grey.height); k];
         self.state = Some(State {
@@ -414,6 +431,7 @@ impl VideoLayerer {
                 .collect(),
             maps,
             depths: set.layers().iter().map(|l| l.depth).collect(),
+            spans,
             tracks,
             base,
             base_crack,
@@ -451,7 +469,6 @@ impl VideoLayerer {
         let k = s.key.len();
         // Each layer moves with the flow of its own interior, filled in elsewhere, so that
         // motion never bleeds across a layer boundary; its map into the I-frame follows.
-        let maps = layer_maps(&s.owner, &motion.grid, &s.maps, w, h);
         let depth_propagated = depth.is_none();
         let carried = warp_values(&s.depth, &motion.at_full(w, h), w, h);
         // A model may leave pixels without depth: they keep the depth carried along.
@@ -463,6 +480,18 @@ impl VideoLayerer {
                 .collect(),
             None => carried,
         };
+        // Each layer's I-frame depth span, moved with the layer's depth since.
+        let spans =
+            s.spans
+                .iter()
+                .zip(&s.depths)
+                .zip(s.key.layers())
+                .map(|((&(lo, hi), &z), key)| {
+                    let shift = (z / key.depth).ln() as f32;
+                    (lo + shift, hi + shift)
+                });
+        let depths = Depths::new(&depth, &s.depth, (w, h), spans, g.occlusion_tolerance);
+        let maps = layer_maps(&s.owner, &motion.grid, &s.maps, &depths);
         timings.push(("propagation", ms(t)));
         // The I-frame's layers carried along their motions, each pixel marked where it
         // carries content the I-frame hid behind a nearer layer (extension and fill).
@@ -493,7 +522,7 @@ impl VideoLayerer {
         let owner = {
             let mut images: Vec<&mut PremulImage> =
                 layers.iter_mut().map(|l| &mut l.image).collect();
-            kernels::settle(&mut images, &hidden, rgb, g.refine)
+            kernels::settle(&mut images, &hidden, &depth, &depths.spans, rgb, g.refine)
         };
         drop(hidden);
         timings.push(("visibility", ms(t)));
@@ -712,9 +741,9 @@ fn layer_maps(
     prev_owner: &[u8],
     flow: &Flow,
     maps: &[Vec<f32>],
-    w: usize,
-    h: usize,
+    depths: &Depths<'_>,
 ) -> Vec<Vec<f32>> {
+    let (w, h) = (depths.w, depths.h);
     let (gw, gh) = (flow.width, flow.height);
     let (sx, sy) = (w as f32 / gw as f32, h as f32 / gh as f32);
     // The previous owner on the grid: a layer index, or 255 where the cell is mixed.
@@ -725,10 +754,12 @@ fn layer_maps(
             prev_owner[y * w + x]
         })
         .collect();
-    let lo = min_filter(&cell, gw, gh, 1);
-    let hi = max_filter(&cell, gw, gh, 1);
-    // The layer whose interior each grid pixel's match lies in (255: none).
-    let mut inside = vec![u8::MAX; gw * gh];
+    let depth = distance_inside(&cell, gw, gh, INTERIOR_RAMP + 1);
+    let block = ((gw.max(gh) as f32 * MOTION_BLOCK).round() as usize).max(1);
+    // The layer whose interior each grid pixel's match lies in (255: none), and how much its
+    // vector counts: vectors measured near a layer boundary mix the motions of both sides, so
+    // they count less the nearer their match lies to the boundary.
+    let mut inside = vec![(u8::MAX, 0f32); gw * gh];
     inside
         .par_chunks_mut(gw)
         .zip(flow.data.par_chunks(gw * 2))
@@ -742,25 +773,97 @@ fn layer_maps(
                     continue;
                 }
                 let q = qy as usize * gw + qx as usize;
-                if lo[q] == hi[q] {
-                    *o = lo[q];
+                if depth[q] >= 2
+                    && depths.same_surface(cell[q], (gx, gy), (qx - 0.5, qy - 0.5), (sx, sy))
+                {
+                    let ramp = (depth[q] - 1) as f32 / INTERIOR_RAMP as f32;
+                    *o = (cell[q], ramp.min(1.0));
                 }
             }
         });
     maps.par_iter()
         .enumerate()
         .map(|(l, map)| {
-            let mut data = flow.data.clone();
             let weight: Vec<f32> = inside
                 .iter()
-                .map(|&i| (i as usize == l) as u8 as f32)
+                .map(|&(i, c)| if i as usize == l { c } else { 0.0 })
                 .collect();
+            // Vectors that disagree with their neighbourhood lose their weight.
+            let weight = robust::local_inliers(&flow.data, &weight, gw, gh, block);
+            let Some(model) = robust::Affine::fit(&flow.data, &weight, gw, gh) else {
+                return compose(map, &vec![0.0; gw * gh * 2], gw, gh);
+            };
+            // The model plus the residual of the vectors it keeps, filled in elsewhere.
+            let mut data = flow.data.clone();
+            model.add_to(&mut data, gw, -1.0);
             if !cpsl_layering::fill::push_pull(&mut data, &weight, gw, gh, 2) {
                 data.fill(0.0);
             }
+            model.add_to(&mut data, gw, 1.0);
             compose(map, &data, gw, gh)
         })
         .collect()
+}
+
+/// What tells a pixel that still shows the surface its motion points to from one that a
+/// moving occluder has just uncovered (or one a layer holds by mistake): this frame's depth
+/// against the previous frame's at the match, and against the depths the layer spanned at
+/// the I-frame.
+struct Depths<'a> {
+    now: &'a [f32],
+    prev: &'a [f32],
+    w: usize,
+    h: usize,
+    /// Bounds of `z_now / z_prev` on one surface.
+    ratio: (f32, f32),
+    /// Per layer, the bounds of its depth (widened by the tolerance).
+    spans: Vec<(f32, f32)>,
+}
+
+impl<'a> Depths<'a> {
+    /// `spans`: per layer, the 5 % and 95 % quantiles of `ln z` over its pixels;
+    /// `tolerance` widens every bound in `ln z`.
+    fn new(
+        now: &'a [f32],
+        prev: &'a [f32],
+        (w, h): (usize, usize),
+        spans: impl Iterator<Item = (f32, f32)>,
+        tolerance: f32,
+    ) -> Self {
+        Self {
+            now,
+            prev,
+            w,
+            h,
+            ratio: ((-tolerance).exp(), tolerance.exp()),
+            spans: spans
+                .map(|(lo, hi)| ((lo - tolerance).exp(), (hi + tolerance).exp()))
+                .collect(),
+        }
+    }
+
+    /// Whether grid pixel `(gx, gy)` shows the surface of layer `l` that its match
+    /// `(mx, my)` (grid coordinates) showed in the previous frame: its depth agrees with the
+    /// match's and lies within the layer's span. Pixels without a valid depth pass.
+    #[inline]
+    fn same_surface(
+        &self,
+        l: u8,
+        (gx, gy): (usize, usize),
+        (mx, my): (f32, f32),
+        (sx, sy): (f32, f32),
+    ) -> bool {
+        let at = |gx: f32, gy: f32| {
+            let x = ((grid_to_full(gx, sx) + 0.5).max(0.0) as usize).min(self.w - 1);
+            let y = ((grid_to_full(gy, sy) + 0.5).max(0.0) as usize).min(self.h - 1);
+            y * self.w + x
+        };
+        let z = self.now[at(gx as f32, gy as f32)];
+        let r = z / self.prev[at(mx, my)];
+        let (lo, hi) = self.spans[l as usize];
+        // Comparisons with NaN are false: a missing depth fails neither test.
+        !(r < self.ratio.0 || r > self.ratio.1 || z < lo || z > hi)
+    }
 }
 
 /// A layer's new map: the previous map sampled at each grid pixel's match (`flow`, on the
@@ -775,35 +878,85 @@ fn compose(map: &[f32], flow: &[f32], gw: usize, gh: usize) -> Vec<f32> {
     out
 }
 
-/// Minimum of `v` over the `(2r+1)^2` window around every pixel, separably.
-fn min_filter(v: &[u8], w: usize, h: usize, r: usize) -> Vec<u8> {
-    let mut tmp = vec![0u8; w * h];
-    tmp.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-        let src = &v[y * w..(y + 1) * w];
-        for (x, o) in row.iter_mut().enumerate() {
-            *o = *src[x.saturating_sub(r)..(x + r + 1).min(w)]
-                .iter()
-                .min()
-                .expect("window");
+/// Grid pixels from a layer boundary within which interior vectors count less.
+const INTERIOR_RAMP: u8 = 4;
+
+/// Side of the blocks within which a layer's vectors are compared with their median, as a
+/// share of the grid's long side.
+const MOTION_BLOCK: f32 = 0.15;
+
+/// Per pixel of a label map, its chessboard distance to the nearest pixel of another label
+/// (1: a neighbour differs), at most `cap`: one plus the number of 3x3 erosions the set of
+/// pixels without a differing neighbour survives.
+fn distance_inside(label: &[u8], w: usize, h: usize, cap: u8) -> Vec<u8> {
+    let lo = min3x3(label, w, h);
+    let inv: Vec<u8> = label.iter().map(|&v| 255 - v).collect();
+    let hi = min3x3(&inv, w, h);
+    let mut inside: Vec<u8> = lo
+        .iter()
+        .zip(&hi)
+        .map(|(&a, &b)| (a == 255 - b) as u8)
+        .collect();
+    let mut d: Vec<u8> = inside.iter().map(|&m| 1 + m).collect();
+    for _ in 2..cap {
+        inside = min3x3(&inside, w, h);
+        d.iter_mut().zip(&inside).for_each(|(d, &m)| *d += m);
+    }
+    d
+}
+
+/// Minimum over the 3x3 window around every pixel (clamped at the edges), separably.
+fn min3x3(v: &[u8], w: usize, h: usize) -> Vec<u8> {
+    let row_min = |src: &[u8], out: &mut [u8]| {
+        for (o, t) in out[1..].iter_mut().zip(src.windows(3)) {
+            *o = t[0].min(t[1]).min(t[2]);
         }
-    });
+        out[0] = src[0].min(src[w.min(2) - 1]);
+        out[w - 1] = src[w - 1].min(src[w.saturating_sub(2)]);
+    };
+    let mut tmp = vec![0u8; w * h];
+    tmp.chunks_mut(w)
+        .zip(v.chunks(w))
+        .for_each(|(o, src)| row_min(src, o));
     let mut out = vec![0u8; w * h];
-    out.par_chunks_mut(w).enumerate().for_each(|(y, row)| {
-        for (x, o) in row.iter_mut().enumerate() {
-            *o = (y.saturating_sub(r)..(y + r + 1).min(h))
-                .map(|yy| tmp[yy * w + x])
-                .min()
-                .expect("window");
+    out.chunks_mut(w).enumerate().for_each(|(y, o)| {
+        let (a, b, c) = (y.saturating_sub(1), y, (y + 1).min(h - 1));
+        let (ra, rb, rc) = (
+            &tmp[a * w..a * w + w],
+            &tmp[b * w..b * w + w],
+            &tmp[c * w..c * w + w],
+        );
+        for (((o, &x), &y), &z) in o.iter_mut().zip(ra).zip(rb).zip(rc) {
+            *o = x.min(y).min(z);
         }
     });
     out
 }
 
-/// Maximum of `v` over the `(2r+1)^2` window around every pixel.
-fn max_filter(v: &[u8], w: usize, h: usize, r: usize) -> Vec<u8> {
-    let inv: Vec<u8> = v.iter().map(|&x| 255 - x).collect();
-    min_filter(&inv, w, h, r)
-        .into_iter()
-        .map(|x| 255 - x)
-        .collect()
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn distance_inside_matches_brute_force() {
+        let (w, h) = (37, 23);
+        let label: Vec<u8> = (0..w * h)
+            .map(|p| {
+                let (x, y) = ((p % w) as i32, (p / w) as i32);
+                ((x - 15).pow(2) + (y - 11).pow(2) < 64) as u8 + (x > 30 && y < 5) as u8 * 2
+            })
+            .collect();
+        let got = distance_inside(&label, w, h, 6);
+        for p in 0..w * h {
+            let (x, y) = ((p % w) as i32, (p / w) as i32);
+            let mut want = 6u8;
+            for q in 0..w * h {
+                let (qx, qy) = ((q % w) as i32, (q / w) as i32);
+                if label[q] != label[p] {
+                    want = want.min((qx - x).abs().max((qy - y).abs()) as u8);
+                }
+            }
+            assert_eq!(got[p], want, "{x} {y}");
+        }
+    }
 }

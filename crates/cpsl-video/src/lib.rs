@@ -4,12 +4,15 @@
 //! ([`cpsl_layering::layer_frame`]). A **P-frame** carries the I-frame's layers along the
 //! motion: dense optical flow from the new frame to the previous one ([`cpsl_flow`], on a
 //! `flow_side` grid; or the decoder's motion vectors) is split per layer, each layer keeping the
-//! flow of its own interior (grid cells whose match lies inside the layer) and filling the rest
-//! by push-pull, so motion never bleeds across a layer boundary; each layer's map into the
+//! flow of its own interior (grid cells whose match lies inside the layer and whose depth
+//! agrees with the match's and with the layer's; vectors count less near the boundary and not
+//! at all where they disagree with their neighbourhood's median) and extending it elsewhere by
+//! an affine model plus the push-pull filled residual, so motion never bleeds across a layer
+//! boundary; each layer's map into the
 //! I-frame is composed with its flow, and the layer's premultiplied colour and alpha are
 //! sampled from the I-frame through that map (one resampling per frame, no accumulated blur).
 //! Content the I-frame hid behind a nearer layer (extension and fill) that nothing covers any
-//! more is dropped, so the layers behind show. Layer depths follow the new depth map (the
+//! more is dropped unless the new depth fits its layer, so the layers behind show. Layer depths follow the new depth map (the
 //! median over each layer's pixels), or the previous depth carried along the motion when depth
 //! estimation is skipped on P-frames.
 //!
@@ -96,8 +99,11 @@ pub struct GopConfig {
     pub depth_ema: f32,
     /// `|ln z - ln z_k|` within which a pixel agrees with layer `k`.
     pub depth_tolerance: f32,
-    /// `|ln z_t - ln z_t-1|` beyond which a pixel no longer shows the surface its motion
-    /// points to (a moving occluder uncovered it), so it does not move that surface's layer.
+    /// Tolerance in `ln z` of the occlusion tests: a pixel whose depth differs from its
+    /// match's in the previous frame by more, or lies further outside the layer's I-frame
+    /// depth span, no longer shows that layer's surface (a moving occluder uncovered it) and
+    /// does not move the layer; uncovered hidden content stays only within its layer's span
+    /// so widened.
     pub occlusion_tolerance: f32,
     /// Weight of the past in the temporal confidence.
     pub confidence_ema: f32,
@@ -746,7 +752,7 @@ fn layer_maps(
     let (w, h) = (depths.w, depths.h);
     let (gw, gh) = (flow.width, flow.height);
     let (sx, sy) = (w as f32 / gw as f32, h as f32 / gh as f32);
-    // The previous owner on the grid: a layer index, or 255 where the cell is mixed.
+    // The previous owner on the grid (nearest pixel).
     let cell: Vec<u8> = (0..gw * gh)
         .map(|g| {
             let x = ((grid_to_full((g % gw) as f32, sx) + 0.5) as usize).min(w - 1);
@@ -754,7 +760,7 @@ fn layer_maps(
             prev_owner[y * w + x]
         })
         .collect();
-    let depth = distance_inside(&cell, gw, gh, INTERIOR_RAMP + 1);
+    let reach = distance_inside(&cell, gw, gh, INTERIOR_RAMP + 1);
     let block = ((gw.max(gh) as f32 * MOTION_BLOCK).round() as usize).max(1);
     // The layer whose interior each grid pixel's match lies in (255: none), and how much its
     // vector counts: vectors measured near a layer boundary mix the motions of both sides, so
@@ -773,10 +779,10 @@ fn layer_maps(
                     continue;
                 }
                 let q = qy as usize * gw + qx as usize;
-                if depth[q] >= 2
+                if reach[q] >= 2
                     && depths.same_surface(cell[q], (gx, gy), (qx - 0.5, qy - 0.5), (sx, sy))
                 {
-                    let ramp = (depth[q] - 1) as f32 / INTERIOR_RAMP as f32;
+                    let ramp = (reach[q] - 1) as f32 / INTERIOR_RAMP as f32;
                     *o = (cell[q], ramp.min(1.0));
                 }
             }

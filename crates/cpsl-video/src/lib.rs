@@ -705,6 +705,15 @@ fn grid_to_full(g: f32, scale: f32) -> f32 {
     (g + 0.5) * scale - 0.5
 }
 
+/// Index of the full-resolution pixel nearest to grid position `(gx, gy)` (clamped to the
+/// image; the saturating cast takes negatives to 0).
+#[inline]
+fn nearest_pixel(gx: f32, gy: f32, (sx, sy): (f32, f32), (w, h): (usize, usize)) -> usize {
+    let x = ((grid_to_full(gx, sx) + 0.5) as usize).min(w - 1);
+    let y = ((grid_to_full(gy, sy) + 0.5) as usize).min(h - 1);
+    y * w + x
+}
+
 /// The map of a frame onto itself, on the grid.
 fn identity_map(w: usize, h: usize, gw: usize, gh: usize) -> Vec<f32> {
     let (sx, sy) = (w as f32 / gw as f32, h as f32 / gh as f32);
@@ -754,11 +763,7 @@ fn layer_maps(
     let (sx, sy) = (w as f32 / gw as f32, h as f32 / gh as f32);
     // The previous owner on the grid (nearest pixel).
     let cell: Vec<u8> = (0..gw * gh)
-        .map(|g| {
-            let x = ((grid_to_full((g % gw) as f32, sx) + 0.5) as usize).min(w - 1);
-            let y = ((grid_to_full((g / gw) as f32, sy) + 0.5) as usize).min(h - 1);
-            prev_owner[y * w + x]
-        })
+        .map(|g| prev_owner[nearest_pixel((g % gw) as f32, (g / gw) as f32, (sx, sy), (w, h))])
         .collect();
     let reach = distance_inside(&cell, gw, gh, INTERIOR_RAMP + 1);
     let block = ((gw.max(gh) as f32 * MOTION_BLOCK).round() as usize).max(1);
@@ -859,11 +864,7 @@ impl<'a> Depths<'a> {
         (mx, my): (f32, f32),
         (sx, sy): (f32, f32),
     ) -> bool {
-        let at = |gx: f32, gy: f32| {
-            let x = ((grid_to_full(gx, sx) + 0.5).max(0.0) as usize).min(self.w - 1);
-            let y = ((grid_to_full(gy, sy) + 0.5).max(0.0) as usize).min(self.h - 1);
-            y * self.w + x
-        };
+        let at = |gx: f32, gy: f32| nearest_pixel(gx, gy, (sx, sy), (self.w, self.h));
         let z = self.now[at(gx as f32, gy as f32)];
         let r = z / self.prev[at(mx, my)];
         let (lo, hi) = self.spans[l as usize];

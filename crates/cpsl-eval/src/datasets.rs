@@ -308,6 +308,133 @@ pub fn median(v: &[f32]) -> Option<f32> {
     Some(*d.select_nth_unstable_by(m, f32::total_cmp).1)
 }
 
+/// A real handheld video with a camera pose per frame and no depth.
+#[derive(Debug, Clone)]
+pub struct PosedVideo {
+    /// Frame files in time order.
+    pub files: Vec<PathBuf>,
+    /// The camera at full resolution (a pinhole: lens distortion, which the frames keep, is
+    /// ignored).
+    pub camera: Camera,
+    /// Per frame: the camera in world coordinates (`X_world = R X_camera + t`, x right, y down,
+    /// z forward), in the poses' arbitrary unit.
+    pub poses: Vec<Pose>,
+    /// Per frame: z-depth of the point nearest to every optical axis (the filmed object, for a
+    /// video that circles it), in the poses' unit. Gives scale-free depth a scale.
+    pub centre_depth: Vec<f32>,
+}
+
+impl PosedVideo {
+    /// Frame `to`'s camera relative to frame `from`'s: the pose at which `from`'s layers
+    /// reproduce frame `to`.
+    pub fn relative(&self, from: usize, to: usize) -> Pose {
+        let (a, b) = (&self.poses[from], &self.poses[to]);
+        let rt = a.rotation.transpose();
+        Pose {
+            rotation: rt * b.rotation,
+            translation: rt * (b.translation - a.translation),
+        }
+    }
+}
+
+/// The instant-ngp fox: 50 frames of a phone video circling a figurine, 1080x1920, with COLMAP
+/// poses (`transforms_present_frames_DERIVED.json`, camera-to-world in the OpenGL convention,
+/// converted here by flipping the camera's y and z axes).
+pub fn fox(root: &Path) -> Result<PosedVideo, DatasetError> {
+    let dir = root.join("instant_ngp_fox_video_frames");
+    let path = dir.join("transforms_present_frames_DERIVED.json");
+    let text = std::fs::read_to_string(&path).map_err(|e| IoError::io(&path, e))?;
+    let json: serde_json::Value =
+        serde_json::from_str(&text).map_err(|e| format(&path, e.to_string()))?;
+    let num = |key: &str| {
+        json[key]
+            .as_f64()
+            .ok_or_else(|| format(&path, format!("missing or bad '{key}'")))
+    };
+    let camera = Camera {
+        width: num("w")? as u32,
+        height: num("h")? as u32,
+        fx: num("fl_x")?,
+        fy: num("fl_y")?,
+        cx: num("cx")?,
+        cy: num("cy")?,
+    };
+    let frames = json["frames"]
+        .as_array()
+        .filter(|f| !f.is_empty())
+        .ok_or_else(|| format(&path, "no frames"))?;
+    let (mut files, mut poses) = (Vec::new(), Vec::new());
+    for (i, f) in frames.iter().enumerate() {
+        let bad = || {
+            format(
+                &path,
+                format!("frame {i}: bad file_path or transform_matrix"),
+            )
+        };
+        let file = f["file_path"].as_str().ok_or_else(bad)?;
+        let m: Vec<Vec<f64>> = f["transform_matrix"]
+            .as_array()
+            .ok_or_else(bad)?
+            .iter()
+            .map(|row| {
+                row.as_array()
+                    .map(|r| r.iter().filter_map(|v| v.as_f64()).collect::<Vec<f64>>())
+                    .filter(|r| r.len() == 4)
+                    .ok_or_else(bad)
+            })
+            .collect::<Result<_, _>>()?;
+        if m.len() < 3 {
+            return Err(bad());
+        }
+        // OpenGL camera axes (y up, looking down -z) to OpenCV's: negate columns 1 and 2.
+        let rotation = Mat3([
+            [m[0][0], -m[0][1], -m[0][2]],
+            [m[1][0], -m[1][1], -m[1][2]],
+            [m[2][0], -m[2][1], -m[2][2]],
+        ]);
+        let pose = Pose {
+            rotation,
+            translation: Vec3::new(m[0][3], m[1][3], m[2][3]),
+        };
+        if !pose.is_finite() {
+            return Err(bad());
+        }
+        files.push(dir.join(file));
+        poses.push(pose);
+    }
+    let centre = axes_meeting_point(
+        poses
+            .iter()
+            .map(|p| (p.translation, p.rotation * Vec3::new(0.0, 0.0, 1.0))),
+    )
+    .ok_or_else(|| format(&path, "optical axes are parallel: no scene centre"))?;
+    let centre_depth = poses
+        .iter()
+        .map(|p| p.ref_to_view(centre).z() as f32)
+        .collect();
+    Ok(PosedVideo {
+        files,
+        camera,
+        poses,
+        centre_depth,
+    })
+}
+
+/// The point nearest to every optical axis, given as (camera centre, viewing direction)
+/// pairs in world coordinates: the solution of `sum (I - a a^T) X = sum (I - a a^T) C`.
+/// `None` when the axes are parallel.
+fn axes_meeting_point(axes: impl Iterator<Item = (Vec3, Vec3)>) -> Option<Vec3> {
+    let mut m = Mat3([[0.0; 3]; 3]);
+    let mut b = Vec3::ZERO;
+    for (c, a) in axes {
+        let a = a.normalized();
+        let p = Mat3::IDENTITY.add(&Mat3::outer(a, a).scale(-1.0));
+        m = m.add(&p);
+        b = b + p * c;
+    }
+    m.inverse().map(|mi| mi * b)
+}
+
 /// The temple ring: reference `templeSR0001`, targets its ring neighbours `templeSR0002` and
 /// `templeSR0010` (22.7 degrees either side). No depth; the optical axes' meeting point gives
 /// the scene centre's depth.
@@ -342,20 +469,13 @@ fn temple(root: &Path, scene: &str, name: &str) -> Result<Dataset, DatasetError>
             .find(|v| v.0 == n)
             .ok_or_else(|| format(&par, format!("no view {n}")))
     };
-    // The point nearest to every optical axis: sum (I - a a^T) X = sum (I - a a^T) C.
-    let mut m = Mat3([[0.0; 3]; 3]);
-    let mut b = Vec3::ZERO;
-    for (_, _, r, t) in &views {
-        let c = -(r.transpose() * *t);
-        let a = r.transpose() * Vec3::new(0.0, 0.0, 1.0);
-        let p = Mat3::IDENTITY.add(&Mat3::outer(a, a).scale(-1.0));
-        m = m.add(&p);
-        b = b + p * c;
-    }
-    let centre = m
-        .inverse()
-        .map(|mi| mi * b)
-        .ok_or_else(|| format(&par, "optical axes are parallel: no scene centre"))?;
+    let centre = axes_meeting_point(views.iter().map(|(_, _, r, t)| {
+        (
+            -(r.transpose() * *t),
+            r.transpose() * Vec3::new(0.0, 0.0, 1.0),
+        )
+    }))
+    .ok_or_else(|| format(&par, "optical axes are parallel: no scene centre"))?;
     let camera_of = |k: (f64, f64, f64, f64), w: u32, h: u32| Camera {
         width: w,
         height: h,

@@ -24,7 +24,8 @@ pub enum Clip {
     /// HCI backgammon, the centre row of the 9x9 grid as a camera sweep (ground-truth depth
     /// warped to each view; the row above as novel views).
     HciRow,
-    /// The fox handheld phone video (50 frames, a quarter of full size, FastDepth).
+    /// The fox handheld phone video (50 frames, a quarter of full size, FastDepth scaled by the
+    /// poses; each frame rendered at the next frame's camera and scored against it).
     Fox,
     /// KITTI odometry 06 colour frames 12, 13, 14, 17 (FastDepth).
     Kitti,
@@ -211,15 +212,14 @@ fn hci_row(data: &Path) -> Result<ClipData> {
     })
 }
 
-fn estimated(
-    name: &'static str,
-    files: Vec<PathBuf>,
-    camera: Camera,
-    scale: usize,
-) -> Result<ClipData> {
+/// Frames (RGB), their depth maps and the depth's source.
+type Estimated = (Vec<Vec<u8>>, Vec<Vec<f32>>, String);
+
+/// The frames of `files` downscaled by `scale` and their FastDepth depth.
+fn estimate_frames(files: &[PathBuf], camera: Camera, scale: usize) -> Result<Estimated> {
     let mut model = fastdepth()?;
     let (mut frames, mut depth) = (vec![], vec![]);
-    for f in &files {
+    for f in files {
         let img = cpsl_io::images::read_rgb8(f, &Limits::default())
             .with_context(|| format!("reading {}", f.display()))?;
         let (rgb, _, _) = crate::util::downscale_rgb(
@@ -232,10 +232,19 @@ fn estimated(
         frames.push(rgb);
         depth.push(z);
     }
-    let mut sorted: Vec<f32> = depth[0].iter().copied().filter(|z| z.is_finite()).collect();
-    sorted.sort_by(f32::total_cmp);
-    let median = sorted.get(sorted.len() / 2).copied().unwrap_or(1.0) as f64;
-    // A lateral step of 3 % of the median depth.
+    Ok((frames, depth, model.name()))
+}
+
+/// A clip without truth at a novel view: a lateral step of 3 % of the first frame's median
+/// depth, scored against the input.
+fn estimated(
+    name: &'static str,
+    files: Vec<PathBuf>,
+    camera: Camera,
+    scale: usize,
+) -> Result<ClipData> {
+    let (frames, depth, depth_name) = estimate_frames(&files, camera, scale)?;
+    let median = cpsl_eval::datasets::median(&depth[0]).unwrap_or(1.0) as f64;
     let pose = Pose::from_translation(Vec3::new(0.03 * median, 0.0, 0.0));
     Ok(ClipData {
         name,
@@ -243,30 +252,91 @@ fn estimated(
         novel: vec![(pose, camera); frames.len()],
         frames,
         depth,
-        depth_name: model.name(),
+        depth_name,
         truth: None,
         motion: None,
     })
 }
 
-fn fox(data: &Path) -> Result<ClipData> {
-    let dir = data.join("instant_ngp_fox_video_frames/images");
-    let mut files: Vec<PathBuf> = std::fs::read_dir(&dir)
-        .with_context(|| format!("reading {}", dir.display()))?
-        .filter_map(|e| e.ok().map(|e| e.path()))
-        .filter(|p| p.extension().is_some_and(|e| e == "jpg"))
-        .collect();
-    files.sort();
-    let s = 4.0;
+/// The fox downscaled by `scale`: frames, FastDepth depth with one scale for the clip (the
+/// median over the frames of the poses' scene-centre depth over the estimate's median, so
+/// that depth is in the poses' unit; missing values filled) and the poses.
+pub(crate) struct Fox {
+    pub video: cpsl_eval::datasets::PosedVideo,
+    pub camera: Camera,
+    pub frames: Vec<Vec<u8>>,
+    pub depth: Vec<Vec<f32>>,
+    pub depth_name: String,
+}
+
+pub(crate) fn load_fox(data: &Path, scale: u32) -> Result<Fox> {
+    let video = cpsl_eval::datasets::fox(data)?;
+    let full = video.camera;
+    let s = scale as f64;
     let camera = Camera {
-        width: 1080 / 4,
-        height: 1920 / 4,
-        fx: 1375.52 / s,
-        fy: 1374.49 / s,
-        cx: 554.558 / s,
-        cy: 965.268 / s,
+        width: full.width / scale,
+        height: full.height / scale,
+        fx: full.fx / s,
+        fy: full.fy / s,
+        cx: (full.cx + 0.5) / s - 0.5,
+        cy: (full.cy + 0.5) / s - 0.5,
     };
-    estimated("fox", files, camera, 4)
+    let (frames, mut depth, name) = estimate_frames(&video.files, camera, scale as usize)?;
+    let ratios: Vec<f32> = depth
+        .iter()
+        .zip(&video.centre_depth)
+        .filter_map(|(z, c)| cpsl_eval::datasets::median(z).map(|m| c / m))
+        .collect();
+    let k = cpsl_eval::datasets::median(&ratios).context("fox: no depth to scale")?;
+    let (w, h) = (camera.width as usize, camera.height as usize);
+    for z in &mut depth {
+        // Pixels the model gave no positive depth get one from their neighbours (in inverse
+        // depth, as the layering does), so that every method sees the same depth.
+        let known: Vec<f32> = z.iter().map(|v| v.is_finite() as u8 as f32).collect();
+        let mut inv: Vec<f32> = z
+            .iter()
+            .map(|v| if v.is_finite() { 1.0 / (v * k) } else { 0.0 })
+            .collect();
+        anyhow::ensure!(
+            cpsl_layering::fill::push_pull(&mut inv, &known, w, h, 1),
+            "fox: a frame without depth"
+        );
+        z.iter_mut().zip(&inv).for_each(|(v, i)| *v = 1.0 / i);
+    }
+    Ok(Fox {
+        video,
+        camera,
+        frames,
+        depth,
+        depth_name: format!("{name}, pose-scaled x{k:.3}"),
+    })
+}
+
+/// The fox at a quarter of full size. Its poses give every frame a real novel view: frame t is
+/// rendered at frame t+1's camera (the last frame at frame t-1's) and scored against that
+/// frame.
+fn fox(data: &Path) -> Result<ClipData> {
+    let f = load_fox(data, 4)?;
+    let n = f.frames.len();
+    let target = |t: usize| {
+        if t + 1 < n {
+            t + 1
+        } else {
+            t.saturating_sub(1)
+        }
+    };
+    Ok(ClipData {
+        name: "fox",
+        camera: f.camera,
+        novel: (0..n)
+            .map(|t| (f.video.relative(t, target(t)), f.camera))
+            .collect(),
+        truth: Some((0..n).map(|t| f.frames[target(t)].clone()).collect()),
+        frames: f.frames,
+        depth: f.depth,
+        depth_name: f.depth_name,
+        motion: None,
+    })
 }
 
 fn kitti(data: &Path) -> Result<ClipData> {

@@ -1,7 +1,8 @@
 //! `cpsl eval-rd`: rate-distortion curves of coded CPSL against two baselines coded with the
-//! same codec, on a synthetic moving clip with ray-cast ground truth (paper §4.2-4.3):
+//! same codec (paper §4.2-4.3), on a synthetic moving clip with ray-cast ground truth, or on
+//! the fox video, whose poses make its neighbouring frames the truth at novel views:
 //!
-//! * **CPSL**: the video layered with I/P propagation (exact depth on I-frames), coded as a
+//! * **CPSL**: the video layered with I/P propagation (the clip's depth on I-frames), coded as a
 //!   package under a total budget (per-layer allocation), decoded and rendered with the
 //!   Dynamic Pixel Strip.
 //! * **DIBR streaming**: colour over 8-bit quantised inverse depth in one stream per frame,
@@ -15,27 +16,44 @@
 use crate::encode::{parse_bitrate, CodecArg};
 use crate::progress::Bars;
 use anyhow::{Context, Result};
-use clap::Args;
+use clap::{Args, ValueEnum};
 use cpsl_codec::{CodingOptions, PackageWriter, RateControl, SegmentFrame};
 use cpsl_core::{Camera, Edc, Layer, LayerSet, Limits, Pose, PremulImage, Progress, ProgressEvent};
 use cpsl_eval::baselines::dibr;
-use cpsl_eval::metrics::psnr;
+use cpsl_eval::metrics::{psnr, psnr_masked};
 use cpsl_package::{Codec, Package, RefreshReason};
 use cpsl_render::PreparedLayers;
 use cpsl_video::{GopConfig, VideoLayerer};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 
+/// The clips.
+#[derive(ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum RdClip {
+    /// The built-in scene moving, ray cast with exact depth; novel views at tx = +-0.12.
+    Synthetic,
+    /// The fox phone video at half size (540x960, up to 50 frames), FastDepth scaled by the
+    /// poses; a scored frame is rendered at each neighbouring frame's camera that is 2 to 30
+    /// degrees away and scored against that frame.
+    Fox,
+}
+
 /// Arguments of `cpsl eval-rd`.
 #[derive(Args)]
 pub struct EvalRdArgs {
-    /// Width of the clip.
+    /// Clip.
+    #[arg(long, value_enum, default_value_t = RdClip::Synthetic)]
+    pub clip: RdClip,
+    /// Folder holding the datasets (for the fox).
+    #[arg(long, default_value = "../shared/data")]
+    pub data: PathBuf,
+    /// Width of the synthetic clip.
     #[arg(long, default_value_t = 1920)]
     pub width: u32,
-    /// Height of the clip.
+    /// Height of the synthetic clip.
     #[arg(long, default_value_t = 1080)]
     pub height: u32,
-    /// Frames of the clip (30 per second; one GOP of 30 frames by default).
+    /// Frames of the clip (30 per second; one GOP of 30 frames by default; the fox has 50).
     #[arg(long, default_value_t = 30, value_parser = clap::value_parser!(u32).range(2..=300))]
     pub frames: u32,
     /// Number of CPSL layers K.
@@ -140,15 +158,26 @@ struct Summary {
     proxy_lpips_spearman: Option<f64>,
 }
 
-/// The ray-cast clip: frames with exact depth, and the truth at the novel viewpoints of the
-/// scored frames.
+/// A clip: frames with depth, and the truth at the novel viewpoints of the scored frames.
 struct Clip {
+    /// What the clip is and where its views are, for the report.
+    description: String,
     camera: Camera,
     rgb: Vec<Vec<u8>>,
     depth: Vec<Vec<f32>>,
-    poses: Vec<Pose>,
-    /// `(frame, pose index, truth)`.
-    truth: Vec<(usize, usize, Vec<u8>)>,
+    views: Vec<View>,
+}
+
+/// A scored novel view.
+struct View {
+    /// The frame rendered.
+    frame: usize,
+    /// The viewpoint, relative to that frame's camera.
+    pose: Pose,
+    /// The true image there (black outside `scored`).
+    truth: Vec<u8>,
+    /// The pixels scored, where not all: those of the truth that the frame sees.
+    scored: Option<Vec<bool>>,
 }
 
 fn ray_cast(a: &EvalRdArgs, bars: &Bars) -> Clip {
@@ -164,15 +193,20 @@ fn ray_cast(a: &EvalRdArgs, bars: &Bars) -> Clip {
         stage,
         total: Some(n as u64),
     });
-    let (mut rgb, mut depth, mut truth) = (vec![], vec![], vec![]);
+    let (mut rgb, mut depth, mut views) = (vec![], vec![], vec![]);
     for i in 0..n {
         let time = i as f64 / FPS;
         let v = scene.render(&cam, &Pose::IDENTITY, time, 2);
         rgb.push(v.rgb);
         depth.push(v.depth);
         if i % a.score_every as usize == 0 {
-            for (p, pose) in poses.iter().enumerate() {
-                truth.push((i, p, scene.render(&cam, pose, time, 2).rgb));
+            for pose in &poses {
+                views.push(View {
+                    frame: i,
+                    pose: *pose,
+                    truth: scene.render(&cam, pose, time, 2).rgb,
+                    scored: None,
+                });
             }
         }
         bars.event(ProgressEvent::Advance {
@@ -182,11 +216,101 @@ fn ray_cast(a: &EvalRdArgs, bars: &Bars) -> Clip {
     }
     bars.event(ProgressEvent::Finish { stage });
     Clip {
+        description: format!(
+            "synthetic {}x{} clip (exact depth), {n} frames at {FPS} fps; novel views at tx +-{} every {} frames",
+            a.width, a.height, NOVEL[0][0], a.score_every
+        ),
         camera: cam,
         rgb,
         depth,
-        poses,
-        truth,
+        views,
+    }
+}
+
+/// Rotation angle of a pose in degrees.
+fn rotation_deg(p: &Pose) -> f64 {
+    let r = &p.rotation.0;
+    ((r[0][0] + r[1][1] + r[2][2] - 1.0) / 2.0)
+        .clamp(-1.0, 1.0)
+        .acos()
+        .to_degrees()
+}
+
+/// The fox at half size: every `score_every`-th frame is rendered at the cameras of its
+/// neighbouring frames that are 2 to 30 degrees away (the data's README: pairs closer than
+/// that barely move, farther ones mostly leave the frame) and scored against them.
+fn fox_clip(a: &EvalRdArgs) -> Result<Clip> {
+    let mut f = crate::eval_video::load_fox(&a.data, 2)?;
+    let n = f.frames.len().min(a.frames as usize);
+    f.frames.truncate(n);
+    f.depth.truncate(n);
+    let mut views = Vec::new();
+    for i in (0..n).step_by(a.score_every as usize) {
+        for j in [i.wrapping_sub(1), i + 1] {
+            if j < n {
+                let pose = f.video.relative(i, j);
+                if (2.0..=30.0).contains(&rotation_deg(&pose)) {
+                    let scored = seen_from(&f.depth[j], &f.camera, &pose);
+                    let mut t = f.frames[j].clone();
+                    blacken(&mut t, &scored);
+                    views.push(View {
+                        frame: i,
+                        pose,
+                        truth: t,
+                        scored: Some(scored),
+                    });
+                }
+            }
+        }
+    }
+    anyhow::ensure!(
+        !views.is_empty(),
+        "fox: no scored view (lower --score-every)"
+    );
+    Ok(Clip {
+        description: format!(
+            "fox {}x{}, {n} frames at {FPS} fps, {}; {} novel views (the neighbouring frames 2 to 30 degrees away of every {}-th frame, scored where the frame sees them)",
+            f.camera.width,
+            f.camera.height,
+            f.depth_name,
+            views.len(),
+            a.score_every
+        ),
+        camera: f.camera,
+        rgb: f.frames,
+        depth: f.depth,
+        views,
+    })
+}
+
+/// The pixels of a view, with depth `depth` and at `pose` relative to a frame with the same
+/// camera, whose scene point the frame sees (in its image, in front of it). Only these can be
+/// scored against the view: the rest is outside what the frame holds, and each method would
+/// be scored on how it fills it.
+fn seen_from(depth: &[f32], cam: &Camera, pose: &Pose) -> Vec<bool> {
+    let (w, h) = (cam.width as usize, cam.height as usize);
+    (0..w * h)
+        .map(|p| {
+            let z = depth[p] as f64;
+            if !(z.is_finite() && z > 0.0) {
+                return false;
+            }
+            let (u, v) = ((p % w) as f64, (p / w) as f64);
+            let x = cpsl_core::Vec3::new((u - cam.cx) / cam.fx * z, (v - cam.cy) / cam.fy * z, z);
+            let [x, y, z] = (pose.rotation * x + pose.translation).0;
+            if z <= 0.0 {
+                return false;
+            }
+            let (u, v) = (cam.fx * x / z + cam.cx, cam.fy * y / z + cam.cy);
+            (-0.5..w as f64 - 0.5).contains(&u) && (-0.5..h as f64 - 0.5).contains(&v)
+        })
+        .collect()
+}
+
+/// Sets the RGB pixels outside `keep` to black.
+fn blacken(rgb: &mut [u8], keep: &[bool]) {
+    for (px, _) in rgb.chunks_exact_mut(3).zip(keep).filter(|(_, k)| !**k) {
+        px.fill(0);
     }
 }
 
@@ -198,14 +322,20 @@ fn score(
 ) -> Result<(f64, Option<f64>)> {
     let (w, h) = (clip.camera.width, clip.camera.height);
     let (mut p, mut l) = (0.0, 0.0);
-    for (f, pi, truth) in &clip.truth {
-        let img = render(*f, &clip.poses[*pi])?;
-        p += psnr(&img, truth);
+    for v in &clip.views {
+        let mut img = render(v.frame, &v.pose)?;
+        p += match &v.scored {
+            Some(s) => {
+                blacken(&mut img, s);
+                psnr_masked(&img, &v.truth, s).context("a view with no pixel to score")?
+            }
+            None => psnr(&img, &v.truth),
+        };
         if let Some(m) = lpips {
-            l += m.distance(&img, truth, w, h)? as f64;
+            l += m.distance(&img, &v.truth, w, h)? as f64;
         }
     }
-    let n = clip.truth.len() as f64;
+    let n = clip.views.len() as f64;
     Ok((p / n, lpips.as_ref().map(|_| l / n)))
 }
 
@@ -260,16 +390,28 @@ fn cpsl_layers(clip: &Clip, a: &EvalRdArgs, bars: &Bars) -> Result<Segments> {
     Ok(segments)
 }
 
-/// Inverse-depth range of the clip (`1/far`, `1/near`).
+/// Inverse-depth range of the clip (`1/far`, `1/near`): its 0.1% and 99.9% quantiles, so that
+/// a few stray values of an estimated depth map (the fox's FastDepth) do not stretch the
+/// range that the MPI's planes and DIBR's 8-bit depth spread over; values outside it are
+/// clamped to its ends.
 fn inverse_range(clip: &Clip) -> (f64, f64) {
-    let (mut lo, mut hi) = (f64::INFINITY, 0.0f64);
-    for d in clip.depth.iter().flatten() {
-        if d.is_finite() && *d > 0.0 {
-            let v = 1.0 / *d as f64;
-            lo = lo.min(v);
-            hi = hi.max(v);
-        }
+    let mut v: Vec<f64> = clip
+        .depth
+        .iter()
+        .flatten()
+        .step_by(16)
+        .filter(|d| d.is_finite() && **d > 0.0)
+        .map(|d| 1.0 / *d as f64)
+        .collect();
+    if v.is_empty() {
+        return (1.0, 1.0 + 1e-6);
     }
+    let q = |v: &mut Vec<f64>, t: f64| {
+        let i = ((v.len() - 1) as f64 * t).round() as usize;
+        *v.select_nth_unstable_by(i, f64::total_cmp).1
+    };
+    let lo = q(&mut v, 0.001);
+    let hi = q(&mut v, 0.999);
     (lo, hi.max(lo * (1.0 + 1e-6)))
 }
 
@@ -288,7 +430,8 @@ fn mpi_layers(clip: &Clip, planes: usize, gop: usize) -> Result<Segments> {
             if !(d.is_finite() && d > 0.0) {
                 continue;
             }
-            // Plane 0 is the nearest (largest inverse depth).
+            // Plane 0 is the nearest (largest inverse depth); the cast saturates, so depths
+            // outside the range land in the end planes.
             let k = (((hi - 1.0 / d as f64) / step) as usize).min(planes - 1);
             data[k][p * 4..p * 4 + 3].copy_from_slice(&rgb[p * 3..p * 3 + 3]);
             data[k][p * 4 + 3] = 255;
@@ -469,7 +612,10 @@ pub fn run(a: EvalRdArgs) -> Result<()> {
                 .context("LPIPS (scripts/setup-models.sh, or --no-lpips)")?,
         )
     };
-    let clip = ray_cast(&a, &bars);
+    let clip = match a.clip {
+        RdClip::Synthetic => ray_cast(&a, &bars),
+        RdClip::Fox => fox_clip(&a)?,
+    };
     let wanted: Vec<usize> = (0..clip.rgb.len())
         .step_by(a.score_every as usize)
         .collect();
@@ -608,13 +754,17 @@ pub fn run(a: EvalRdArgs) -> Result<()> {
     curves.push(mpi);
 
     let summary = summarise(&curves);
-    print_tables(&a, codec, &curves, &summary);
+    print_tables(&clip.description, codec, &curves, &summary);
     if let Some(path) = &a.json {
         crate::util::write_json(
             path,
             &serde_json::json!({
-                "clip": {"width": a.width, "height": a.height, "frames": a.frames, "fps": FPS,
-                         "scored_frames": wanted, "novel_viewpoints": NOVEL},
+                "clip": {"description": clip.description, "width": clip.camera.width,
+                         "height": clip.camera.height, "frames": clip.rgb.len(), "fps": FPS,
+                         "scored_frames": wanted,
+                         "novel_viewpoints": clip.views.iter().map(|v| {
+                             (v.frame, v.pose.translation.0, rotation_deg(&v.pose))
+                         }).collect::<Vec<_>>()},
                 "codec": codec.name(),
                 "layers": a.layers,
                 "mpi_planes": a.mpi_planes,
@@ -674,11 +824,8 @@ fn summarise(curves: &[Curve]) -> Summary {
     }
 }
 
-fn print_tables(a: &EvalRdArgs, codec: Codec, curves: &[Curve], s: &Summary) {
-    println!(
-        "rate-distortion, synthetic {}x{} clip, {} frames at {FPS} fps, {}; novel views at tx +-{} every {} frames",
-        a.width, a.height, a.frames, codec.name(), NOVEL[0][0], a.score_every
-    );
+fn print_tables(clip: &str, codec: Codec, curves: &[Curve], s: &Summary) {
+    println!("rate-distortion, {}, {clip}", codec.name());
     println!("| method | setting | kbit/s | PSNR (dB) | LPIPS | proxy |");
     println!("|---|---|---|---|---|---|");
     let opt = |v: Option<f64>, d: usize| v.map_or("-".into(), |v| format!("{v:.d$}"));

@@ -295,14 +295,10 @@ fn seen_from(depth: &[f32], cam: &Camera, pose: &Pose) -> Vec<bool> {
             if !(z.is_finite() && z > 0.0) {
                 return false;
             }
-            let (u, v) = ((p % w) as f64, (p / w) as f64);
-            let x = cpsl_core::Vec3::new((u - cam.cx) / cam.fx * z, (v - cam.cy) / cam.fy * z, z);
-            let [x, y, z] = (pose.rotation * x + pose.translation).0;
-            if z <= 0.0 {
-                return false;
-            }
-            let (u, v) = (cam.fx * x / z + cam.cx, cam.fy * y / z + cam.cy);
-            (-0.5..w as f64 - 0.5).contains(&u) && (-0.5..h as f64 - 0.5).contains(&v)
+            let x = cam.unproject((p % w) as f64, (p / w) as f64, z);
+            cam.project(pose.view_to_ref(x)).is_some_and(|(u, v)| {
+                (-0.5..w as f64 - 0.5).contains(&u) && (-0.5..h as f64 - 0.5).contains(&v)
+            })
         })
         .collect()
 }

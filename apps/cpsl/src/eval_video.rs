@@ -271,16 +271,7 @@ pub(crate) struct Fox {
 
 pub(crate) fn load_fox(data: &Path, scale: u32) -> Result<Fox> {
     let video = cpsl_eval::datasets::fox(data)?;
-    let full = video.camera;
-    let s = scale as f64;
-    let camera = Camera {
-        width: full.width / scale,
-        height: full.height / scale,
-        fx: full.fx / s,
-        fy: full.fy / s,
-        cx: (full.cx + 0.5) / s - 0.5,
-        cy: (full.cy + 0.5) / s - 0.5,
-    };
+    let camera = video.camera.scaled(1.0 / scale as f64);
     let (frames, mut depth, name) = estimate_frames(&video.files, camera, scale as usize)?;
     let ratios: Vec<f32> = depth
         .iter()

@@ -11,20 +11,26 @@ use cpsl_layering::{slice_by_depth, SliceConfig};
 use cpsl_render::PreparedLayers;
 use std::path::PathBuf;
 
-fn psnr(prepared: &PreparedLayers, t: &Target, pose: &Pose, cam: &Camera) -> f64 {
+/// Renders `prepared` at `pose`: the image over black and the pixels it fully covers.
+fn render_covered(prepared: &PreparedLayers, pose: &Pose, cam: &Camera) -> (Vec<u8>, Vec<bool>) {
     let mut img = PremulImage::new(cam.width, cam.height);
     prepared.render_into(pose, cam, &mut img);
-    let covered: Vec<bool> = img
+    let covered = img
         .as_bytes()
         .chunks_exact(4)
         .map(|p| p[3] == 255)
         .collect();
+    (img.over_background([0, 0, 0]), covered)
+}
+
+fn psnr(prepared: &PreparedLayers, t: &Target, pose: &Pose, cam: &Camera) -> f64 {
+    let (img, covered) = render_covered(prepared, pose, cam);
     assert!(
         covered.iter().filter(|&&c| c).count() as f64 > 0.85 * covered.len() as f64,
         "{}: render covers too little",
         t.name
     );
-    psnr_masked(&img.over_background([0, 0, 0]), &t.rgb, &covered).unwrap()
+    psnr_masked(&img, &t.rgb, &covered).unwrap()
 }
 
 fn layers(ds: &Dataset, k: usize) -> PreparedLayers {
@@ -134,15 +140,7 @@ fn fox_poses_carry_one_frame_onto_the_next() {
     assert_eq!(video.files.len(), 50);
     assert!(video.centre_depth.iter().all(|&z| z > 0.0));
     let s = 4;
-    let full = video.camera;
-    let cam = Camera {
-        width: full.width / s,
-        height: full.height / s,
-        fx: full.fx / s as f64,
-        fy: full.fy / s as f64,
-        cx: (full.cx + 0.5) / s as f64 - 0.5,
-        cy: (full.cy + 0.5) / s as f64 - 0.5,
-    };
+    let cam = video.camera.scaled(1.0 / s as f64);
     let frame = |i: usize| {
         let img =
             cpsl_io::images::read_rgb8(&video.files[i], &cpsl_core::Limits::default()).unwrap();
@@ -164,14 +162,8 @@ fn fox_poses_carry_one_frame_onto_the_next() {
         };
         let plane = PreparedLayers::new(&slice_by_depth(&src, &z, cam, &config).unwrap());
         let score = |pose: &Pose| {
-            let mut img = PremulImage::new(cam.width, cam.height);
-            plane.render_into(pose, &cam, &mut img);
-            let covered: Vec<bool> = img
-                .as_bytes()
-                .chunks_exact(4)
-                .map(|p| p[3] == 255)
-                .collect();
-            psnr_masked(&img.over_background([0, 0, 0]), &dst, &covered).unwrap()
+            let (img, covered) = render_covered(&plane, pose, &cam);
+            psnr_masked(&img, &dst, &covered).unwrap()
         };
         let pose = video.relative(a, b);
         let (good, still, inverse) = (score(&pose), score(&Pose::IDENTITY), score(&pose.inverse()));

@@ -146,7 +146,7 @@ class Player {
         if (side.length !== seg.frames)
             throw new Error(`segment ${i}: side stream has ${side.length} frames, the manifest ${seg.frames}`);
         const decoder = await SegmentDecoder.open(bufs.slice(0, -1), seg.frames);
-        return { index: i, variant: v, decoder, side };
+        return { index: i, variant: v, decoder, side, scales: seg.streams.map((s) => s.scale ?? 1) };
     }
     /** Adaptive choice: the best variant whose bitrate fits 70 % of the measured throughput. */
     chooseVariant() {
@@ -200,7 +200,7 @@ class Player {
         const seg = await this.segmentFor(frame);
         const local = frame - this.manifest.segments[i].start;
         const pictures = await seg.decoder.frame(local);
-        await this.renderer.upload(pictures, seg.side[local]);
+        await this.renderer.upload(pictures, seg.side[local], seg.scales);
         this.shownFrame = frame;
         this.frame = frame;
         this.shown++;

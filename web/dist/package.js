@@ -3,12 +3,16 @@
 export function checkManifest(m) {
     if (m.format !== "cpsl-package")
         throw new Error(`not a cpsl package (format '${m.format}')`);
-    if (!(m.version >= 1 && m.version <= 1))
-        throw new Error(`package version ${m.version}: this player reads version 1`);
+    if (!(m.version >= 1 && m.version <= 2))
+        throw new Error(`package version ${m.version}: this player reads versions 1 and 2`);
     if (m.layout?.kind !== "colour-over-alpha")
         throw new Error(`layout '${m.layout?.kind}' is not supported`);
     if (!m.segments?.length)
         throw new Error("the package has no segments");
+    for (const s of m.segments)
+        for (const t of s.streams)
+            if (![1, 2, 4].includes(t.scale ?? 1))
+                throw new Error(`stream ${t.file.path}: scale ${t.scale} is not 1, 2 or 4`);
     return m;
 }
 /** Bits per second of a segment's files. */

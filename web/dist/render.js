@@ -24,14 +24,14 @@ uniform ivec2 uSize;      // layer (frame) size
 uniform int uHalf;        // coded height of one half: alpha rows start here
 uniform mat3 uH[${MAX_LAYERS}];
 uniform int uStream[${MAX_LAYERS}];
+uniform int uScale[${MAX_LAYERS}];  // downscale factor of layer k's stream
 uniform int uLayers;
 
 float q8(float v) { return clamp(floor(v + 0.5), 0.0, 255.0); }
 
-vec4 texel(int k, ivec2 t) {
-  if (t.x < 0 || t.y < 0 || t.x >= uSize.x || t.y >= uSize.y) return vec4(0.0);
-  int s = uStream[k];
-  float ya = texelFetch(uY, ivec3(t.x, t.y + uHalf, s), 0).r * 255.0;
+// One texel of stream s (its colour half is rows high), as cpsl-codec unstack does.
+vec4 coded(int s, ivec2 t, int rows) {
+  float ya = texelFetch(uY, ivec3(t.x, t.y + rows, s), 0).r * 255.0;
   float a = q8((ya - 16.0) * 255.0 / 219.0);
   if (a == 0.0) return vec4(0.0);
   float luma = (texelFetch(uY, ivec3(t, s), 0).r * 255.0 - 16.0) / 219.0;
@@ -43,6 +43,24 @@ vec4 texel(int k, ivec2 t) {
   float b = luma + 2.0 * (1.0 - KB) * cb;
   float g = (luma - KR * r - KB * b) / KG;
   return vec4(min(vec3(q8(r * 255.0), q8(g * 255.0), q8(b * 255.0)), vec3(a)), a);
+}
+
+// Layer k's texel at frame pixel t. A stream coded at downscale f is upsampled bilinearly
+// as cpsl-codec's scale::upscale does: pixel x reads (x + 0.5) / f - 0.5, clamped.
+vec4 texel(int k, ivec2 t) {
+  if (t.x < 0 || t.y < 0 || t.x >= uSize.x || t.y >= uSize.y) return vec4(0.0);
+  int s = uStream[k];
+  int f = uScale[k];
+  if (f == 1) return coded(s, t, uHalf);
+  ivec2 size = (uSize + f - 1) / f;
+  int rows = size.y + (size.y & 1);
+  vec2 u = max((vec2(t) + 0.5) / float(f) - 0.5, vec2(0.0));
+  vec2 w = u - floor(u);
+  ivec2 a = min(ivec2(floor(u)), size - 1);
+  ivec2 b = min(a + 1, size - 1);
+  vec4 v = mix(mix(coded(s, a, rows), coded(s, ivec2(b.x, a.y), rows), w.x),
+               mix(coded(s, ivec2(a.x, b.y), rows), coded(s, b, rows), w.x), w.y);
+  return floor(v + 0.5);
 }
 
 // Target pixel -> source position of layer k; false where the plane is not visible.
@@ -217,6 +235,7 @@ export class Renderer {
     targets;
     scratch = new Uint8Array(0);
     frame = null;
+    scales = [];
     /** Strip half-width of the last render. */
     stripWidth = 0;
     /** Whether the Dynamic Pixel Strip runs. */
@@ -268,14 +287,16 @@ export class Renderer {
         });
         this.streams = streams;
     }
-    /** Uploads the decoded pictures of one frame (`frames[k]` is stream k) and its side data. */
-    async upload(frames, side) {
+    /** Uploads the decoded pictures of one frame (`frames[k]` is stream k, coded at downscale
+     * `scales[k]`) and its side data. */
+    async upload(frames, side, scales) {
         const gl = this.gl;
-        const w = frames[0].visibleRect?.width ?? frames[0].codedWidth;
-        const h = frames[0].visibleRect?.height ?? frames[0].codedHeight;
-        this.ensurePlanes(frames.length, w, h);
+        // The planes hold full-size pictures; a downscaled stream fills their top-left corner.
+        this.ensurePlanes(frames.length, this.camera.width + (this.camera.width & 1), 2 * this.half);
         gl.pixelStorei(gl.UNPACK_ALIGNMENT, 1);
         for (const [s, f] of frames.entries()) {
+            const w = f.visibleRect?.width ?? f.codedWidth;
+            const h = f.visibleRect?.height ?? f.codedHeight;
             // Software decoders give I420; hardware ones may give NV12 (chroma interleaved).
             if (f.format !== "I420" && f.format !== "I420A" && f.format !== "NV12")
                 throw new Error(`unsupported picture format ${f.format}`);
@@ -318,6 +339,7 @@ export class Renderer {
         gl.bindTexture(gl.TEXTURE_2D, this.offsets);
         gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, MAX_LAYERS, MAX_LAYERS, gl.RG, gl.FLOAT, off);
         this.frame = side;
+        this.scales = scales;
     }
     bindLayers(p, pose) {
         const gl = this.gl;
@@ -325,6 +347,7 @@ export class Renderer {
         const cam = this.camera;
         const hs = new Float32Array(MAX_LAYERS * 9);
         const streams = new Int32Array(MAX_LAYERS);
+        const scales = new Int32Array(MAX_LAYERS);
         let n = 0;
         for (const l of side.layers.slice(0, MAX_LAYERS)) {
             const h = planeInverse(cam, cam, pose, l.depth);
@@ -339,12 +362,14 @@ export class Renderer {
                 for (let r = 0; r < 3; r++)
                     hs[n * 9 + c * 3 + r] = m[r][c];
             streams[n] = l.stream;
+            scales[n] = this.scales[l.stream] ?? 1;
             n++;
         }
         gl.useProgram(p);
         const u = (name) => gl.getUniformLocation(p, name);
         gl.uniformMatrix3fv(u("uH"), false, hs);
         gl.uniform1iv(u("uStream"), streams);
+        gl.uniform1iv(u("uScale"), scales);
         gl.uniform1i(u("uLayers"), n);
         gl.uniform2i(u("uSize"), cam.width, cam.height);
         gl.uniform1i(u("uHalf"), this.half);

@@ -12,6 +12,8 @@ export interface StreamEntry {
   file: FileEntry;
   track?: number;
   bitrate: number;
+  /** Downscale factor the stream was coded at (1, 2 or 4; absent: 1). */
+  scale?: number;
 }
 
 export interface Segment {
@@ -37,9 +39,11 @@ export interface Manifest {
 /** Checks what the player relies on; throws a readable error otherwise. */
 export function checkManifest(m: Manifest): Manifest {
   if (m.format !== "cpsl-package") throw new Error(`not a cpsl package (format '${m.format}')`);
-  if (!(m.version >= 1 && m.version <= 1)) throw new Error(`package version ${m.version}: this player reads version 1`);
+  if (!(m.version >= 1 && m.version <= 2)) throw new Error(`package version ${m.version}: this player reads versions 1 and 2`);
   if (m.layout?.kind !== "colour-over-alpha") throw new Error(`layout '${m.layout?.kind}' is not supported`);
   if (!m.segments?.length) throw new Error("the package has no segments");
+  for (const s of m.segments)
+    for (const t of s.streams) if (![1, 2, 4].includes(t.scale ?? 1)) throw new Error(`stream ${t.file.path}: scale ${t.scale} is not 1, 2 or 4`);
   return m;
 }
 

@@ -203,7 +203,7 @@ pub fn run(a: EncodeArgs) -> Result<()> {
                 })?;
                 if !r.feasible {
                     tracing::warn!(
-                        "segment at frame {}: the budget is below what the lowest quality needs ({:.0} bits spent of {:.0})",
+                        "segment at frame {}: the budget is below what the cheapest coding (lowest quality, smallest size) needs ({:.0} bits spent of {:.0})",
                         pending[0].index,
                         r.bits,
                         r.budget_bits.unwrap_or(0.0)
@@ -378,13 +378,16 @@ pub fn info(a: PackageArgs) -> Result<()> {
             None => " (constant quality)".into(),
         }
     );
-    println!("  segment  frames      streams  kbit/s  quality per stream");
+    println!("  segment  frames      streams  kbit/s  quality per stream (/2, /4: coded at half, quarter size)");
     for (i, s) in m.segments.iter().enumerate() {
         let kbps: f64 = s.streams.iter().map(|t| t.bitrate as f64).sum::<f64>() / 1e3;
         let q: Vec<String> = s
             .streams
             .iter()
-            .map(|t| format!("{:.0}", t.quality))
+            .map(|t| match t.scale {
+                1 => format!("{:.0}", t.quality),
+                f => format!("{:.0}/{f}", t.quality),
+            })
             .collect();
         println!(
             "  {i:>7}  {:>5}-{:<5}  {:>7}  {kbps:>6.0}  {}",

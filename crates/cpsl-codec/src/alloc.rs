@@ -4,10 +4,13 @@
 //! Each layer stream's rate and distortion are modelled as functions of the encoder's quality
 //! setting `q` (CRF) from two trial encodes of the segment: `ln r_k(q)` and `ln D_k(q)` are
 //! straight lines through the two measured points (rate roughly halves every 6 CRF steps;
-//! distortion grows geometrically), so `D_k(r_k)` is a power law. The constrained problem is
-//! solved by Lagrangian relaxation on the integer quality grid: for a multiplier `lambda`,
-//! every layer independently picks `q_k = argmin w_k D_k(q) + lambda r_k(q)`; `lambda` is
-//! bisected (in log space) to the smallest value whose total rate fits the budget.
+//! distortion grows geometrically), so `D_k(r_k)` is a power law. A stream has one such model
+//! per rung of the resolution ladder ([`crate::scale`]), its distortion measured at the frame
+//! size after upsampling, so that rungs compete on the same scale. The constrained problem is
+//! solved by Lagrangian relaxation on the grid of rungs and integer qualities: for a
+//! multiplier `lambda`, every layer independently picks the `(rung, q)` minimising
+//! `w_k D_k + lambda r_k`; `lambda` is bisected (in log space) to the smallest value whose
+//! total rate fits the budget.
 //!
 //! `D_k` is the visibility-weighted squared error of the decoded premultiplied RGBA against the
 //! source ([`distortion`]); `w_k` rises with the layer's saliency and its share of depth-edge
@@ -62,19 +65,22 @@ impl RdModel {
 /// The result of [`allocate`].
 #[derive(Debug, Clone, PartialEq)]
 pub struct Allocation {
+    /// Rung (index into the stream's models) per layer stream.
+    pub rung: Vec<usize>,
     /// Quality per layer stream.
     pub quality: Vec<f32>,
     /// Modelled bits per layer stream.
     pub bits: Vec<f64>,
-    /// Whether the budget is met by the model (false: even the lowest quality is too costly,
-    /// and every stream gets the lowest quality).
+    /// Whether the budget is met by the model (false: even the cheapest choice is too costly,
+    /// and every stream gets its cheapest rung at the lowest quality).
     pub feasible: bool,
 }
 
-/// Chooses a quality per stream on the integer grid `[q_min, q_max]` minimising
-/// `sum w_k D_k` with `sum r_k <= budget` (all in the models' units).
+/// Chooses a rung and a quality per stream, qualities on the integer grid `[q_min, q_max]`,
+/// minimising `sum w_k D_k` with `sum r_k <= budget` (all in the models' units). `models[k]`
+/// holds stream `k`'s model per rung (at least one).
 pub fn allocate(
-    models: &[RdModel],
+    models: &[Vec<RdModel>],
     weights: &[f32],
     budget: f64,
     q_min: f32,
@@ -83,34 +89,44 @@ pub fn allocate(
     let grid: Vec<f32> = (q_min.ceil() as i32..=q_max.floor() as i32)
         .map(|q| q as f32)
         .collect();
-    let pick = |lambda: f64| -> Vec<f32> {
-        models
-            .iter()
-            .zip(weights)
-            .map(|(m, &w)| {
-                *grid
-                    .iter()
-                    .min_by(|&&a, &&b| {
-                        let cost = |q: f32| w as f64 * m.distortion(q) + lambda * m.rate(q);
-                        cost(a).total_cmp(&cost(b))
-                    })
+    let options = |k: usize| {
+        let grid = &grid;
+        (0..models[k].len()).flat_map(move |r| grid.iter().map(move |&q| (r, q)))
+    };
+    let rate = |k: usize, (r, q): (usize, f32)| models[k][r].rate(q);
+    let pick = |lambda: f64| -> Vec<(usize, f32)> {
+        (0..models.len())
+            .map(|k| {
+                let cost = |o: (usize, f32)| {
+                    weights[k] as f64 * models[k][o.0].distortion(o.1) + lambda * rate(k, o)
+                };
+                options(k)
+                    .min_by(|&a, &b| cost(a).total_cmp(&cost(b)))
                     .expect("non-empty grid")
             })
             .collect()
     };
-    let total = |qs: &[f32]| -> f64 { models.iter().zip(qs).map(|(m, &q)| m.rate(q)).sum() };
-    let finish = |quality: Vec<f32>, feasible: bool| Allocation {
-        bits: models
+    let total =
+        |c: &[(usize, f32)]| -> f64 { c.iter().enumerate().map(|(k, &o)| rate(k, o)).sum() };
+    let finish = |choice: Vec<(usize, f32)>, feasible: bool| Allocation {
+        bits: choice
             .iter()
-            .zip(&quality)
-            .map(|(m, &q)| m.rate(q))
+            .enumerate()
+            .map(|(k, &o)| rate(k, o))
             .collect(),
-        quality,
+        rung: choice.iter().map(|o| o.0).collect(),
+        quality: choice.iter().map(|o| o.1).collect(),
         feasible,
     };
-    let worst = vec![*grid.last().expect("non-empty grid"); models.len()];
-    if total(&worst) > budget {
-        return finish(worst, false);
+    let cheapest: Vec<(usize, f32)> = (0..models.len())
+        .map(|k| {
+            options(k)
+                .min_by(|&a, &b| rate(k, a).total_cmp(&rate(k, b)))
+                .expect("non-empty grid")
+        })
+        .collect();
+    if total(&cheapest) > budget {
+        return finish(cheapest, false);
     }
     let (mut lo, mut hi) = (-40.0f64, 40.0f64);
     if total(&pick(lo.exp())) <= budget {
@@ -185,7 +201,7 @@ mod tests {
 
     #[test]
     fn allocation_meets_the_budget_and_favours_heavy_layers() {
-        let models = [model(1e6, 10.0), model(1e6, 10.0), model(1e6, 10.0)];
+        let models = vec![vec![model(1e6, 10.0)]; 3];
         let weights = [4.0, 1.0, 1.0];
         let a = allocate(&models, &weights, 1.2e6, 10.0, 51.0);
         assert!(a.feasible);
@@ -200,9 +216,36 @@ mod tests {
         let c = allocate(&models, &weights, 1.0, 10.0, 51.0);
         assert!(!c.feasible);
         assert!(c.quality.iter().all(|&q| q == 51.0));
+        assert!(c.rung.iter().all(|&r| r == 0));
         // A generous budget gets the best quality.
         let d = allocate(&models, &weights, 1e12, 10.0, 51.0);
         assert!(d.quality.iter().all(|&q| q == 10.0));
+    }
+
+    #[test]
+    fn a_budget_below_the_full_size_floor_goes_down_the_ladder() {
+        // Rung 1 costs a quarter of the rate and carries a distortion floor of its own.
+        let full = model(1e6, 10.0);
+        let half = RdModel::fit((20.0, 2.5e5, 40.0), (26.0, 1.25e5, 60.0));
+        let models = vec![vec![full, half]; 2];
+        let floor_full = 2.0 * full.rate(51.0);
+        // Generous: full size. Below the full-size floor: the half rung, within the budget.
+        let a = allocate(&models, &[1.0; 2], 4e6, 10.0, 51.0);
+        assert_eq!(a.rung, vec![0, 0]);
+        let b = allocate(&models, &[1.0; 2], 0.8 * floor_full, 10.0, 51.0);
+        assert!(b.feasible);
+        assert_eq!(b.rung, vec![1, 1]);
+        assert!(b.bits.iter().sum::<f64>() <= 0.8 * floor_full);
+        // At a full-size quality whose distortion exceeds the half rung's at equal rate,
+        // the half rung wins even above the floor.
+        let r = full.rate(44.0) * 2.0;
+        let c = allocate(&models, &[1.0; 2], r, 10.0, 51.0);
+        let d = |a: &Allocation| -> f64 {
+            (0..2)
+                .map(|k| models[k][a.rung[k]].distortion(a.quality[k]))
+                .sum()
+        };
+        assert!(d(&c) <= 2.0 * full.distortion(44.0), "{c:?}");
     }
 
     #[test]

@@ -10,6 +10,7 @@
 //! layers to streams and carries depths, confidence, refresh flags and the Edge-Depth Cache.
 
 pub mod alloc;
+pub mod scale;
 mod stream;
 pub mod yuv;
 
@@ -127,6 +128,8 @@ pub struct SegmentReport {
     pub bits: f64,
     /// Quality chosen per stream.
     pub quality: Vec<f32>,
+    /// Downscale factor chosen per stream (see [`scale`]).
+    pub scale: Vec<u32>,
     /// Whether the budget could be met.
     pub feasible: bool,
     /// Encodes run (trials, final and corrections), over all streams.
@@ -259,31 +262,61 @@ pub fn encode_segment(
         .map(|(l, &e)| alloc::weight(l.meta.saliency.unwrap_or(0.0), e, max_edges))
         .collect();
     let stream_rel = |k: usize| format!("{dir_name}/layer_{k:02}.mp4");
-    let encode_all = |qualities: &[f32], suffix: &str| -> Result<Vec<u64>, CodecError> {
-        (0..n_streams)
-            .into_par_iter()
-            .map(|k| {
-                let path = root.join(format!("{}{suffix}", stream_rel(k)));
-                encode_stream(&path, &pictures[k], opts.codec, qualities[k], opts.fps)
-            })
-            .collect()
+    // The resolution ladder: only a budget may send a stream below full size.
+    let rungs = match opts.rate {
+        RateControl::Budget(_) => scale::rungs(w, h),
+        RateControl::Quality(_) => vec![1],
+    };
+    let scaled: Vec<Vec<Vec<PremulImage>>> = rungs[1..]
+        .iter()
+        .map(|&f| {
+            pictures
+                .iter()
+                .map(|p| p.par_iter().map(|i| scale::downscale(i, f)).collect())
+                .collect()
+        })
+        .collect();
+    let pics = |k: usize, r: usize| -> Vec<&PremulImage> {
+        match r {
+            0 => pictures[k].clone(),
+            _ => scaled[r - 1][k].iter().collect(),
+        }
+    };
+    let encode_one = |k: usize, r: usize, q: f32, path: &Path| {
+        encode_stream(path, &pics(k, r), opts.codec, q, opts.fps)
     };
     let seconds = frames.len() as f64 / opts.fps;
     let (q_min, q_max, _) = quality_range(opts.codec);
     let mut encodes = 0;
-    let (quality, feasible, budget) = match opts.rate {
-        RateControl::Quality(q) => (vec![q.clamp(q_min, q_max); n_streams], true, None),
+    let (mut rung, mut quality, feasible, budget) = match opts.rate {
+        RateControl::Quality(q) => (
+            vec![0; n_streams],
+            vec![q.clamp(q_min, q_max); n_streams],
+            true,
+            None,
+        ),
         RateControl::Budget(bps) => {
             let budget = bps * seconds - side_bytes.len() as f64 * 8.0;
-            let models = trial_models(root, &stream_rel, &pictures, frames, &map, opts)?;
-            encodes += 2 * n_streams;
+            let models = trial_models(
+                root,
+                &stream_rel,
+                &pictures,
+                &pics,
+                &rungs,
+                frames,
+                &map,
+                opts,
+            )?;
+            encodes += 2 * n_streams * rungs.len();
             let a = alloc::allocate(&models, &weights, budget, q_min, q_max);
-            (a.quality, a.feasible, Some((bps * seconds, models)))
+            (a.rung, a.quality, a.feasible, Some((bps * seconds, models)))
         }
     };
     let budget_bits = budget.as_ref().map(|b| b.0);
-    let mut quality = quality;
-    let mut sizes = encode_all(&quality, "")?;
+    let mut sizes: Vec<u64> = (0..n_streams)
+        .into_par_iter()
+        .map(|k| encode_one(k, rung[k], quality[k], &root.join(stream_rel(k))))
+        .collect::<Result<_, _>>()?;
     encodes += n_streams;
     let mut feasible = feasible;
     // A correction pass when the model was too optimistic: scale the budget by the miss.
@@ -293,26 +326,24 @@ pub fn encode_segment(
             if spent(&sizes) <= total * 1.02 || quality.iter().all(|&q| q >= q_max) {
                 break;
             }
-            // Keep the fitted slopes, move each rate line through the measured point.
-            for ((m, &s), &q) in models.iter_mut().zip(&sizes).zip(&quality) {
-                m.anchor_rate(q, s as f64 * 8.0);
+            // Keep the fitted slopes, move each chosen rate line through the measured point.
+            for k in 0..n_streams {
+                models[k][rung[k]].anchor_rate(quality[k], sizes[k] as f64 * 8.0);
             }
             let budget = total - side_bytes.len() as f64 * 8.0;
             let a = alloc::allocate(&models, &weights, budget, q_min, q_max);
             feasible &= a.feasible;
             let changed: Vec<usize> = (0..n_streams)
-                .filter(|&k| a.quality[k] != quality[k])
+                .filter(|&k| (a.rung[k], a.quality[k]) != (rung[k], quality[k]))
                 .collect();
             if changed.is_empty() {
                 break;
             }
-            quality = a.quality;
+            (rung, quality) = (a.rung, a.quality);
             let redo: Vec<(usize, u64)> = changed
                 .par_iter()
                 .map(|&k| {
-                    let path = root.join(stream_rel(k));
-                    encode_stream(&path, &pictures[k], opts.codec, quality[k], opts.fps)
-                        .map(|s| (k, s))
+                    encode_one(k, rung[k], quality[k], &root.join(stream_rel(k))).map(|s| (k, s))
                 })
                 .collect::<Result<_, _>>()?;
             encodes += redo.len();
@@ -322,6 +353,7 @@ pub fn encode_segment(
         }
         feasible &= spent(&sizes) <= total * 1.1;
     }
+    let scale: Vec<u32> = rung.iter().map(|&r| rungs[r]).collect();
     let mut streams = Vec::with_capacity(n_streams);
     for k in 0..n_streams {
         streams.push(StreamEntry {
@@ -329,6 +361,7 @@ pub fn encode_segment(
             track: first.set.layers()[k].meta.track,
             bitrate: (sizes[k] as f64 * 8.0 / seconds).round() as u64,
             quality: quality[k],
+            scale: scale[k],
             weight: weights[k],
         });
     }
@@ -344,22 +377,27 @@ pub fn encode_segment(
             budget_bits,
             bits,
             quality,
+            scale,
             feasible,
             encodes,
         },
     ))
 }
 
-/// Two trial encodes per stream (at a quarter and three fifths of the quality range), each
-/// decoded and scored with the proxy distortion on up to 8 evenly spaced frames.
-fn trial_models(
+/// Two trial encodes per stream and rung of the ladder (at a quarter and three fifths of the
+/// quality range), each decoded, brought back to the frame size and scored with the proxy
+/// distortion on up to 8 evenly spaced frames. Returns the models per stream, then per rung.
+#[allow(clippy::too_many_arguments)]
+fn trial_models<'a>(
     root: &Path,
     stream_rel: &(dyn Fn(usize) -> String + Sync),
-    pictures: &[Vec<&PremulImage>],
+    pictures: &[Vec<&'a PremulImage>],
+    pics: &(dyn Fn(usize, usize) -> Vec<&'a PremulImage> + Sync),
+    rungs: &[u32],
     frames: &[SegmentFrame],
     map: &[Vec<u8>],
     opts: &CodingOptions,
-) -> Result<Vec<alloc::RdModel>, CodecError> {
+) -> Result<Vec<Vec<alloc::RdModel>>, CodecError> {
     let (q_min, q_max, _) = quality_range(opts.codec);
     let trials = [
         (q_min + 0.25 * (q_max - q_min)).round(),
@@ -385,14 +423,18 @@ fn trial_models(
             }
         }
     }
-    (0..n_streams)
+    let jobs: Vec<(usize, usize)> = (0..n_streams)
+        .flat_map(|k| (0..rungs.len()).map(move |r| (k, r)))
+        .collect();
+    let fitted: Vec<alloc::RdModel> = jobs
         .into_par_iter()
-        .map(|k| {
+        .map(|(k, r)| {
+            let (sw, sh) = scale::scaled_size(w, h, rungs[r]);
             let mut points = Vec::new();
             for (t, &q) in trials.iter().enumerate() {
-                let path = root.join(stream_rel(k).replace(".mp4", &format!(".trial{t}.mp4")));
-                let bytes = encode_stream(&path, &pictures[k], opts.codec, q, opts.fps);
-                let decoded = bytes.and_then(|b| decode_stream(&path, w, h).map(|d| (b, d)));
+                let path = root.join(stream_rel(k).replace(".mp4", &format!(".trial{r}{t}.mp4")));
+                let bytes = encode_stream(&path, &pics(k, r), opts.codec, q, opts.fps);
+                let decoded = bytes.and_then(|b| decode_stream(&path, sw, sh).map(|d| (b, d)));
                 let _ = std::fs::remove_file(&path);
                 let (bytes, decoded) = decoded?;
                 // Summed, not averaged per stream: a layer's share of the picture's error.
@@ -402,6 +444,14 @@ fn trial_models(
                         path: path.clone(),
                         reason: format!("{} pictures, {} expected", decoded.len(), frames.len()),
                     })?;
+                    let up;
+                    let dec = match rungs[r] {
+                        1 => dec,
+                        f => {
+                            up = scale::upscale(dec, w, h, f);
+                            &up
+                        }
+                    };
                     e += alloc::distortion(pictures[k][fi], dec, &vis[k][j]);
                 }
                 let norm = 4.0 * (w * h) as f64 * sampled.len() as f64;
@@ -409,7 +459,8 @@ fn trial_models(
             }
             Ok(alloc::RdModel::fit(points[0], points[1]))
         })
-        .collect()
+        .collect::<Result<_, CodecError>>()?;
+    Ok(fitted.chunks(rungs.len()).map(<[_]>::to_vec).collect())
 }
 
 /// One decoded frame of a package.
@@ -436,7 +487,8 @@ pub fn decode_segment(pkg: &Package, i: usize) -> Result<Vec<DecodedFrame>, Code
         .map(|s| {
             pkg.read(&s.file)?;
             let path = pkg.path_of(&s.file);
-            let d = decode_stream(&path, cam.width, cam.height)?;
+            let (sw, sh) = scale::scaled_size(cam.width, cam.height, s.scale);
+            let d = decode_stream(&path, sw, sh)?;
             if d.len() != seg.frames as usize {
                 return Err(CodecError::Stream {
                     path,
@@ -447,7 +499,12 @@ pub fn decode_segment(pkg: &Package, i: usize) -> Result<Vec<DecodedFrame>, Code
                     ),
                 });
             }
-            Ok(d.into_iter().map(Some).collect())
+            Ok(d.into_iter()
+                .map(|p| match s.scale {
+                    1 => Some(p),
+                    f => Some(scale::upscale(&p, cam.width, cam.height, f)),
+                })
+                .collect())
         })
         .collect::<Result<_, _>>()?;
     side.frames

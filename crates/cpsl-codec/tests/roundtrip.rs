@@ -18,7 +18,12 @@ const FPS: f64 = 10.0;
 
 /// Layered frames of the synthetic clip, grouped into segments (GOP 6).
 fn segments(frames: usize) -> Vec<Vec<SegmentFrame>> {
-    let scene = Scene::default_scene(W, H);
+    segments_at(W, H, frames)
+}
+
+/// [`segments`] at `w x h`.
+fn segments_at(w: u32, h: u32, frames: usize) -> Vec<Vec<SegmentFrame>> {
+    let scene = Scene::default_scene(w, h);
     let gop = GopConfig {
         gop: 6,
         ..GopConfig::default()
@@ -152,6 +157,60 @@ fn package_round_trip_meets_budget_and_quality() {
     std::fs::create_dir(&other).unwrap();
     let cam = *segs[0][0].set.camera();
     assert!(PackageWriter::create(&other, cam, 6, opts).is_err());
+}
+
+#[test]
+fn a_budget_below_the_full_size_floor_codes_smaller_streams() {
+    // Large enough for the pictures, not the MP4 headers, to set the floor.
+    let segs = segments_at(640, 480, 6);
+    let dir = tempfile::tempdir().unwrap();
+    let opts = |rate| CodingOptions {
+        codec: Codec::H264,
+        rate,
+        fps: FPS,
+    };
+    // The floor: every stream at full size and the lowest quality.
+    let floor_pkg = dir.path().join("floor.cpsl");
+    write(&floor_pkg, &segs, opts(RateControl::Quality(51.0)));
+    let floor = Package::open(&floor_pkg).unwrap().manifest().bitrate();
+    let budget = 0.7 * floor;
+    let out = dir.path().join("small.cpsl");
+    let reports = write(&out, &segs, opts(RateControl::Budget(budget)));
+    eprintln!("floor {floor:.0} bit/s, budget {budget:.0}: {reports:?}");
+    let pkg = Package::open(&out).unwrap();
+    assert!(pkg.verify().is_empty());
+    let m = pkg.manifest();
+    assert!(m.bitrate() <= 1.1 * budget, "{} of {budget}", m.bitrate());
+    assert!(reports.iter().all(|r| r.feasible));
+    let scales: Vec<u32> = m
+        .segments
+        .iter()
+        .flat_map(|s| s.streams.iter().map(|t| t.scale))
+        .collect();
+    assert!(scales.contains(&2), "{scales:?}");
+    // Decoded at the frame size. On this saturated noise texture half the resolution costs
+    // about 3 dB against the full-size floor (which the budget cannot pay for); the
+    // alignment of the upsampling is tested in `scale`.
+    let floor_pkg = Package::open(&floor_pkg).unwrap();
+    for (i, seg) in segs.iter().enumerate() {
+        let (small, full) = (
+            decode_segment(&pkg, i).unwrap(),
+            decode_segment(&floor_pkg, i).unwrap(),
+        );
+        for ((d, f), s) in small.iter().zip(&full).zip(seg) {
+            assert_eq!(d.set.camera(), s.set.camera());
+            let (p, q) = (psnr(&d.set, &s.set), psnr(&f.set, &s.set));
+            eprintln!(
+                "frame {}: {p:.2} dB at {budget:.0} bit/s, {q:.2} dB at the floor",
+                s.index
+            );
+            assert!(
+                p >= q - 4.0,
+                "frame {}: {p:.2} dB, {q:.2} at the floor",
+                s.index
+            );
+        }
+    }
 }
 
 #[test]

@@ -1,4 +1,5 @@
-//! The package manifest (`manifest.json`), format `cpsl-package` version 1.
+//! The package manifest (`manifest.json`), format `cpsl-package` version 2 (version 1, read
+//! too, lacks the per-stream `scale`: every stream at full size).
 //!
 //! The manifest names every file of the package with its size and SHA-256, so that a reader
 //! (or `cpsl verify`) can check each part, and carries its own checksum: the SHA-256 of the
@@ -13,7 +14,7 @@ use thiserror::Error;
 /// Format name written in every package manifest.
 pub const PACKAGE_FORMAT: &str = "cpsl-package";
 /// Newest package version this build reads and writes.
-pub const PACKAGE_VERSION: u32 = 1;
+pub const PACKAGE_VERSION: u32 = 2;
 /// File name of the manifest inside a package.
 pub const MANIFEST_FILE: &str = "manifest.json";
 const CHECKSUM_KEY: &str = "\"checksum\": \"";
@@ -102,8 +103,20 @@ pub struct StreamEntry {
     pub bitrate: u64,
     /// The encoder's quality setting (CRF) it was coded with.
     pub quality: f32,
+    /// The downscale factor it was coded at (1, 2 or 4): its pictures are the layer size
+    /// divided by it, rounded up, then rounded up to even; players upsample bilinearly.
+    #[serde(default = "full_size", skip_serializing_if = "is_full_size")]
+    pub scale: u32,
     /// Its weight `w_k` in the bitrate allocation.
     pub weight: f32,
+}
+
+fn full_size() -> u32 {
+    1
+}
+
+fn is_full_size(scale: &u32) -> bool {
+    *scale == 1
 }
 
 /// One segment: a group of pictures starting with an I-frame, independently decodable.
@@ -287,6 +300,9 @@ impl PackageManifest {
             next += s.frames as u64;
             if s.streams.is_empty() || s.streams.len() > crate::side::MAX_STREAMS as usize {
                 return Err(field(at("streams"), "1 to 64 streams per segment"));
+            }
+            if let Some(t) = s.streams.iter().find(|t| ![1, 2, 4].contains(&t.scale)) {
+                return Err(field(at("scale"), format!("{} is not 1, 2 or 4", t.scale)));
             }
             let files = s.streams.iter().map(|t| &t.file).chain([&s.side]);
             for f in files {

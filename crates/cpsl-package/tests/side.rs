@@ -99,6 +99,7 @@ fn manifest() -> PackageManifest {
                 track: Some(1),
                 bitrate: 1000,
                 quality: 30.0,
+                scale: 2,
                 weight: 1.5,
             }],
             side: file("seg_000000/side.bin"),
@@ -138,6 +139,22 @@ fn manifest_round_trips_and_checks_itself() {
     let mut m2 = manifest();
     m2.frames = 6;
     assert!(PackageManifest::parse(&m2.to_json()).is_err());
+    let mut m4 = manifest();
+    m4.segments[0].streams[0].scale = 3;
+    let e = PackageManifest::parse(&m4.to_json())
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("scale") && e.contains("not 1, 2 or 4"), "{e}");
+    // Version 1 manifests (no `scale`) still read, every stream at full size.
+    let mut m5 = manifest();
+    m5.version = 1;
+    m5.segments[0].streams[0].scale = 1;
+    let v1 = m5.to_json();
+    assert!(!String::from_utf8_lossy(&v1).contains("scale"));
+    assert_eq!(
+        PackageManifest::parse(&v1).unwrap().segments[0].streams[0].scale,
+        1
+    );
     let mut m3 = manifest();
     m3.version = 99;
     assert!(matches!(

@@ -1,0 +1,145 @@
+//! The resolution ladder of layer streams: under a tight budget a layer may be coded at a
+//! half or a quarter of the frame size (box-filtered), and is brought back to the frame size
+//! after decoding by bilinear interpolation of its premultiplied RGBA. The browser player
+//! (`web/src/render.ts`) upsamples with the same rule.
+
+use cpsl_core::PremulImage;
+
+/// The downscale factors a stream may be coded at, full size first.
+pub const LADDER: [u32; 3] = [1, 2, 4];
+
+/// Smallest coded layer side a rung may have (SVT-AV1 refuses pictures under 64 pixels).
+const MIN_SIDE: u32 = 64;
+
+/// The size of a `width x height` layer coded at downscale `factor`.
+pub fn scaled_size(width: u32, height: u32, factor: u32) -> (u32, u32) {
+    (width.div_ceil(factor), height.div_ceil(factor))
+}
+
+/// The rungs of [`LADDER`] a `width x height` layer can be coded at (at least full size).
+pub fn rungs(width: u32, height: u32) -> Vec<u32> {
+    LADDER
+        .into_iter()
+        .filter(|&f| {
+            let (w, h) = scaled_size(width, height, f);
+            f == 1 || (w >= MIN_SIDE && h >= MIN_SIDE)
+        })
+        .collect()
+}
+
+/// Box-filters `img` down by `factor` (each output pixel the mean of its `factor x factor`
+/// block, clipped at the border). Premultiplied averaging keeps colour within alpha.
+pub fn downscale(img: &PremulImage, factor: u32) -> PremulImage {
+    if factor == 1 {
+        return img.clone();
+    }
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    let (sw, sh) = scaled_size(img.width(), img.height(), factor);
+    let f = factor as usize;
+    let src = img.as_bytes();
+    let mut out = vec![0u8; sw as usize * sh as usize * 4];
+    for oy in 0..sh as usize {
+        let ys = oy * f..((oy + 1) * f).min(h);
+        for ox in 0..sw as usize {
+            let xs = ox * f..((ox + 1) * f).min(w);
+            let mut acc = [0u32; 4];
+            for y in ys.clone() {
+                for x in xs.clone() {
+                    let o = (y * w + x) * 4;
+                    for c in 0..4 {
+                        acc[c] += src[o + c] as u32;
+                    }
+                }
+            }
+            let n = (ys.len() * xs.len()) as u32;
+            let o = (oy * sw as usize + ox) * 4;
+            for c in 0..4 {
+                out[o + c] = ((acc[c] + n / 2) / n) as u8;
+            }
+        }
+    }
+    PremulImage::from_premul(sw, sh, out).expect("means of premultiplied pixels")
+}
+
+/// Bilinear upsampling of a layer coded at downscale `factor` back to `width x height`:
+/// output pixel `x` reads the coded layer at `(x + 0.5) / factor - 0.5`, clamped to its edge.
+pub fn upscale(img: &PremulImage, width: u32, height: u32, factor: u32) -> PremulImage {
+    if factor == 1 && (img.width(), img.height()) == (width, height) {
+        return img.clone();
+    }
+    let (sw, sh) = (img.width() as usize, img.height() as usize);
+    let src = img.as_bytes();
+    let taps = |n: u32, size: usize| -> Vec<(usize, usize, f32)> {
+        (0..n)
+            .map(|x| {
+                let u = ((x as f32 + 0.5) / factor as f32 - 0.5).max(0.0);
+                let x0 = (u.floor() as usize).min(size - 1);
+                let x1 = (x0 + 1).min(size - 1);
+                (x0, x1, u - u.floor())
+            })
+            .collect()
+    };
+    let (tx, ty) = (taps(width, sw), taps(height, sh));
+    let mut out = vec![0u8; width as usize * height as usize * 4];
+    for (y, &(y0, y1, fy)) in ty.iter().enumerate() {
+        for (x, &(x0, x1, fx)) in tx.iter().enumerate() {
+            let at = |xx: usize, yy: usize, c: usize| src[(yy * sw + xx) * 4 + c] as f32;
+            let o = (y * width as usize + x) * 4;
+            for c in 0..4 {
+                let top = at(x0, y0, c) * (1.0 - fx) + at(x1, y0, c) * fx;
+                let bottom = at(x0, y1, c) * (1.0 - fx) + at(x1, y1, c) * fx;
+                out[o + c] = (top * (1.0 - fy) + bottom * fy).round() as u8;
+            }
+        }
+    }
+    PremulImage::from_premul(width, height, out).expect("blends of premultiplied pixels")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rungs_keep_coded_sides_of_64() {
+        assert_eq!(rungs(1920, 1080), vec![1, 2, 4]);
+        assert_eq!(rungs(320, 240), vec![1, 2]);
+        assert_eq!(rungs(100, 60), vec![1]);
+        assert_eq!(scaled_size(541, 961, 2), (271, 481));
+    }
+
+    #[test]
+    fn down_then_up_keeps_smooth_content_and_premultiplication() {
+        let (w, h) = (37u32, 23u32);
+        let mut data = Vec::new();
+        for y in 0..h {
+            for x in 0..w {
+                let a = (x * 255 / (w - 1)) as u8;
+                let c = (y * 200 / (h - 1)) as u8;
+                data.extend([c.min(a), (c / 2).min(a), 0, a]);
+            }
+        }
+        let img = PremulImage::from_premul(w, h, data).unwrap();
+        for f in LADDER {
+            let small = downscale(&img, f);
+            assert_eq!((small.width(), small.height()), scaled_size(w, h, f));
+            let back = upscale(&small, w, h, f);
+            // A linear ramp survives up to the clipped border blocks.
+            for y in f..h - f {
+                for x in f..w - f {
+                    let o = ((y * w + x) * 4 + 3) as usize;
+                    let (a, b) = (img.as_bytes()[o], back.as_bytes()[o]);
+                    assert!(
+                        (a as i32 - b as i32).abs() <= 2,
+                        "factor {f} ({x}, {y}): {a} {b}"
+                    );
+                }
+            }
+        }
+        // A constant image stays constant at every rung, edges included.
+        let flat =
+            PremulImage::from_premul(w, h, [60u8, 20, 5, 90].repeat((w * h) as usize)).unwrap();
+        for f in LADDER {
+            assert_eq!(upscale(&downscale(&flat, f), w, h, f), flat);
+        }
+    }
+}

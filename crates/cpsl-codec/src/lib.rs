@@ -322,8 +322,12 @@ pub fn encode_segment(
     // A correction pass when the model was too optimistic: scale the budget by the miss.
     if let Some((total, mut models)) = budget {
         let spent = |s: &[u64]| s.iter().sum::<u64>() as f64 * 8.0 + side_bytes.len() as f64 * 8.0;
-        for _ in 0..2 {
-            if spent(&sizes) <= total * 1.02 || quality.iter().all(|&q| q >= q_max) {
+        let cheapest = rungs.len() - 1;
+        // Rates extrapolated far above the trial qualities run low, and a correction may
+        // move a stream to another rung whose line is still unanchored: up to four rounds.
+        for _ in 0..4 {
+            let at_floor = (0..n_streams).all(|k| quality[k] >= q_max && rung[k] == cheapest);
+            if spent(&sizes) <= total * 1.02 || at_floor {
                 break;
             }
             // Keep the fitted slopes, move each chosen rate line through the measured point.

@@ -188,9 +188,9 @@ fn a_budget_below_the_full_size_floor_codes_smaller_streams() {
         .flat_map(|s| s.streams.iter().map(|t| t.scale))
         .collect();
     assert!(scales.contains(&2), "{scales:?}");
-    // Decoded at the frame size. On this saturated noise texture half the resolution costs
-    // about 3 dB against the full-size floor (which the budget cannot pay for); the
-    // alignment of the upsampling is tested in `scale`.
+    // Decoded at the frame size. On this saturated noise texture a half or quarter of the
+    // resolution costs 3 to 4.5 dB against the full-size floor (which the budget cannot pay
+    // for); the alignment of the upsampling is tested in `scale`.
     let floor_pkg = Package::open(&floor_pkg).unwrap();
     for (i, seg) in segs.iter().enumerate() {
         let (small, full) = (
@@ -205,7 +205,7 @@ fn a_budget_below_the_full_size_floor_codes_smaller_streams() {
                 s.index
             );
             assert!(
-                p >= q - 4.0,
+                p >= q - 5.0,
                 "frame {}: {p:.2} dB, {q:.2} at the floor",
                 s.index
             );

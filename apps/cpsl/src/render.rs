@@ -243,7 +243,7 @@ impl PackagePlayer {
             .with_context(|| format!("frame {f}: the package has {} frames", m.frames))?;
         if self.segment != Some(seg) {
             let decoded = cpsl_codec::decode_segment(&self.pkg, seg).with_context(|| {
-                format!("decoding segment {seg} of {}", self.pkg.root().display())
+                format!("decoding segment {seg} of {}", self.pkg.opened().display())
             })?;
             self.frames = decoded
                 .into_iter()

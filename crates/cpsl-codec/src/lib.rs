@@ -439,25 +439,23 @@ fn trial_models<'a>(
             for (t, &q) in trials.iter().enumerate() {
                 let path = root.join(stream_rel(k).replace(".mp4", &format!(".trial{r}{t}.mp4")));
                 let bytes = encode_stream(&path, &pics(k, r), opts.codec, q, opts.fps);
-                let decoded = bytes.and_then(|b| decode_stream(&path, sw, sh).map(|d| (b, d)));
+                let decoded = bytes.and_then(|b| decode_pictures(&path, sw, sh).map(|d| (b, d)));
                 let _ = std::fs::remove_file(&path);
                 let (bytes, decoded) = decoded?;
                 // Summed, not averaged per stream: a layer's share of the picture's error.
+                // Only the sampled pictures are converted back.
                 let mut e = 0.0;
                 for (j, &fi) in sampled.iter().enumerate() {
-                    let dec = decoded.get(fi).ok_or_else(|| CodecError::Stream {
+                    let p = decoded.get(fi).ok_or_else(|| CodecError::Stream {
                         path: path.clone(),
                         reason: format!("{} pictures, {} expected", decoded.len(), frames.len()),
                     })?;
-                    let up;
+                    let dec = yuv::unstack(p, sw, sh);
                     let dec = match rungs[r] {
                         1 => dec,
-                        f => {
-                            up = scale::upscale(dec, w, h, f);
-                            &up
-                        }
+                        f => scale::upscale(&dec, w, h, f),
                     };
-                    e += alloc::distortion(pictures[k][fi], dec, &vis[k][j]);
+                    e += alloc::distortion(pictures[k][fi], &dec, &vis[k][j]);
                 }
                 let norm = 4.0 * (w * h) as f64 * sampled.len() as f64;
                 points.push((q, bytes as f64 * 8.0, e / norm));
@@ -493,10 +491,18 @@ pub fn decode_segment(pkg: &Package, i: usize) -> Result<Vec<DecodedFrame>, Code
             pkg.read(&s.file)?;
             let path = pkg.path_of(&s.file);
             let (sw, sh) = scale::scaled_size(cam.width, cam.height, s.scale);
-            let d = decode_stream(&path, sw, sh)?;
+            // Messages name the file as the user knows it (inside an archive, not its copy).
+            let shown = pkg.display_path(&s.file);
+            let d = decode_stream(&path, sw, sh).map_err(|e| match e {
+                CodecError::Stream { reason, .. } => CodecError::Stream {
+                    path: shown.clone(),
+                    reason,
+                },
+                e => e,
+            })?;
             if d.len() != seg.frames as usize {
                 return Err(CodecError::Stream {
-                    path,
+                    path: shown,
                     reason: format!(
                         "{} pictures, the segment has {} frames",
                         d.len(),

@@ -78,6 +78,8 @@ pub enum PackageError {
 #[derive(Debug, Clone)]
 pub struct Package {
     root: PathBuf,
+    /// What was opened (the folder, or the archive file): how files are named in messages.
+    opened: PathBuf,
     manifest: PackageManifest,
     /// Where an archive was unpacked (removed when the last clone is dropped).
     _unpacked: Option<Arc<tempfile::TempDir>>,
@@ -116,19 +118,26 @@ impl Package {
                     source,
                 })?;
             unpack(root, dir.path())?;
-            let mut pkg = Self::open(dir.path())?;
+            let mut pkg = Self::open_folder(dir.path(), root)?;
             pkg._unpacked = Some(Arc::new(dir));
             return Ok(pkg);
         }
-        let path = root.join(MANIFEST_FILE);
-        let bytes = std::fs::read(&path).map_err(|source| PackageError::Io {
-            path: path.clone(),
+        Self::open_folder(root, root)
+    }
+
+    /// Opens the package folder `root`, naming its files under `opened` in messages.
+    fn open_folder(root: &Path, opened: &Path) -> Result<Self, PackageError> {
+        let bytes = std::fs::read(root.join(MANIFEST_FILE)).map_err(|source| PackageError::Io {
+            path: opened.join(MANIFEST_FILE),
             source,
         })?;
-        let manifest = PackageManifest::parse(&bytes)
-            .map_err(|source| PackageError::Manifest { path, source })?;
+        let manifest = PackageManifest::parse(&bytes).map_err(|source| PackageError::Manifest {
+            path: opened.join(MANIFEST_FILE),
+            source,
+        })?;
         Ok(Self {
             root: root.to_path_buf(),
+            opened: opened.to_path_buf(),
             manifest,
             _unpacked: None,
         })
@@ -139,9 +148,14 @@ impl Package {
         &self.manifest
     }
 
-    /// The package root.
+    /// The package root (for an archive, the private folder it was unpacked into).
     pub fn root(&self) -> &Path {
         &self.root
+    }
+
+    /// What was opened: the package folder or the archive file.
+    pub fn opened(&self) -> &Path {
+        &self.opened
     }
 
     /// Where a file of the package lies.
@@ -149,17 +163,23 @@ impl Package {
         self.root.join(&f.path)
     }
 
+    /// How a file of the package is named in messages: its path in the folder, or for an
+    /// archive `ARCHIVE/member` (never the private folder it was unpacked into).
+    pub fn display_path(&self, f: &FileEntry) -> PathBuf {
+        self.opened.join(&f.path)
+    }
+
     /// Reads one file and checks its size and SHA-256 against the manifest. Symbolic links
     /// are refused so that a package cannot point outside itself.
     pub fn read(&self, f: &FileEntry) -> Result<Vec<u8>, PackageError> {
         let path = self.path_of(f);
         let io = |source| PackageError::Io {
-            path: path.clone(),
+            path: self.display_path(f),
             source,
         };
         let meta = std::fs::symlink_metadata(&path).map_err(io)?;
         let mismatch = |reason: String| PackageError::Mismatch {
-            path: path.clone(),
+            path: self.display_path(f),
             reason,
         };
         if !meta.is_file() {
@@ -184,7 +204,7 @@ impl Package {
     pub fn side_stream(&self, i: usize) -> Result<SideStream, PackageError> {
         let seg = &self.manifest.segments[i];
         let bytes = self.read(&seg.side)?;
-        let path = self.path_of(&seg.side);
+        let path = self.display_path(&seg.side);
         let side = SideStream::decode(&bytes).map_err(|e| PackageError::Side {
             path: path.clone(),
             reason: e.to_string(),

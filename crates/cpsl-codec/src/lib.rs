@@ -298,18 +298,33 @@ pub fn encode_segment(
         ),
         RateControl::Budget(bps) => {
             let budget = bps * seconds - side_bytes.len() as f64 * 8.0;
-            let models = trial_models(
-                root,
-                &stream_rel,
-                &pictures,
-                &pics,
-                &rungs,
-                frames,
-                &map,
-                opts,
-            )?;
-            encodes += 2 * n_streams * rungs.len();
-            let a = alloc::allocate(&models, &weights, budget, q_min, q_max);
+            let fit = |which: &[usize]| {
+                trial_models(
+                    root,
+                    &stream_rel,
+                    &pictures,
+                    &pics,
+                    &rungs,
+                    which,
+                    frames,
+                    &map,
+                    opts,
+                )
+            };
+            let mut models = fit(&[0])?;
+            encodes += 2 * n_streams;
+            let mut a = alloc::allocate(&models, &weights, budget, q_min, q_max);
+            // The smaller rungs are fitted only when full size would need a quality worse
+            // than the upper trial's: within the trials' range full size wins anyway.
+            let upper = trial_qualities(opts.codec)[1];
+            if rungs.len() > 1 && !(a.feasible && a.quality.iter().all(|&q| q <= upper)) {
+                let lower: Vec<usize> = (1..rungs.len()).collect();
+                for (m, l) in models.iter_mut().zip(fit(&lower)?) {
+                    m.extend(l);
+                }
+                encodes += 2 * n_streams * lower.len();
+                a = alloc::allocate(&models, &weights, budget, q_min, q_max);
+            }
             (a.rung, a.quality, a.feasible, Some((bps * seconds, models)))
         }
     };
@@ -323,7 +338,7 @@ pub fn encode_segment(
     // A correction pass when the model was too optimistic: scale the budget by the miss.
     if let Some((total, mut models)) = budget {
         let spent = |s: &[u64]| s.iter().sum::<u64>() as f64 * 8.0 + side_bytes.len() as f64 * 8.0;
-        let cheapest = rungs.len() - 1;
+        let cheapest = models[0].len() - 1;
         // Rates extrapolated far above the trial qualities run low, and a correction may
         // move a stream to another rung whose line is still unanchored: up to four rounds.
         for _ in 0..4 {
@@ -389,9 +404,19 @@ pub fn encode_segment(
     ))
 }
 
-/// Two trial encodes per stream and rung of the ladder (at a quarter and three fifths of the
-/// quality range), each decoded, brought back to the frame size and scored with the proxy
-/// distortion on up to 8 evenly spaced frames. Returns the models per stream, then per rung.
+/// The qualities of the two trial encodes: a quarter and three fifths of the quality range.
+fn trial_qualities(codec: Codec) -> [f32; 2] {
+    let (q_min, q_max, _) = quality_range(codec);
+    [
+        (q_min + 0.25 * (q_max - q_min)).round(),
+        (q_min + 0.6 * (q_max - q_min)).round(),
+    ]
+}
+
+/// Two trial encodes per stream and rung `which` of the ladder `rungs` (at the
+/// [`trial_qualities`]), each decoded, brought back to the frame size and scored with the
+/// proxy distortion on up to 8 evenly spaced frames. Returns the models per stream, then per
+/// rung of `which`.
 #[allow(clippy::too_many_arguments)]
 fn trial_models<'a>(
     root: &Path,
@@ -399,15 +424,12 @@ fn trial_models<'a>(
     pictures: &[Vec<&'a PremulImage>],
     pics: &(dyn Fn(usize, usize) -> Vec<&'a PremulImage> + Sync),
     rungs: &[u32],
+    which: &[usize],
     frames: &[SegmentFrame],
     map: &[Vec<u8>],
     opts: &CodingOptions,
 ) -> Result<Vec<Vec<alloc::RdModel>>, CodecError> {
-    let (q_min, q_max, _) = quality_range(opts.codec);
-    let trials = [
-        (q_min + 0.25 * (q_max - q_min)).round(),
-        (q_min + 0.6 * (q_max - q_min)).round(),
-    ];
+    let trials = trial_qualities(opts.codec);
     let step = frames.len().div_ceil(8).max(1);
     let sampled: Vec<usize> = (0..frames.len()).step_by(step).collect();
     let (w, h) = (frames[0].set.camera().width, frames[0].set.camera().height);
@@ -429,7 +451,7 @@ fn trial_models<'a>(
         }
     }
     let jobs: Vec<(usize, usize)> = (0..n_streams)
-        .flat_map(|k| (0..rungs.len()).map(move |r| (k, r)))
+        .flat_map(|k| which.iter().map(move |&r| (k, r)))
         .collect();
     let fitted: Vec<alloc::RdModel> = jobs
         .into_par_iter()
@@ -463,7 +485,7 @@ fn trial_models<'a>(
             Ok(alloc::RdModel::fit(points[0], points[1]))
         })
         .collect::<Result<_, CodecError>>()?;
-    Ok(fitted.chunks(rungs.len()).map(<[_]>::to_vec).collect())
+    Ok(fitted.chunks(which.len()).map(<[_]>::to_vec).collect())
 }
 
 /// One decoded frame of a package.

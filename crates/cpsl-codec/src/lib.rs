@@ -571,6 +571,17 @@ pub fn decode_segment(pkg: &Package, i: usize) -> Result<Vec<DecodedFrame>, Code
         .collect()
 }
 
+/// The bits a segment of `n` frames gets from a total budget of `bps` bits per second after
+/// `done` frames that took `spent` bits: its own share, corrected by what the earlier
+/// segments spent above or below theirs (a bit reservoir), by at most half the share either
+/// way. A short segment cut by a refresh costs more than its share (a whole key frame); the
+/// following ones pay it back, so that the package keeps to the budget.
+pub fn segment_budget(bps: f64, fps: f64, done: u32, spent: f64, n: usize) -> f64 {
+    let share = bps * n as f64 / fps;
+    let balance = bps * done as f64 / fps - spent;
+    (share + balance).clamp(0.5 * share, 1.5 * share)
+}
+
 /// Writes a package: segments are coded into a hidden staging folder beside the output, and
 /// the finished package is moved into place by [`PackageWriter::finish`]. Dropping an
 /// unfinished writer removes the staging folder, so an interrupted run never leaves a
@@ -584,6 +595,8 @@ pub struct PackageWriter {
     opts: CodingOptions,
     segments: Vec<Segment>,
     frames: u32,
+    /// Bits written so far (layer and side streams).
+    spent: f64,
     done: bool,
 }
 
@@ -625,6 +638,7 @@ impl PackageWriter {
             opts,
             segments: Vec::new(),
             frames: 0,
+            spent: 0.0,
             done: false,
         })
     }
@@ -640,8 +654,20 @@ impl PackageWriter {
                 ),
             });
         }
-        let (seg, report) = encode_segment(&self.stage, self.segments.len(), frames, &self.opts)?;
+        let opts = match self.opts.rate {
+            RateControl::Budget(bps) => {
+                let fps = self.opts.fps;
+                let bits = segment_budget(bps, fps, self.frames, self.spent, frames.len());
+                CodingOptions {
+                    rate: RateControl::Budget(bits * fps / frames.len() as f64),
+                    ..self.opts
+                }
+            }
+            RateControl::Quality(_) => self.opts,
+        };
+        let (seg, report) = encode_segment(&self.stage, self.segments.len(), frames, &opts)?;
         self.frames += seg.frames;
+        self.spent += report.bits;
         self.segments.push(seg);
         Ok(report)
     }
@@ -697,5 +723,24 @@ impl Drop for PackageWriter {
         if !self.done {
             let _ = std::fs::remove_dir_all(&self.stage);
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::segment_budget;
+
+    #[test]
+    fn the_reservoir_repays_overspending_and_spends_savings_within_half_a_share() {
+        // 1 Mbit/s, 30 fps, segments of 30 frames: a share of 1 Mbit.
+        assert_eq!(segment_budget(1e6, 30.0, 0, 0.0, 30), 1e6);
+        // 0.2 Mbit over after one segment: the next gets 0.8; far over: never below half.
+        assert!((segment_budget(1e6, 30.0, 30, 1.2e6, 30) - 0.8e6).abs() < 1e-6);
+        assert_eq!(segment_budget(1e6, 30.0, 30, 5e6, 30), 0.5e6);
+        // Savings are spent, up to one and a half shares.
+        assert!((segment_budget(1e6, 30.0, 60, 1.7e6, 30) - 1.3e6).abs() < 1e-6);
+        assert_eq!(segment_budget(1e6, 30.0, 90, 0.0, 30), 1.5e6);
+        // A one-frame segment's share is a thirtieth.
+        assert!((segment_budget(1e6, 30.0, 0, 0.0, 1) - 1e6 / 30.0).abs() < 1e-6);
     }
 }

@@ -304,6 +304,12 @@ impl PackageManifest {
             if let Some(t) = s.streams.iter().find(|t| ![1, 2, 4].contains(&t.scale)) {
                 return Err(field(at("scale"), format!("{} is not 1, 2 or 4", t.scale)));
             }
+            if self.version < 2 && s.streams.iter().any(|t| t.scale != 1) {
+                return Err(field(
+                    at("scale"),
+                    "version 1 packages have no downscaled streams",
+                ));
+            }
             let files = s.streams.iter().map(|t| &t.file).chain([&s.side]);
             for f in files {
                 if let Some(reason) = unsafe_path(&f.path) {

@@ -155,6 +155,13 @@ fn manifest_round_trips_and_checks_itself() {
         PackageManifest::parse(&v1).unwrap().segments[0].streams[0].scale,
         1
     );
+    // A version 1 manifest cannot carry a downscaled stream.
+    let mut m6 = manifest();
+    m6.version = 1;
+    let e = PackageManifest::parse(&m6.to_json())
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("version 1"), "{e}");
     let mut m3 = manifest();
     m3.version = 99;
     assert!(matches!(

@@ -129,9 +129,12 @@ try {
       );
     }
 
-    await page.goto(`${server.url}/?src=/files/set/variants.json`);
+    // Paused until the first segment's variant is read: playing, a loaded machine could reach
+    // the second segment (frame 4) before the test looks.
+    await page.goto(`${server.url}/?src=/files/set/variants.json&paused=1`);
     await playerReady(page);
     const first = await page.evaluate(() => window.cpsl.player.variant);
+    await page.evaluate(() => (window.cpsl.player.playing = true));
     await page.waitForFunction(() => window.cpsl.error || window.cpsl.player.frame >= 17, null, { timeout: 60000 });
     const later = await page.evaluate(() => ({ v: window.cpsl.player.variant, e: window.cpsl.error }));
     if (later.e) throw new Error(`player: ${later.e}`);

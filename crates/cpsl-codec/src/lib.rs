@@ -26,6 +26,7 @@ use cpsl_package::{
 };
 use rayon::prelude::*;
 use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
 use thiserror::Error;
 
 /// Errors of coding layer streams.
@@ -268,20 +269,25 @@ pub fn encode_segment(
         RateControl::Budget(_) => scale::rungs(w, h),
         RateControl::Quality(_) => vec![1],
     };
-    let scaled: Vec<Vec<Vec<PremulImage>>> = rungs[1..]
-        .iter()
-        .map(|&f| {
-            pictures
-                .iter()
-                .map(|p| p.par_iter().map(|i| scale::downscale(i, f)).collect())
-                .collect()
-        })
-        .collect();
+    // The smaller pictures, made when the smaller rungs are first fitted (see below: before
+    // any parallel job can ask for them, so that no job waits on its own initialisation).
+    let scaled: OnceLock<Vec<Vec<Vec<PremulImage>>>> = OnceLock::new();
     let pics = |k: usize, r: usize| -> Vec<&PremulImage> {
-        match r {
-            0 => pictures[k].clone(),
-            _ => scaled[r - 1][k].iter().collect(),
+        if r == 0 {
+            return pictures[k].clone();
         }
+        let scaled = scaled.get_or_init(|| {
+            rungs[1..]
+                .iter()
+                .map(|&f| {
+                    pictures
+                        .iter()
+                        .map(|p| p.par_iter().map(|i| scale::downscale(i, f)).collect())
+                        .collect()
+                })
+                .collect()
+        });
+        scaled[r - 1][k].iter().collect()
     };
     let encode_one = |k: usize, r: usize, q: f32, path: &Path| {
         encode_stream(path, &pics(k, r), opts.codec, q, opts.fps)
@@ -319,6 +325,7 @@ pub fn encode_segment(
             let upper = trial_qualities(opts.codec)[1];
             if rungs.len() > 1 && !(a.feasible && a.quality.iter().all(|&q| q <= upper)) {
                 let lower: Vec<usize> = (1..rungs.len()).collect();
+                pics(0, 1);
                 for (m, l) in models.iter_mut().zip(fit(&lower)?) {
                     m.extend(l);
                 }

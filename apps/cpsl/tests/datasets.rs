@@ -33,6 +33,17 @@ fn psnr(prepared: &PreparedLayers, t: &Target, pose: &Pose, cam: &Camera) -> f64
     psnr_masked(&img, &t.rgb, &covered).unwrap()
 }
 
+/// `../shared/data` beside the checkout, or `None` (saying so) where it is missing.
+fn data_root() -> Option<PathBuf> {
+    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data");
+    if root.is_dir() {
+        Some(root)
+    } else {
+        eprintln!("skipped: {} not found", root.display());
+        None
+    }
+}
+
 fn layers(ds: &Dataset, k: usize) -> PreparedLayers {
     let config = SliceConfig {
         layers: k,
@@ -43,11 +54,9 @@ fn layers(ds: &Dataset, k: usize) -> PreparedLayers {
 
 #[test]
 fn loader_geometry_reproduces_the_real_views() {
-    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data");
-    if !root.is_dir() {
-        eprintln!("skipped: {} not found", root.display());
+    let Some(root) = data_root() else {
         return;
-    }
+    };
     for name in NAMES {
         let ds = load(&root, name).unwrap();
         if ds.centre_depth.is_some() {
@@ -92,11 +101,9 @@ fn loader_geometry_reproduces_the_real_views() {
 /// target puts it; the scene centre (where the optical axes meet) is about 0.57 m ahead.
 #[test]
 fn temple_ring_poses_and_scene_centre() {
-    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data");
-    if !root.is_dir() {
-        eprintln!("skipped: {} not found", root.display());
+    let Some(root) = data_root() else {
         return;
-    }
+    };
     let ds = load(&root, "middlebury-mview/templeSparseRing").unwrap();
     let z = ds.centre_depth.expect("scene centre depth");
     assert!((z - 0.5668).abs() < 1e-3, "centre depth {z}");
@@ -131,11 +138,9 @@ fn temple_ring_poses_and_scene_centre() {
 /// flip or a transposed rotation fails this), and the figurine is in front of every camera.
 #[test]
 fn fox_poses_carry_one_frame_onto_the_next() {
-    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data");
-    if !root.is_dir() {
-        eprintln!("skipped: {} not found", root.display());
+    let Some(root) = data_root() else {
         return;
-    }
+    };
     let video = cpsl_eval::datasets::fox(&root).unwrap();
     assert_eq!(video.files.len(), 50);
     assert!(video.centre_depth.iter().all(|&z| z > 0.0));

@@ -479,11 +479,7 @@ fn trial_models<'a>(
                         path: path.clone(),
                         reason: format!("{} pictures, {} expected", decoded.len(), frames.len()),
                     })?;
-                    let dec = yuv::unstack(p, sw, sh);
-                    let dec = match rungs[r] {
-                        1 => dec,
-                        f => scale::upscale(&dec, w, h, f),
-                    };
+                    let dec = scale::upscale(yuv::unstack(p, sw, sh), w, h, rungs[r]);
                     e += alloc::distortion(pictures[k][fi], &dec, &vis[k][j]);
                 }
                 let norm = 4.0 * (w * h) as f64 * sampled.len() as f64;
@@ -540,10 +536,7 @@ pub fn decode_segment(pkg: &Package, i: usize) -> Result<Vec<DecodedFrame>, Code
                 });
             }
             Ok(d.into_iter()
-                .map(|p| match s.scale {
-                    1 => Some(p),
-                    f => Some(scale::upscale(&p, cam.width, cam.height, f)),
-                })
+                .map(|p| Some(scale::upscale(p, cam.width, cam.height, s.scale)))
                 .collect())
         })
         .collect::<Result<_, _>>()?;

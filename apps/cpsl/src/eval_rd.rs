@@ -362,6 +362,7 @@ fn cpsl_layers(clip: &Clip, a: &EvalRdArgs, bars: &Bars) -> Result<Segments> {
     });
     let mut segments: Segments = Vec::new();
     for (i, (rgb, depth)) in clip.rgb.iter().zip(&clip.depth).enumerate() {
+        layerer.set_frames_left(Some(clip.rgb.len() - i));
         let z = layerer.next_is_intra().then_some(depth.as_slice());
         let f = layerer.push(rgb, z).with_context(|| format!("frame {i}"))?;
         if f.refresh.is_some() {

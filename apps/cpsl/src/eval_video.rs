@@ -381,10 +381,13 @@ fn layer_clip(
     let mut cfg = *cfg;
     cfg.cues.allow_missing_depth = true;
     let mut v = VideoLayerer::new(c.camera, cfg, g)?;
+    let n = c.frames.len();
     c.frames
         .iter()
         .zip(&c.depth)
-        .map(|(rgb, z)| {
+        .enumerate()
+        .map(|(i, (rgb, z))| {
+            v.set_frames_left(Some(n - i));
             let f = v.push(rgb, Some(z))?;
             Ok((f.set, Some(f.edc), f.refresh.is_some()))
         })

@@ -213,6 +213,7 @@ pub fn layer_video(
             break;
         };
         let t = Instant::now();
+        layerer.set_frames_left(total.map(|n| n.saturating_sub(count)));
         let intra = layerer.next_is_intra();
         let z = if intra || how.depth_every_frame {
             Some(depth.depth(frame.index, &frame.rgb, info.width, info.height)?)

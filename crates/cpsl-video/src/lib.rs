@@ -31,7 +31,11 @@
 //! A refresh (new I-frame) happens when the GOP is full, or, with adaptive refresh, when the
 //! mean confidence falls below `refresh_confidence` or the crack rate rises above
 //! `refresh_crack` on `hysteresis` consecutive frames and at least `min_gap` frames after the
-//! last I-frame.
+//! last I-frame. When the caller says how many frames are left
+//! ([`VideoLayerer::set_frames_left`]), no refresh starts a group shorter than `min_gap` (or
+//! half of `gop`, if smaller) at the end of the clip: those last frames stay in the running
+//! group, which may then exceed `gop` by that much less one (a one-frame group costs nearly a
+//! whole I-frame's bits for one frame's worth of video).
 //!
 //! **Association**: at a refresh the new layers inherit the track ids of the propagated
 //! layers they overlap most (IoU at least `min_iou`), so a layer's identity
@@ -113,7 +117,8 @@ pub struct GopConfig {
     pub refresh_crack: f32,
     /// Consecutive frames a refresh condition must hold.
     pub hysteresis: usize,
-    /// Fewest frames between an I-frame and an adaptive refresh.
+    /// Fewest frames between an I-frame and an adaptive refresh, and the shortest group a
+    /// refresh may start at the end of a clip of known length (half of `gop` if that is less).
     pub min_gap: usize,
     /// Least IoU for a new layer to inherit a track.
     pub min_iou: f32,
@@ -265,6 +270,8 @@ pub struct VideoLayerer {
     state: Option<State>,
     next_track: u32,
     frames: usize,
+    /// Frames still to come, the next one included, when the caller knows.
+    left: Option<usize>,
 }
 
 impl VideoLayerer {
@@ -285,16 +292,36 @@ impl VideoLayerer {
             state: None,
             next_track: 0,
             frames: 0,
+            left: None,
         })
+    }
+
+    /// Tells the layerer how many frames are still to come, the next one included (`None`:
+    /// unknown, the default). With it, a refresh that would start a short group at the end of
+    /// the clip is not made (see the crate documentation). A wrong count only moves refreshes:
+    /// `Some(0)` counts as unknown, so frames beyond the count go on as usual.
+    pub fn set_frames_left(&mut self, left: Option<usize>) {
+        self.left = left;
+    }
+
+    /// Why the next frame is an I-frame, or `None` for a P-frame.
+    fn refresh_due(&self) -> Option<Refresh> {
+        let Some(s) = &self.state else {
+            return Some(Refresh::First);
+        };
+        let due = if s.since_i + 1 >= self.gop.gop {
+            Some(Refresh::Gop)
+        } else {
+            s.pending
+        };
+        let shortest = self.gop.min_gap.min(self.gop.gop / 2);
+        due.filter(|_| self.left.is_none_or(|n| n == 0 || n >= shortest))
     }
 
     /// Whether the next frame will be an I-frame (callers may skip depth estimation when it
     /// is not).
     pub fn next_is_intra(&self) -> bool {
-        match &self.state {
-            None => true,
-            Some(s) => s.since_i + 1 >= self.gop.gop || s.pending.is_some(),
-        }
+        self.refresh_due().is_some()
     }
 
     /// Layers the next frame: `rgb` 3 bytes per pixel, `depth` its z-depth (required on
@@ -342,11 +369,7 @@ impl VideoLayerer {
         if motion.is_some() {
             timings.push(("motion", ms(t)));
         }
-        let refresh = match &self.state {
-            None => Some(Refresh::First),
-            Some(s) if s.since_i + 1 >= self.gop.gop => Some(Refresh::Gop),
-            Some(s) => s.pending,
-        };
+        let refresh = self.refresh_due();
         let frame = match refresh {
             Some(reason) => {
                 let depth = depth.ok_or(VideoError::NeedDepth { frame: index })?;
@@ -355,6 +378,7 @@ impl VideoLayerer {
             None => self.predicted(rgb, depth, grey, motion.expect("P-frame"), timings)?,
         };
         self.frames += 1;
+        self.left = self.left.map(|n| n.saturating_sub(1));
         Ok(frame)
     }
 

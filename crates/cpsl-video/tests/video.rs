@@ -191,6 +191,41 @@ fn a_scene_cut_triggers_a_refresh_once_with_hysteresis() {
 }
 
 #[test]
+fn no_short_group_at_the_end_of_a_clip_of_known_length() {
+    let c = clip(9);
+    let n = c.rgb.len();
+    let intra = |gop: usize, left: &dyn Fn(usize) -> Option<usize>| -> Vec<usize> {
+        let cfg = GopConfig {
+            gop,
+            min_gap: 2,
+            adaptive_refresh: false,
+            ..GopConfig::default()
+        };
+        let mut v = VideoLayerer::new(c.scene.camera, LayeringConfig::default(), cfg).unwrap();
+        (0..n)
+            .filter(|&t| {
+                v.set_frames_left(left(t));
+                let told = v.next_is_intra();
+                let z = told.then_some(c.depth[t].as_slice());
+                let f = v.push(&c.rgb[t], z).unwrap();
+                assert_eq!(told, f.refresh.is_some(), "frame {t}");
+                told
+            })
+            .collect()
+    };
+    let known = |t: usize| Some(n - t);
+    // GOP 4 over 9 frames: the last group would be frame 8 alone.
+    assert_eq!(intra(4, &|_| None), [0, 4, 8]);
+    assert_eq!(intra(4, &known), [0, 4], "frame 8 joins the group before");
+    // A tail of half a GOP is long enough; every frame an I-frame stays so.
+    assert_eq!(intra(3, &known), [0, 3, 6]);
+    assert_eq!(intra(1, &known), (0..n).collect::<Vec<_>>());
+    // Four frames more than announced: the refresh that the count held back comes as soon
+    // as the count is spent.
+    assert_eq!(intra(4, &|t| Some((n - t).saturating_sub(4))), [0, 5]);
+}
+
+#[test]
 fn clear_errors() {
     let c = clip(1);
     let mut v = VideoLayerer::new(

@@ -51,6 +51,10 @@ pub struct EvalVideoArgs {
     /// Skip the flicker score (it needs the LPIPS model of scripts/setup-models.sh).
     #[arg(long)]
     pub no_lpips: bool,
+    /// Give the I/P methods the clip's true motion instead of estimating it (only the
+    /// synthetic clip has one): what propagation scores with perfect motion.
+    #[arg(long)]
+    pub true_motion: bool,
     /// Write the results as JSON.
     #[arg(long)]
     pub json: Option<PathBuf>,
@@ -69,6 +73,8 @@ struct ClipData {
     truth: Option<Vec<Vec<u8>>>,
     /// The true motion of the input, where known.
     motion: Option<Motion>,
+    /// The true object partition of every frame, where known.
+    objects: Option<Vec<Vec<u8>>>,
 }
 
 /// One row of the table.
@@ -126,6 +132,10 @@ fn synthetic() -> ClipData {
             )
         })
         .unzip();
+    let objects = views
+        .iter()
+        .map(|v| v.object.iter().map(|&o| o.min(255) as u8).collect())
+        .collect();
     let (frames, depth): (Vec<Vec<u8>>, Vec<Vec<f32>>) =
         views.into_iter().map(|v| (v.rgb, v.depth)).unzip();
     ClipData {
@@ -142,6 +152,7 @@ fn synthetic() -> ClipData {
             back,
             valid,
         }),
+        objects: Some(objects),
     }
 }
 
@@ -209,6 +220,7 @@ fn hci_row(data: &Path) -> Result<ClipData> {
         novel,
         truth: Some(truth),
         motion: None,
+        objects: None,
     })
 }
 
@@ -255,6 +267,7 @@ fn estimated(
         depth_name,
         truth: None,
         motion: None,
+        objects: None,
     })
 }
 
@@ -327,6 +340,7 @@ fn fox(data: &Path) -> Result<ClipData> {
         depth: f.depth,
         depth_name: f.depth_name,
         motion: None,
+        objects: None,
     })
 }
 
@@ -354,6 +368,7 @@ fn layer_clip(
     method: &str,
     cfg: &LayeringConfig,
     gop: usize,
+    true_motion: Option<&Motion>,
 ) -> Result<Vec<(LayerSet, Option<cpsl_core::Edc>, bool)>> {
     if method.starts_with("depth-slice") {
         let sc = SliceConfig {
@@ -388,7 +403,8 @@ fn layer_clip(
         .enumerate()
         .map(|(i, (rgb, z))| {
             v.set_frames_left(Some(n - i));
-            let f = v.push(rgb, Some(z))?;
+            let given = true_motion.filter(|_| i > 0).map(|m| m.back[i - 1].clone());
+            let f = v.push_with_motion(rgb, Some(z), given)?;
             Ok((f.set, Some(f.edc), f.refresh.is_some()))
         })
         .collect()
@@ -420,6 +436,10 @@ pub fn run(a: EvalVideoArgs) -> Result<()> {
         Clip::All => vec![Clip::Synthetic, Clip::HciRow, Clip::Fox, Clip::Kitti],
         c => vec![c],
     };
+    anyhow::ensure!(
+        !a.true_motion || clips == [Clip::Synthetic],
+        "--true-motion needs the synthetic clip: no other clip has a true motion"
+    );
     let mut lpips = if a.no_lpips {
         None
     } else {
@@ -451,13 +471,14 @@ pub fn run(a: EvalVideoArgs) -> Result<()> {
             Some(m) => m.clone(),
             None => Motion::estimate(&c.frames, w, h),
         };
+        let given = c.motion.as_ref().filter(|_| a.true_motion);
         // Output frames live at the novel viewpoint: their motion is the truth's where known.
         let (nw, nh) = (c.novel[0].1.width as usize, c.novel[0].1.height as usize);
         let reference = c.truth.clone().unwrap_or_else(|| c.frames.clone());
         let out_motion = Motion::estimate(&reference, nw, nh);
         let first = rows.len();
         for method in METHODS {
-            let sets = layer_clip(&c, method, &cfg, a.gop)?;
+            let sets = layer_clip(&c, method, &cfg, a.gop, given)?;
             let owners: Vec<Vec<u8>> = sets.iter().map(|s| alpha_owner(&s.0)).collect();
             let bv = boundary_variance(&owners, &input_motion);
             let renders: Vec<(Vec<u8>, Vec<bool>)> = sets
@@ -539,6 +560,15 @@ pub fn run(a: EvalVideoArgs) -> Result<()> {
                 row.warping_error,
                 opt(row.flicker, 4),
                 opt(row.psnr, 2),
+            );
+        }
+        if let Some(objects) = &c.objects {
+            println!(
+                "{:<10} {:<36} {:>6} {:>9.3}   (exact object contours moving with the true motion)",
+                c.name,
+                "true object partition",
+                "-",
+                boundary_variance(objects, &input_motion)
             );
         }
     }

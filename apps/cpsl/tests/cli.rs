@@ -150,6 +150,10 @@ fn clear_errors_and_nothing_written() {
         "cannot serve",
     );
     fails(&["bench", "serve", s(d.path())], "no package under");
+    fails(
+        &["eval-video", "kitti", "--true-motion"],
+        "--true-motion needs the synthetic clip",
+    );
     // A variant set goes into a folder of its own: anything else there is not replaced.
     let taken = d.path().join("taken");
     std::fs::create_dir(&taken).unwrap();

@@ -6,6 +6,7 @@ use crate::layer::open_depth_model;
 use anyhow::{Context, Result};
 use clap::{Args, ValueEnum};
 use cpsl_core::{Camera, DepthSource, LayerSet, Limits, Pose, PremulImage, Vec3};
+use cpsl_eval::datasets::Distortion;
 use cpsl_eval::metrics::psnr_masked;
 use cpsl_eval::temporal::{alpha_owner, boundary_variance, f_ssim, flicker, warping_error, Motion};
 use cpsl_flow::Flow;
@@ -227,8 +228,14 @@ fn hci_row(data: &Path) -> Result<ClipData> {
 /// Frames (RGB), their depth maps and the depth's source.
 type Estimated = (Vec<Vec<u8>>, Vec<Vec<f32>>, String);
 
-/// The frames of `files` downscaled by `scale` and their FastDepth depth.
-fn estimate_frames(files: &[PathBuf], camera: Camera, scale: usize) -> Result<Estimated> {
+/// The frames of `files` downscaled by `scale` (and undistorted with `lens`, if any) and their
+/// FastDepth depth.
+fn estimate_frames(
+    files: &[PathBuf],
+    camera: Camera,
+    scale: usize,
+    lens: Option<&Distortion>,
+) -> Result<Estimated> {
     let mut model = fastdepth()?;
     let (mut frames, mut depth) = (vec![], vec![]);
     for f in files {
@@ -240,6 +247,10 @@ fn estimate_frames(files: &[PathBuf], camera: Camera, scale: usize) -> Result<Es
             img.height as usize,
             img.width as usize / scale,
         );
+        let rgb = match lens {
+            Some(l) => l.undistort_rgb(&rgb, &camera),
+            None => rgb,
+        };
         let z = model.depth(&rgb, camera.width, camera.height)?;
         frames.push(rgb);
         depth.push(z);
@@ -255,7 +266,7 @@ fn estimated(
     camera: Camera,
     scale: usize,
 ) -> Result<ClipData> {
-    let (frames, depth, depth_name) = estimate_frames(&files, camera, scale)?;
+    let (frames, depth, depth_name) = estimate_frames(&files, camera, scale, None)?;
     let median = cpsl_eval::datasets::median(&depth[0]).unwrap_or(1.0) as f64;
     let pose = Pose::from_translation(Vec3::new(0.03 * median, 0.0, 0.0));
     Ok(ClipData {
@@ -271,9 +282,9 @@ fn estimated(
     })
 }
 
-/// The fox downscaled by `scale`: frames, FastDepth depth with one scale for the clip (the
-/// median over the frames of the poses' scene-centre depth over the estimate's median, so
-/// that depth is in the poses' unit; missing values filled) and the poses.
+/// The fox downscaled by `scale` and undistorted: frames, FastDepth depth with one scale for
+/// the clip (the median over the frames of the poses' scene-centre depth over the estimate's
+/// median, so that depth is in the poses' unit; missing values filled) and the poses.
 pub(crate) struct Fox {
     pub video: cpsl_eval::datasets::PosedVideo,
     pub camera: Camera,
@@ -285,7 +296,8 @@ pub(crate) struct Fox {
 pub(crate) fn load_fox(data: &Path, scale: u32) -> Result<Fox> {
     let video = cpsl_eval::datasets::fox(data)?;
     let camera = video.camera.scaled(1.0 / scale as f64);
-    let (frames, mut depth, name) = estimate_frames(&video.files, camera, scale as usize)?;
+    let (frames, mut depth, name) =
+        estimate_frames(&video.files, camera, scale as usize, Some(&video.lens))?;
     let ratios: Vec<f32> = depth
         .iter()
         .zip(&video.centre_depth)

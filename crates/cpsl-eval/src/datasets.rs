@@ -313,9 +313,11 @@ pub fn median(v: &[f32]) -> Option<f32> {
 pub struct PosedVideo {
     /// Frame files in time order.
     pub files: Vec<PathBuf>,
-    /// The camera at full resolution (a pinhole: lens distortion, which the frames keep, is
-    /// ignored).
+    /// The camera at full resolution, a pinhole once the frames are undistorted with
+    /// [`PosedVideo::lens`].
     pub camera: Camera,
+    /// The lens distortion of the frames as filmed.
+    pub lens: Distortion,
     /// Per frame: the camera in world coordinates (`X_world = R X_camera + t`, x right, y down,
     /// z forward), in the poses' arbitrary unit.
     pub poses: Vec<Pose>,
@@ -334,6 +336,62 @@ impl PosedVideo {
             rotation: rt * b.rotation,
             translation: rt * (b.translation - a.translation),
         }
+    }
+}
+
+/// Lens distortion in the OpenCV / COLMAP `OPENCV` model: normalised image coordinates
+/// `(x, y)` are filmed at `x (1 + k1 r^2 + k2 r^4) + 2 p1 x y + p2 (r^2 + 2 x^2)` and
+/// `y (1 + k1 r^2 + k2 r^4) + p1 (r^2 + 2 y^2) + 2 p2 x y`, `r^2 = x^2 + y^2`.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct Distortion {
+    /// Radial coefficients.
+    pub k1: f64,
+    /// Radial coefficient of `r^4`.
+    pub k2: f64,
+    /// Tangential coefficients.
+    pub p1: f64,
+    /// Second tangential coefficient.
+    pub p2: f64,
+}
+
+impl Distortion {
+    /// Where the undistorted normalised point `(x, y)` was filmed.
+    pub fn distort(&self, x: f64, y: f64) -> (f64, f64) {
+        let r2 = x * x + y * y;
+        let radial = 1.0 + self.k1 * r2 + self.k2 * r2 * r2;
+        (
+            x * radial + 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x),
+            y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y,
+        )
+    }
+
+    /// An RGB image (3 bytes per pixel) filmed through this lens by `camera` (at any
+    /// resolution: the model works on normalised coordinates), resampled bilinearly to what
+    /// the pinhole `camera` sees; pixels whose source lies outside take the nearest edge.
+    ///
+    /// # Panics
+    /// If `rgb` does not hold `camera`'s pixels.
+    pub fn undistort_rgb(&self, rgb: &[u8], camera: &Camera) -> Vec<u8> {
+        let (w, h) = (camera.width as usize, camera.height as usize);
+        assert_eq!(rgb.len(), w * h * 3, "undistort_rgb: image size");
+        let mut out = vec![0u8; w * h * 3];
+        for (p, px) in out.chunks_exact_mut(3).enumerate() {
+            let x = ((p % w) as f64 - camera.cx) / camera.fx;
+            let y = ((p / w) as f64 - camera.cy) / camera.fy;
+            let (dx, dy) = self.distort(x, y);
+            let sx = (dx * camera.fx + camera.cx).clamp(0.0, (w - 1) as f64);
+            let sy = (dy * camera.fy + camera.cy).clamp(0.0, (h - 1) as f64);
+            let (x0, y0) = (sx.floor() as usize, sy.floor() as usize);
+            let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
+            let (fx, fy) = (sx - x0 as f64, sy - y0 as f64);
+            for (c, v) in px.iter_mut().enumerate() {
+                let at = |x: usize, y: usize| rgb[(y * w + x) * 3 + c] as f64;
+                let top = at(x0, y0) * (1.0 - fx) + at(x1, y0) * fx;
+                let bottom = at(x0, y1) * (1.0 - fx) + at(x1, y1) * fx;
+                *v = (top * (1.0 - fy) + bottom * fy).round() as u8;
+            }
+        }
+        out
     }
 }
 
@@ -358,6 +416,20 @@ pub fn fox(root: &Path) -> Result<PosedVideo, DatasetError> {
         fy: num("fl_y")?,
         cx: num("cx")?,
         cy: num("cy")?,
+    };
+    // Distortion terms left out are zero.
+    let coef = |key: &str| match &json[key] {
+        serde_json::Value::Null => Ok(0.0),
+        v => v
+            .as_f64()
+            .filter(|v| v.is_finite())
+            .ok_or_else(|| format(&path, format!("bad '{key}'"))),
+    };
+    let lens = Distortion {
+        k1: coef("k1")?,
+        k2: coef("k2")?,
+        p1: coef("p1")?,
+        p2: coef("p2")?,
     };
     let frames = json["frames"]
         .as_array()
@@ -415,6 +487,7 @@ pub fn fox(root: &Path) -> Result<PosedVideo, DatasetError> {
     Ok(PosedVideo {
         files,
         camera,
+        lens,
         poses,
         centre_depth,
     })
@@ -510,4 +583,44 @@ fn temple(root: &Path, scene: &str, name: &str) -> Result<Dataset, DatasetError>
         centre_depth: Some((*r0 * centre + *t0).z() as f32),
         targets,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn undistortion_reads_where_the_lens_put_each_point() {
+        let camera = Camera {
+            width: 64,
+            height: 48,
+            fx: 50.0,
+            fy: 50.0,
+            cx: 31.5,
+            cy: 23.5,
+        };
+        // A ramp along x: the value at pixel x is 3 x, so a pixel's output tells where it read.
+        let rgb: Vec<u8> = (0..64 * 48).flat_map(|p| [(p % 64 * 3) as u8; 3]).collect();
+        assert_eq!(Distortion::default().undistort_rgb(&rgb, &camera), rgb);
+        let lens = Distortion {
+            k1: 0.1,
+            k2: -0.05,
+            ..Distortion::default()
+        };
+        let out = lens.undistort_rgb(&rgb, &camera);
+        let row = 23 * 64;
+        for x in [5usize, 20, 31, 45, 60] {
+            let n = (x as f64 - camera.cx) / camera.fx;
+            let (dx, _) = lens.distort(n, (23.0 - camera.cy) / camera.fy);
+            let read = (dx * camera.fx + camera.cx).clamp(0.0, 63.0);
+            let got = out[(row + x) * 3] as f64 / 3.0;
+            assert!(
+                (got - read).abs() < 0.2,
+                "x {x}: read {got}, lens says {read}"
+            );
+        }
+        // k1 > 0 dominates: the sides read from further out.
+        assert!(out[(row + 5) * 3] < rgb[(row + 5) * 3]);
+        assert!(out[(row + 60) * 3] > rgb[(row + 60) * 3]);
+    }
 }

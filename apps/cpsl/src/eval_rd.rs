@@ -5,8 +5,9 @@
 //! * **CPSL**: the video layered with I/P propagation (the clip's depth on I-frames), coded as a
 //!   package under a total budget (per-layer allocation), decoded and rendered with the
 //!   Dynamic Pixel Strip.
-//! * **DIBR streaming**: colour over 8-bit quantised inverse depth in one stream per frame,
-//!   rendered by forward warping with push-pull hole filling.
+//! * **DIBR streaming**: colour over quantised inverse depth in one stream, rendered by forward
+//!   warping with push-pull hole filling; twice: 8-bit depth in an 8-bit stream (`dibr`) and
+//!   16-bit depth in a 10-bit stream (`dibr-16`, the 877 levels of 10-bit limited range).
 //! * **MPI**: a uniform multiplane image (planes fixed over the clip, uniform in inverse depth,
 //!   hard alpha), every plane a colour-over-alpha stream at one quality.
 //!
@@ -17,6 +18,7 @@ use crate::encode::{parse_bitrate, CodecArg};
 use crate::progress::Bars;
 use anyhow::{Context, Result};
 use clap::{Args, ValueEnum};
+use cpsl_codec::yuv::Yuv420;
 use cpsl_codec::{CodingOptions, PackageWriter, RateControl, SegmentFrame};
 use cpsl_core::{Camera, Edc, Layer, LayerSet, Limits, Pose, PremulImage, Progress, ProgressEvent};
 use cpsl_eval::baselines::dibr;
@@ -150,6 +152,7 @@ fn ratio(base: &[Point], psnr: f64, rate: f64) -> Ratio {
 struct Summary {
     /// Per CPSL point: the baseline's bitrate at the same PSNR divided by CPSL's.
     dibr_rate_ratio: Vec<Ratio>,
+    dibr16_rate_ratio: Vec<Ratio>,
     mpi_rate_ratio: Vec<Ratio>,
     /// Uncompressed CPSL PSNR minus the best CPSL PSNR at no more than 3 Mbit/s.
     cpsl_gap_at_3m_db: Option<f64>,
@@ -663,56 +666,45 @@ pub fn run(a: EvalRdArgs) -> Result<()> {
     drop(segments);
     curves.push(cpsl);
 
-    // DIBR streaming: colour over quantised inverse depth.
+    // DIBR streaming: colour over quantised inverse depth, 8-bit in an 8-bit stream and
+    // 16-bit in a 10-bit stream.
     let (lo, hi) = inverse_range(&clip);
-    let quantise = |d: f32| {
-        ((1.0 / d as f64 - lo) / (hi - lo) * 255.0)
-            .round()
-            .clamp(0.0, 255.0) as u8
-    };
-    let dequantise = |g: u8| (1.0 / (lo + g as f64 / 255.0 * (hi - lo))) as f32;
+    let to_unit = |d: f32| ((1.0 / d as f64 - lo) / (hi - lo)).clamp(0.0, 1.0);
+    let from_unit = |c: f64| (1.0 / (lo + c * (hi - lo))) as f32;
     let cam = clip.camera;
     let (p, l) = score(&clip, &mut lpips, |f, pose| {
         Ok(dibr(&clip.rgb[f], &clip.depth[f], &cam, pose, &cam, true).rgb)
     })?;
-    let mut dibr_curve = Curve {
-        method: "dibr",
-        uncompressed: uncompressed(p, l),
-        points: Vec::new(),
-    };
-    let grey: Vec<Vec<u8>> = clip
-        .depth
-        .iter()
-        .map(|d| d.iter().map(|&z| quantise(z)).collect())
-        .collect();
-    for &q in &qualities {
-        let path = tmp.path().join("dibr.mp4");
-        let bytes = cpsl_codec::encode_pictures(
-            &path,
-            clip.rgb.len(),
-            &|i| cpsl_codec::yuv::stack_colour_grey(&clip.rgb[i], &grey[i], cam.width, cam.height),
-            codec,
-            q,
-            FPS,
-        )?;
-        let pictures = cpsl_codec::decode_pictures(&path, cam.width, cam.height)?;
-        anyhow::ensure!(pictures.len() == clip.rgb.len(), "DIBR stream lost frames");
-        let (p, l) = score(&clip, &mut lpips, |f, pose| {
-            let (rgb, g) =
-                cpsl_codec::yuv::unstack_colour_grey(&pictures[f], cam.width, cam.height);
-            let depth: Vec<f32> = g.into_iter().map(dequantise).collect();
-            Ok(dibr(&rgb, &depth, &cam, pose, &cam, true).rgb)
-        })?;
-        dibr_curve.points.push(Point {
-            setting: format!("crf {q}"),
-            bitrate: Some(bytes as f64 * 8.0 * FPS / clip.rgb.len() as f64),
-            psnr: p,
-            lpips: l,
-            proxy: None,
-        });
-        report(dibr_curve.method, dibr_curve.points.last().expect("pushed"));
+    let dibr_uncompressed = uncompressed(p, l);
+    for deep in [false, true] {
+        let mut curve = Curve {
+            method: if deep { "dibr-16" } else { "dibr" },
+            uncompressed: dibr_uncompressed.clone(),
+            points: Vec::new(),
+        };
+        for &q in &qualities {
+            let path = tmp.path().join("dibr.mp4");
+            let (bytes, decoded) = if deep {
+                dibr_stream::<u16>(&path, &clip, codec, q, &to_unit, &from_unit)?
+            } else {
+                dibr_stream::<u8>(&path, &clip, codec, q, &to_unit, &from_unit)?
+            };
+            anyhow::ensure!(decoded.len() == clip.rgb.len(), "DIBR stream lost frames");
+            let (p, l) = score(&clip, &mut lpips, |f, pose| {
+                let (rgb, depth) = &decoded[f];
+                Ok(dibr(rgb, depth, &cam, pose, &cam, true).rgb)
+            })?;
+            curve.points.push(Point {
+                setting: format!("crf {q}"),
+                bitrate: Some(bytes as f64 * 8.0 * FPS / clip.rgb.len() as f64),
+                psnr: p,
+                lpips: l,
+                proxy: None,
+            });
+            report(curve.method, curve.points.last().expect("pushed"));
+        }
+        curves.push(curve);
     }
-    curves.push(dibr_curve);
 
     // MPI.
     let planes = a.mpi_planes as usize;
@@ -784,6 +776,80 @@ fn uncompressed(psnr: f64, lpips: Option<f64>) -> Point {
     }
 }
 
+/// A grey sample of DIBR's depth: 8-bit in an 8-bit stream, 16-bit in a 10-bit one.
+trait Grey: cpsl_codec::Sample + Into<f64> {
+    /// The largest value.
+    const TOP: f64;
+    /// The sample nearest `v * TOP`.
+    fn from_unit(v: f64) -> Self;
+    /// Colour over grey in one picture.
+    fn stack(rgb: &[u8], grey: &[Self], width: u32, height: u32) -> Yuv420<Self>;
+    /// The colour and grey of a picture made by [`Grey::stack`].
+    fn unstack(p: &Yuv420<Self>, width: u32, height: u32) -> (Vec<u8>, Vec<Self>);
+}
+
+impl Grey for u8 {
+    const TOP: f64 = 255.0;
+    fn from_unit(v: f64) -> Self {
+        (v * Self::TOP).round() as u8
+    }
+    fn stack(rgb: &[u8], grey: &[u8], width: u32, height: u32) -> Yuv420 {
+        cpsl_codec::yuv::stack_colour_grey(rgb, grey, width, height)
+    }
+    fn unstack(p: &Yuv420, width: u32, height: u32) -> (Vec<u8>, Vec<u8>) {
+        cpsl_codec::yuv::unstack_colour_grey(p, width, height)
+    }
+}
+
+impl Grey for u16 {
+    const TOP: f64 = 65535.0;
+    fn from_unit(v: f64) -> Self {
+        (v * Self::TOP).round() as u16
+    }
+    fn stack(rgb: &[u8], grey: &[u16], width: u32, height: u32) -> Yuv420<u16> {
+        cpsl_codec::yuv::stack_colour_grey16(rgb, grey, width, height)
+    }
+    fn unstack(p: &Yuv420<u16>, width: u32, height: u32) -> (Vec<u8>, Vec<u16>) {
+        cpsl_codec::yuv::unstack_colour_grey16(p, width, height)
+    }
+}
+
+/// Colour over depth per frame.
+type ColourDepth = Vec<(Vec<u8>, Vec<f32>)>;
+
+/// DIBR's stream at quality `q`: the clip's colour over its depth coded (`to_unit`: depth to
+/// `[0, 1]`) in grey samples `T`, written to `path` and decoded (`from_unit`: back to depth).
+/// Returns the file size and the decoded frames.
+fn dibr_stream<T: Grey>(
+    path: &Path,
+    clip: &Clip,
+    codec: Codec,
+    q: f32,
+    to_unit: &dyn Fn(f32) -> f64,
+    from_unit: &dyn Fn(f64) -> f32,
+) -> Result<(u64, ColourDepth)> {
+    let (w, h) = (clip.camera.width, clip.camera.height);
+    let grey: Vec<Vec<T>> = clip
+        .depth
+        .iter()
+        .map(|d| d.iter().map(|&z| T::from_unit(to_unit(z))).collect())
+        .collect();
+    let picture = |i: usize| T::stack(&clip.rgb[i], &grey[i], w, h);
+    let bytes = cpsl_codec::encode_pictures(path, clip.rgb.len(), &picture, codec, q, FPS)?;
+    let decoded = cpsl_codec::decode_pictures::<T>(path, w, h)?
+        .iter()
+        .map(|p| {
+            let (rgb, g) = T::unstack(p, w, h);
+            let depth = g
+                .into_iter()
+                .map(|g| from_unit(g.into() / T::TOP))
+                .collect();
+            (rgb, depth)
+        })
+        .collect();
+    Ok((bytes, decoded))
+}
+
 fn report(method: &str, p: &Point) {
     eprintln!(
         "{method} {}: {:.0} kbit/s, {:.2} dB",
@@ -794,7 +860,13 @@ fn report(method: &str, p: &Point) {
 }
 
 fn summarise(curves: &[Curve]) -> Summary {
-    let [cpsl, dibr, mpi] = [&curves[0], &curves[1], &curves[2]];
+    let by = |m: &str| {
+        curves
+            .iter()
+            .find(|c| c.method == m)
+            .expect("every method runs")
+    };
+    let (cpsl, dibr, dibr16, mpi) = (by("cpsl"), by("dibr"), by("dibr-16"), by("mpi"));
     let ratios = |base: &Curve| -> Vec<Ratio> {
         cpsl.points
             .iter()
@@ -815,6 +887,7 @@ fn summarise(curves: &[Curve]) -> Summary {
         .unzip();
     Summary {
         dibr_rate_ratio: ratios(dibr),
+        dibr16_rate_ratio: ratios(dibr16),
         mpi_rate_ratio: ratios(mpi),
         cpsl_gap_at_3m_db: best_3m.map(|b| cpsl.uncompressed.psnr - b),
         proxy_lpips_spearman: spearman(&proxies, &lpips),
@@ -848,6 +921,10 @@ fn print_tables(clip: &str, codec: Codec, curves: &[Curve], s: &Summary) {
     println!(
         "bitrate of DIBR / CPSL at equal PSNR, per CPSL point: {}",
         ratios(&s.dibr_rate_ratio)
+    );
+    println!(
+        "bitrate of DIBR with 16-bit depth / CPSL at equal PSNR, per CPSL point: {}",
+        ratios(&s.dibr16_rate_ratio)
     );
     println!(
         "bitrate of MPI / CPSL at equal PSNR, per CPSL point: {}",

@@ -541,7 +541,7 @@ fn demo_end_to_end_small() {
     assert!(bits <= 2e6 * 1.1, "budget kept: {bits}");
 }
 
-/// `cpsl eval-rd` on a tiny clip: three curves, coded rates that follow the settings, and its
+/// `cpsl eval-rd` on a tiny clip: four curves, coded rates that follow the settings, and its
 /// errors.
 #[test]
 fn eval_rd_small() {
@@ -578,7 +578,7 @@ fn eval_rd_small() {
         .iter()
         .map(|c| c["method"].as_str().unwrap())
         .collect();
-    assert_eq!(names, ["cpsl", "dibr", "mpi"]);
+    assert_eq!(names, ["cpsl", "dibr", "dibr-16", "mpi"]);
     for c in curves {
         let p = c["points"].as_array().unwrap();
         assert_eq!(p.len(), 2, "{c}");
@@ -597,7 +597,9 @@ fn eval_rd_small() {
         assert!(psnr(hi) <= un + 0.5, "coding adds no quality: {c}");
         assert!(un > 15.0, "{c}");
     }
-    assert!(v["summary"]["dibr_rate_ratio"].is_array());
+    for r in ["dibr_rate_ratio", "dibr16_rate_ratio", "mpi_rate_ratio"] {
+        assert_eq!(v["summary"][r].as_array().map(Vec::len), Some(2), "{r}");
+    }
     let mut bad = base.to_vec();
     bad.extend(["--qualities", "99"]);
     let o = cpsl(&bad);

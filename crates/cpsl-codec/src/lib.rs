@@ -17,6 +17,7 @@ pub mod yuv;
 
 pub use stream::{
     decode_pictures, decode_stream, encode_pictures, encode_stream, has_encoder, quality_range,
+    Sample,
 };
 
 use cpsl_core::{Edc, Layer, LayerSet, Limits, PremulImage};

@@ -76,6 +76,51 @@ fn options(codec: Codec, crf: f32, frames: usize) -> ffmpeg::Dictionary<'static>
     o
 }
 
+/// A picture sample type and the pixel format that carries it: `u8` is 8-bit 4:2:0 (`yuv420p`),
+/// `u16` 10-bit 4:2:0 (`yuv420p10le`, values up to 1023).
+pub trait Sample: Copy + sealed::Sealed {
+    /// The FFmpeg pixel format.
+    #[doc(hidden)]
+    const FORMAT: ffmpeg::format::Pixel;
+    /// Writes `src` as the bytes of one row of that format.
+    #[doc(hidden)]
+    fn put(dst: &mut [u8], src: &[Self]);
+    /// Reads `n` samples of one row of that format.
+    #[doc(hidden)]
+    fn get(src: &[u8], n: usize) -> Vec<Self>;
+}
+
+mod sealed {
+    pub trait Sealed {}
+    impl Sealed for u8 {}
+    impl Sealed for u16 {}
+}
+
+impl Sample for u8 {
+    const FORMAT: ffmpeg::format::Pixel = ffmpeg::format::Pixel::YUV420P;
+    fn put(dst: &mut [u8], src: &[u8]) {
+        dst[..src.len()].copy_from_slice(src);
+    }
+    fn get(src: &[u8], n: usize) -> Vec<u8> {
+        src[..n].to_vec()
+    }
+}
+
+impl Sample for u16 {
+    const FORMAT: ffmpeg::format::Pixel = ffmpeg::format::Pixel::YUV420P10LE;
+    fn put(dst: &mut [u8], src: &[u16]) {
+        for (d, s) in dst.chunks_exact_mut(2).zip(src) {
+            d.copy_from_slice(&s.to_le_bytes());
+        }
+    }
+    fn get(src: &[u8], n: usize) -> Vec<u16> {
+        src[..2 * n]
+            .chunks_exact(2)
+            .map(|b| u16::from_le_bytes([b[0], b[1]]))
+            .collect()
+    }
+}
+
 fn ff(what: &'static str) -> impl Fn(ffmpeg::Error) -> CodecError {
     move |e| CodecError::Ffmpeg(format!("{what}: {e}"))
 }
@@ -101,11 +146,12 @@ pub fn encode_stream(
 }
 
 /// Encodes `count` pictures of the same even size, picture `i` made by `picture(i)`, at quality
-/// `crf` into the MP4 file `path`, tagged BT.709 limited range. Returns the file size in bytes.
-pub fn encode_pictures(
+/// `crf` into the MP4 file `path`, tagged BT.709 limited range, at the samples' bit depth.
+/// Returns the file size in bytes.
+pub fn encode_pictures<T: Sample>(
     path: &Path,
     count: usize,
-    picture: &dyn Fn(usize) -> Yuv420,
+    picture: &dyn Fn(usize) -> Yuv420<T>,
     codec: Codec,
     crf: f32,
     fps: f64,
@@ -130,7 +176,7 @@ pub fn encode_pictures(
     let rate = ffmpeg::Rational::from(fps);
     enc.set_width(pic.width as u32);
     enc.set_height(pic.height as u32);
-    enc.set_format(ffmpeg::format::Pixel::YUV420P);
+    enc.set_format(T::FORMAT);
     enc.set_time_base(rate.invert());
     enc.set_frame_rate(Some(rate));
     enc.set_gop(count as u32);
@@ -167,11 +213,7 @@ pub fn encode_pictures(
         }
         Ok(())
     };
-    let mut frame = ffmpeg::frame::Video::new(
-        ffmpeg::format::Pixel::YUV420P,
-        pic.width as u32,
-        pic.height as u32,
-    );
+    let mut frame = ffmpeg::frame::Video::new(T::FORMAT, pic.width as u32, pic.height as u32);
     frame.set_color_space(ffmpeg::color::Space::BT709);
     frame.set_color_range(ffmpeg::color::Range::MPEG);
     frame.set_color_primaries(ffmpeg::color::Primaries::BT709);
@@ -207,7 +249,7 @@ pub fn encode_pictures(
         })
 }
 
-fn fill_frame(frame: &mut ffmpeg::frame::Video, pic: &Yuv420) {
+fn fill_frame<T: Sample>(frame: &mut ffmpeg::frame::Video, pic: &Yuv420<T>) {
     let planes = [
         (&pic.y, pic.width, pic.height),
         (&pic.u, pic.width / 2, pic.height / 2),
@@ -217,19 +259,19 @@ fn fill_frame(frame: &mut ffmpeg::frame::Video, pic: &Yuv420) {
         let stride = frame.stride(i);
         let dst = frame.data_mut(i);
         for y in 0..h {
-            dst[y * stride..y * stride + w].copy_from_slice(&src[y * w..(y + 1) * w]);
+            T::put(&mut dst[y * stride..], &src[y * w..(y + 1) * w]);
         }
     }
 }
 
-fn read_frame(frame: &ffmpeg::frame::Video) -> Yuv420 {
+fn read_frame<T: Sample>(frame: &ffmpeg::frame::Video) -> Yuv420<T> {
     let (w, h) = (frame.width() as usize, frame.height() as usize);
     let plane = |i: usize, pw: usize, ph: usize| {
         let stride = frame.stride(i);
         let d = frame.data(i);
         let mut out = Vec::with_capacity(pw * ph);
         for y in 0..ph {
-            out.extend_from_slice(&d[y * stride..y * stride + pw]);
+            out.extend(T::get(&d[y * stride..], pw));
         }
         out
     };
@@ -252,8 +294,12 @@ pub fn decode_stream(path: &Path, width: u32, height: u32) -> Result<Vec<PremulI
 }
 
 /// Decodes a stream of stacked pictures for `width x height` images (as written by
-/// [`encode_pictures`]), checking their size.
-pub fn decode_pictures(path: &Path, width: u32, height: u32) -> Result<Vec<Yuv420>, CodecError> {
+/// [`encode_pictures`]), checking their size and bit depth.
+pub fn decode_pictures<T: Sample>(
+    path: &Path,
+    width: u32,
+    height: u32,
+) -> Result<Vec<Yuv420<T>>, CodecError> {
     init()?;
     let bad = |reason: String| CodecError::Stream {
         path: path.to_path_buf(),
@@ -279,12 +325,13 @@ pub fn decode_pictures(path: &Path, width: u32, height: u32) -> Result<Vec<Yuv42
     }
     let mut out = Vec::new();
     let mut frame = ffmpeg::frame::Video::empty();
-    let mut take = |dec: &mut ffmpeg::decoder::Video, out: &mut Vec<Yuv420>| {
+    let mut take = |dec: &mut ffmpeg::decoder::Video, out: &mut Vec<Yuv420<T>>| {
         while dec.receive_frame(&mut frame).is_ok() {
-            if frame.format() != ffmpeg::format::Pixel::YUV420P {
+            if frame.format() != T::FORMAT {
                 return Err(bad(format!(
-                    "pixel format {:?}, yuv420p expected",
-                    frame.format()
+                    "pixel format {:?}, {:?} expected",
+                    frame.format(),
+                    T::FORMAT
                 )));
             }
             out.push(read_frame(&frame));

@@ -10,18 +10,19 @@ const KB: f32 = 0.0722;
 const KG: f32 = 1.0 - KR - KB;
 
 /// A planar 4:2:0 picture: `width x height` luma, `width/2 x height/2` chroma, no padding.
+/// Samples are 8-bit (`u8`) or 10-bit (`u16`, values up to 1023).
 #[derive(Debug, Clone, PartialEq)]
-pub struct Yuv420 {
+pub struct Yuv420<T = u8> {
     /// Luma width (even).
     pub width: usize,
     /// Luma height (even).
     pub height: usize,
     /// Luma plane.
-    pub y: Vec<u8>,
+    pub y: Vec<T>,
     /// Cb plane.
-    pub u: Vec<u8>,
+    pub u: Vec<T>,
     /// Cr plane.
-    pub v: Vec<u8>,
+    pub v: Vec<T>,
 }
 
 #[inline]
@@ -79,6 +80,63 @@ pub fn unstack_colour_grey(p: &Yuv420, width: u32, height: u32) -> (Vec<u8>, Vec
         },
         false,
     );
+    (rgb, grey)
+}
+
+/// Limited-range 10-bit luma: the 16-bit grey code 0 is luma 64, 65535 is luma 940.
+const DEEP_LUMA: (f64, f64) = (64.0, 876.0);
+
+/// Stacks a colour image (3 bytes per pixel) over a 16-bit grey image into a 10-bit picture in
+/// the layout of [`stack`]: the colour as [`stack_colour_grey`] makes it, scaled to 10 bits,
+/// and the grey with the 877 luma levels of 10-bit limited range (the DIBR baseline's deep
+/// depth: a 16-bit depth map coded by a 10-bit video stream).
+pub fn stack_colour_grey16(rgb: &[u8], grey: &[u16], width: u32, height: u32) -> Yuv420<u16> {
+    let (w, h) = (width as usize, height as usize);
+    assert!(grey.len() == w * h, "stack: plane sizes");
+    let colour = stack_colour_grey(rgb, &vec![0; w * h], width, height);
+    let up = |v: &[u8]| v.iter().map(|&s| u16::from(s) << 2).collect::<Vec<u16>>();
+    let mut p = Yuv420 {
+        width: colour.width,
+        height: colour.height,
+        y: up(&colour.y),
+        u: up(&colour.u),
+        v: up(&colour.v),
+    };
+    let ch = p.height / 2;
+    let (base, span) = DEEP_LUMA;
+    for yy in 0..ch {
+        for xx in 0..p.width {
+            let g = grey[yy.min(h - 1) * w + xx.min(w - 1)] as f64 / 65535.0;
+            p.y[(yy + ch) * p.width + xx] = (base + span * g).round() as u16;
+        }
+    }
+    p
+}
+
+/// The colour (RGB) and 16-bit grey planes of a picture made by [`stack_colour_grey16`].
+pub fn unstack_colour_grey16(p: &Yuv420<u16>, width: u32, height: u32) -> (Vec<u8>, Vec<u16>) {
+    let (w, h) = (width as usize, height as usize);
+    let down = |v: &[u16]| {
+        v.iter()
+            .map(|&s| ((s + 2) >> 2).min(255) as u8)
+            .collect::<Vec<u8>>()
+    };
+    let colour = Yuv420 {
+        width: p.width,
+        height: p.height,
+        y: down(&p.y),
+        u: down(&p.u),
+        v: down(&p.v),
+    };
+    let (rgb, _) = unstack_colour_grey(&colour, width, height);
+    let ch = p.height / 2;
+    let (base, span) = DEEP_LUMA;
+    let grey = (0..w * h)
+        .map(|i| {
+            let l = p.y[(i / w + ch) * p.width + i % w] as f64;
+            (((l - base) / span).clamp(0.0, 1.0) * 65535.0).round() as u16
+        })
+        .collect();
     (rgb, grey)
 }
 
@@ -225,5 +283,13 @@ mod tests {
             // 219 luma levels for 256 grey values.
             assert!((*a as i32 - *b as i32).abs() <= 1, "grey {a} vs {b}");
         }
+        // 16-bit grey in 10 bits: 877 levels, so within 65535 / 876 / 2 (37.4).
+        let deep: Vec<u16> = (0..w * h).map(|i| (i * 2851 % 65536) as u16).collect();
+        let (r3, g3) = unstack_colour_grey16(&stack_colour_grey16(&rgb, &deep, w, h), w, h);
+        assert_eq!(r3, r2, "the same colour as 8 bits");
+        for (a, b) in deep.iter().zip(&g3) {
+            assert!((*a as i32 - *b as i32).abs() <= 38, "grey {a} vs {b}");
+        }
+        assert!(g3.iter().any(|&g| g % 256 != 0), "finer than 8 bits");
     }
 }

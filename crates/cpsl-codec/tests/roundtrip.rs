@@ -363,3 +363,57 @@ fn a_package_archive_reads_like_its_folder() {
     assert!(cpsl_package::pack(&folder, &dir.path().join("new.cpsl")).is_err());
     assert!(!dir.path().join("new.cpsl").exists());
 }
+
+#[test]
+fn every_codec_carries_ten_bit_pictures() {
+    use cpsl_codec::yuv::{stack_colour_grey16, unstack_colour_grey16, Yuv420};
+    use cpsl_codec::{decode_pictures, encode_pictures};
+    let (w, h) = (64u32, 64u32);
+    let rgb: Vec<u8> = (0..w * h)
+        .flat_map(|i| [(i % 251) as u8, 90, 160])
+        .collect();
+    // A smooth ramp down the picture over the whole 16-bit range: more levels than 8 bits
+    // can hold.
+    let grey: Vec<u16> = (0..w * h)
+        .map(|i| (i as u64 * 65535 / (w * h - 1) as u64) as u16)
+        .collect();
+    let dir = tempfile::tempdir().unwrap();
+    for codec in Codec::ALL {
+        if !has_encoder(codec) {
+            eprintln!("skipping {}: no encoder in this FFmpeg", codec.name());
+            continue;
+        }
+        let path = dir.path().join(format!("{}.mp4", codec.name()));
+        let q = cpsl_codec::quality_range(codec).0;
+        let pic = |_| stack_colour_grey16(&rgb, &grey, w, h);
+        encode_pictures(&path, 3, &pic, codec, q, FPS).unwrap();
+        let back: Vec<Yuv420<u16>> = decode_pictures(&path, w, h).unwrap();
+        assert_eq!(back.len(), 3, "{}", codec.name());
+        let (_, g) = unstack_colour_grey16(&back[2], w, h);
+        let err = g
+            .iter()
+            .zip(&grey)
+            .map(|(a, b)| (*a as f64 - *b as f64).abs())
+            .sum::<f64>()
+            / grey.len() as f64;
+        let mut levels = g.clone();
+        levels.sort_unstable();
+        levels.dedup();
+        eprintln!(
+            "{}: mean error {err:.1} of 65535, {} levels",
+            codec.name(),
+            levels.len()
+        );
+        // One 10-bit level is 75 of 65535; 8 bits would leave at most 220 levels.
+        assert!(err < 75.0, "{}: mean error {err:.1}", codec.name());
+        assert!(
+            levels.len() > 220,
+            "{}: {} levels",
+            codec.name(),
+            levels.len()
+        );
+        // Read as 8-bit, the stream is refused with its format named.
+        let e = decode_pictures::<u8>(&path, w, h).unwrap_err().to_string();
+        assert!(e.contains("YUV420P10LE"), "{e}");
+    }
+}

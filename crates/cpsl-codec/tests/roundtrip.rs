@@ -267,8 +267,6 @@ fn verify_detects_a_flipped_byte_in_every_part() {
 fn every_codec_round_trips_a_layer_stream() {
     let segs = segments(3);
     let dir = tempfile::tempdir().unwrap();
-    let dir = std::mem::ManuallyDrop::new(dir);
-    eprintln!("{}", dir.path().display());
     for codec in Codec::ALL {
         if !has_encoder(codec) {
             eprintln!(

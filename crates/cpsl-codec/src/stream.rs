@@ -39,7 +39,8 @@ pub(crate) fn init() -> Result<(), CodecError> {
 }
 
 /// Encoder options: one key frame at the start, no scene-cut key frames, a speed preset fit for
-/// 2 cores, constant quality `crf`.
+/// 2 cores, constant quality `crf`; x265 writes no informational SEI (its version and options,
+/// about 2.3 kB in every stream's header).
 fn options(codec: Codec, crf: f32, frames: usize) -> ffmpeg::Dictionary<'static> {
     let mut o = ffmpeg::Dictionary::new();
     let n = frames.max(1);
@@ -57,7 +58,7 @@ fn options(codec: Codec, crf: f32, frames: usize) -> ffmpeg::Dictionary<'static>
             o.set("crf", &format!("{crf:.1}"));
             o.set(
                 "x265-params",
-                &format!("log-level=error:keyint={n}:min-keyint={n}:scenecut=0"),
+                &format!("log-level=error:keyint={n}:min-keyint={n}:scenecut=0:info=0"),
             );
         }
         Codec::Av1 => {
@@ -203,6 +204,9 @@ pub fn encode_pictures<T: Sample>(
      -> Result<(), CodecError> {
         let mut packet = ffmpeg::Packet::empty();
         while enc.receive_packet(&mut packet).is_ok() {
+            if codec == Codec::H264 {
+                drop_user_data_sei(&mut packet);
+            }
             packet.set_stream(0);
             // One frame long: without a duration the MP4 edit list cuts the last frame.
             packet.set_duration(1);
@@ -247,6 +251,72 @@ pub fn encode_pictures<T: Sample>(
             path: path.to_path_buf(),
             source: e,
         })
+}
+
+/// Removes from an H.264 packet every SEI NAL unit that opens with a user-data-unregistered
+/// message: x264's version and options string, about 660 bytes in each stream's first picture
+/// that decoders ignore. A packet that parses neither as Annex B nor as length-prefixed NAL
+/// units is left as it is.
+fn drop_user_data_sei(packet: &mut ffmpeg::Packet) {
+    let Some(data) = packet.data_mut() else {
+        return;
+    };
+    let kept = drop_user_data_nals(data);
+    if kept < data.len() {
+        packet.shrink(kept);
+    }
+}
+
+/// The NAL units of an H.264 access unit: (start, payload start, end) of each, the start
+/// including its start code or length prefix. `None` if `data` is neither Annex B (start
+/// codes) nor tiled by 4-byte length prefixes.
+fn nal_units(data: &[u8]) -> Option<Vec<(usize, usize, usize)>> {
+    let mut units = Vec::new();
+    if data.starts_with(&[0, 0, 1]) || data.starts_with(&[0, 0, 0, 1]) {
+        // Annex B: emulation prevention keeps 00 00 01 out of the payloads.
+        let codes: Vec<usize> = (0..data.len().saturating_sub(2))
+            .filter(|&i| data[i..i + 3] == [0, 0, 1])
+            .collect();
+        for (k, &c) in codes.iter().enumerate() {
+            let start = if c > 0 && data[c - 1] == 0 { c - 1 } else { c };
+            let end = codes
+                .get(k + 1)
+                .map_or(data.len(), |&n| if data[n - 1] == 0 { n - 1 } else { n });
+            units.push((start, c + 3, end));
+        }
+        return Some(units);
+    }
+    let mut at = 0;
+    while at < data.len() {
+        let b = data.get(at..at + 4)?;
+        let len = u32::from_be_bytes([b[0], b[1], b[2], b[3]]) as usize;
+        let end = at + 4 + len;
+        if len == 0 || end > data.len() {
+            return None;
+        }
+        units.push((at, at + 4, end));
+        at = end;
+    }
+    Some(units)
+}
+
+/// Moves the NAL units of `data` to keep to its front and returns their length (the whole
+/// length when nothing is dropped or the data does not parse).
+fn drop_user_data_nals(data: &mut [u8]) -> usize {
+    let Some(units) = nal_units(data) else {
+        return data.len();
+    };
+    let mut out = 0;
+    for (start, payload, end) in units {
+        // NAL type 6 (SEI) whose first message has payload type 5 (user data unregistered).
+        let user_sei =
+            payload < end && data[payload] & 0x1f == 6 && data.get(payload + 1) == Some(&5);
+        if !user_sei {
+            data.copy_within(start..end, out);
+            out += end - start;
+        }
+    }
+    out
 }
 
 fn fill_frame<T: Sample>(frame: &mut ffmpeg::frame::Video, pic: &Yuv420<T>) {
@@ -351,4 +421,49 @@ pub fn decode_pictures<T: Sample>(
         return Err(bad("no pictures".into()));
     }
     Ok(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::drop_user_data_nals;
+
+    fn unit(bytes: &[u8]) -> Vec<u8> {
+        let mut v = (bytes.len() as u32).to_be_bytes().to_vec();
+        v.extend_from_slice(bytes);
+        v
+    }
+
+    #[test]
+    fn only_user_data_sei_is_dropped() {
+        let slice = unit(&[0x65, 1, 2, 3]);
+        let user = unit(&[0x06, 5, 9, b'x', b'2', b'6', b'4', 0x80]);
+        let timing = unit(&[0x06, 1, 1, 0, 0x80]);
+        let mut data = [
+            unit(&[0x67, 7, 7]),
+            user.clone(),
+            timing.clone(),
+            slice.clone(),
+        ]
+        .concat();
+        let n = drop_user_data_nals(&mut data);
+        let want = [unit(&[0x67, 7, 7]), timing, slice].concat();
+        assert_eq!(&data[..n], &want[..]);
+        // Nothing to drop, or data that is not length-prefixed: untouched.
+        let mut plain = want.clone();
+        assert_eq!(drop_user_data_nals(&mut plain), want.len());
+        let mut cut = user[..5].to_vec();
+        assert_eq!(drop_user_data_nals(&mut cut), 5);
+        // Annex B, with 3- and 4-byte start codes, as libx264 hands its packets over.
+        let mut annex_b = [
+            &[0u8, 0, 1, 0x06, 5, 2, 0xaa, 0x80][..],
+            &[0, 0, 0, 1, 0x06, 1, 1, 0, 0x80],
+            &[0, 0, 0, 1, 0x65, 0, 0, 3, 1, 4],
+        ]
+        .concat();
+        let n = drop_user_data_nals(&mut annex_b);
+        assert_eq!(
+            &annex_b[..n],
+            &[0, 0, 0, 1, 0x06, 1, 1, 0, 0x80, 0, 0, 0, 1, 0x65, 0, 0, 3, 1, 4][..]
+        );
+    }
 }

@@ -280,6 +280,16 @@ fn every_codec_round_trips_a_layer_stream() {
         let q = cpsl_codec::quality_range(codec).2;
         let bytes = encode_stream(&path, &layers, codec, q, FPS).unwrap();
         assert!(bytes > 0);
+        // No encoder banner (x264's user-data SEI, x265's info SEI) in the stream.
+        let file = std::fs::read(&path).unwrap();
+        for banner in [&b"x264 - core"[..], b"x265 (build"] {
+            assert!(
+                !file.windows(banner.len()).any(|w| w == banner),
+                "{}: {:?} in the stream",
+                codec.name(),
+                String::from_utf8_lossy(banner)
+            );
+        }
         let back = decode_stream(&path, W, H).unwrap();
         assert_eq!(back.len(), layers.len(), "{}", codec.name());
         for (a, b) in layers.iter().zip(&back) {

@@ -13,6 +13,18 @@ fn fails(args: &[&str], fragment: &str) {
         err.contains(fragment),
         "cpsl {args:?}: {err:?} lacks {fragment:?}"
     );
+    // Each cause once: no run of ": "-separated parts repeats right after itself.
+    let line = err.lines().find(|l| l.starts_with("error: ")).unwrap();
+    let parts: Vec<&str> = line.split(": ").collect();
+    for len in 1..=parts.len() / 2 {
+        for i in 0..=parts.len() - 2 * len {
+            assert!(
+                parts[i..i + len] != parts[i + len..i + 2 * len],
+                "cpsl {args:?}: {line:?} repeats {:?}",
+                parts[i..i + len].join(": ")
+            );
+        }
+    }
 }
 
 #[test]
@@ -150,6 +162,8 @@ fn clear_errors_and_nothing_written() {
         "cannot serve",
     );
     fails(&["bench", "serve", s(d.path())], "no package under");
+    // An I/O error named in its wrapper's message is not repeated as the cause.
+    fails(&["verify", s(&missing)], "(os error 2)");
     fails(
         &["eval-video", "kitti", "--true-motion"],
         "--true-motion needs the synthetic clip",

@@ -211,11 +211,14 @@ impl Source {
     }
 }
 
-/// Plays a package: decodes the segment holding the requested frame (keeping one segment).
+/// Plays a package: decodes frame after frame of the segment holding the requested one,
+/// keeping only the current frame (a seek backwards or into another segment reopens the
+/// segment at its key frame).
 pub struct PackagePlayer {
     pkg: cpsl_package::Package,
-    segment: Option<usize>,
-    frames: Vec<Frame>,
+    /// The open segment, and the index of the next frame its reader gives.
+    reader: Option<(usize, cpsl_codec::SegmentReader, u32)>,
+    current: Option<(u32, Frame)>,
 }
 
 impl PackagePlayer {
@@ -225,8 +228,8 @@ impl PackagePlayer {
             .with_context(|| format!("opening the package {}", path.display()))?;
         Ok(Self {
             pkg,
-            segment: None,
-            frames: Vec::new(),
+            reader: None,
+            current: None,
         })
     }
 
@@ -237,21 +240,35 @@ impl PackagePlayer {
 
     /// Frame `f`, decoded and prepared for rendering with its Edge-Depth Cache.
     pub fn frame(&mut self, f: u32) -> Result<&Frame> {
+        if self.current.as_ref().is_some_and(|c| c.0 == f) {
+            return Ok(&self.current.as_ref().unwrap().1);
+        }
         let m = self.pkg.manifest();
         let seg = m
             .segment_of(f)
             .with_context(|| format!("frame {f}: the package has {} frames", m.frames))?;
-        if self.segment != Some(seg) {
-            let decoded = cpsl_codec::decode_segment(&self.pkg, seg).with_context(|| {
-                format!("decoding segment {seg} of {}", self.pkg.opened().display())
+        let start = m.segments[seg].start;
+        let reopen = !matches!(&self.reader, Some((s, _, next)) if *s == seg && *next <= f);
+        if reopen {
+            let r = cpsl_codec::SegmentReader::open(&self.pkg, seg).with_context(|| {
+                format!("opening segment {seg} of {}", self.pkg.opened().display())
             })?;
-            self.frames = decoded
-                .into_iter()
-                .map(|d| Frame::new(d.set, Some(d.side.edc)))
-                .collect();
-            self.segment = Some(seg);
+            self.reader = Some((seg, r, start));
         }
-        Ok(&self.frames[(f - m.segments[seg].start) as usize])
+        let (_, reader, next) = self.reader.as_mut().expect("opened above");
+        loop {
+            let decoded = reader
+                .next()
+                .with_context(|| format!("segment {seg} ended before frame {f}"))?
+                .with_context(|| {
+                    format!("decoding segment {seg} of {}", self.pkg.opened().display())
+                })?;
+            *next += 1;
+            if *next > f {
+                self.current = Some((f, Frame::new(decoded.set, Some(decoded.side.edc))));
+                return Ok(&self.current.as_ref().unwrap().1);
+            }
+        }
     }
 }
 

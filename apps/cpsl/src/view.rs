@@ -63,8 +63,8 @@ struct Decoded {
     frame: Frame,
 }
 
-/// The background decoder of a package: decodes segment after segment from the requested
-/// frame (looping at the end) into a bounded queue; a seek starts a new generation.
+/// The background decoder of a package: decodes frame after frame from the requested one
+/// (looping at the end) into a bounded queue; a seek starts a new generation.
 struct Decoder {
     frames: Receiver<Result<Decoded, String>>,
     seek: Sender<(u64, u32)>,
@@ -85,16 +85,20 @@ impl Decoder {
                 let (mut generation, mut at) = (0u64, first);
                 loop {
                     let Some(seg) = m.segment_of(at) else { return };
-                    let decoded = match cpsl_codec::decode_segment(&pkg, seg) {
-                        Ok(d) => d,
-                        Err(e) => {
-                            let _ = tx.send(Err(format!("decoding segment {seg}: {e}")));
-                            return;
-                        }
+                    let fail = |e: cpsl_codec::CodecError| {
+                        let _ = tx.send(Err(format!("decoding segment {seg}: {e}")));
+                    };
+                    let reader = match cpsl_codec::SegmentReader::open(&pkg, seg) {
+                        Ok(r) => r,
+                        Err(e) => return fail(e),
                     };
                     let start = m.segments[seg].start;
                     let mut sought = None;
-                    for (i, d) in decoded.into_iter().enumerate() {
+                    for (i, d) in reader.enumerate() {
+                        let d = match d {
+                            Ok(d) => d,
+                            Err(e) => return fail(e),
+                        };
                         let index = start + i as u32;
                         if let Ok(s) = seek_rx.try_recv() {
                             sought = Some(s);

@@ -6,7 +6,8 @@ use crate::CodecError;
 use cpsl_core::PremulImage;
 use cpsl_package::Codec;
 use ffmpeg_next as ffmpeg;
-use std::path::Path;
+use std::marker::PhantomData;
+use std::path::{Path, PathBuf};
 
 /// The encoder's quality scale (CRF) for a codec: (lowest, highest, default). Lower is better.
 pub fn quality_range(codec: Codec) -> (f32, f32, f32) {
@@ -370,57 +371,110 @@ pub fn decode_pictures<T: Sample>(
     width: u32,
     height: u32,
 ) -> Result<Vec<Yuv420<T>>, CodecError> {
-    init()?;
-    let bad = |reason: String| CodecError::Stream {
-        path: path.to_path_buf(),
-        reason,
-    };
-    let mut input = ffmpeg::format::input(&path).map_err(|e| bad(e.to_string()))?;
-    let st = input
-        .streams()
-        .best(ffmpeg::media::Type::Video)
-        .ok_or_else(|| bad("no video stream".into()))?;
-    let index = st.index();
-    let ctx = ffmpeg::codec::context::Context::from_parameters(st.parameters())
-        .map_err(|e| bad(e.to_string()))?;
-    let mut dec = ctx.decoder().video().map_err(|e| bad(e.to_string()))?;
-    let (cw, ch) = crate::yuv::coded_size(width, height);
-    if (dec.width() as usize, dec.height() as usize) != (cw, 2 * ch) {
-        return Err(bad(format!(
-            "pictures are {}x{}, a {width}x{height} layer needs {cw}x{}",
-            dec.width(),
-            dec.height(),
-            2 * ch
-        )));
-    }
+    let mut reader = PictureReader::open(path, width, height)?;
     let mut out = Vec::new();
-    let mut frame = ffmpeg::frame::Video::empty();
-    let mut take = |dec: &mut ffmpeg::decoder::Video, out: &mut Vec<Yuv420<T>>| {
-        while dec.receive_frame(&mut frame).is_ok() {
-            if frame.format() != T::FORMAT {
-                return Err(bad(format!(
-                    "pixel format {:?}, {:?} expected",
-                    frame.format(),
-                    T::FORMAT
-                )));
-            }
-            out.push(read_frame(&frame));
-        }
-        Ok(())
-    };
-    for (s, packet) in input.packets() {
-        if s.index() != index {
-            continue;
-        }
-        dec.send_packet(&packet).map_err(|e| bad(e.to_string()))?;
-        take(&mut dec, &mut out)?;
+    while let Some(p) = reader.next_picture()? {
+        out.push(p);
     }
-    dec.send_eof().map_err(|e| bad(e.to_string()))?;
-    take(&mut dec, &mut out)?;
     if out.is_empty() {
-        return Err(bad("no pictures".into()));
+        return Err(reader.bad("no pictures".into()));
     }
     Ok(out)
+}
+
+/// Reads the stacked pictures of one stream one at a time, decoding only as far as the next
+/// picture needs: a player holds one picture per stream, not a whole segment.
+pub struct PictureReader<T: Sample = u8> {
+    path: PathBuf,
+    input: ffmpeg::format::context::Input,
+    index: usize,
+    dec: ffmpeg::decoder::Video,
+    frame: ffmpeg::frame::Video,
+    drained: bool,
+    sample: PhantomData<T>,
+}
+
+impl<T: Sample> PictureReader<T> {
+    /// Opens the stream of `width x height` images at `path`, checking its picture size.
+    pub fn open(path: &Path, width: u32, height: u32) -> Result<Self, CodecError> {
+        init()?;
+        let bad = |reason: String| CodecError::Stream {
+            path: path.to_path_buf(),
+            reason,
+        };
+        let input = ffmpeg::format::input(&path).map_err(|e| bad(e.to_string()))?;
+        let st = input
+            .streams()
+            .best(ffmpeg::media::Type::Video)
+            .ok_or_else(|| bad("no video stream".into()))?;
+        let index = st.index();
+        let ctx = ffmpeg::codec::context::Context::from_parameters(st.parameters())
+            .map_err(|e| bad(e.to_string()))?;
+        let dec = ctx.decoder().video().map_err(|e| bad(e.to_string()))?;
+        let (cw, ch) = crate::yuv::coded_size(width, height);
+        if (dec.width() as usize, dec.height() as usize) != (cw, 2 * ch) {
+            return Err(bad(format!(
+                "pictures are {}x{}, a {width}x{height} layer needs {cw}x{}",
+                dec.width(),
+                dec.height(),
+                2 * ch
+            )));
+        }
+        Ok(Self {
+            path: path.to_path_buf(),
+            input,
+            index,
+            dec,
+            frame: ffmpeg::frame::Video::empty(),
+            drained: false,
+            sample: PhantomData,
+        })
+    }
+
+    fn bad(&self, reason: String) -> CodecError {
+        CodecError::Stream {
+            path: self.path.clone(),
+            reason,
+        }
+    }
+
+    /// The next picture in display order, or `None` after the last.
+    pub fn next_picture(&mut self) -> Result<Option<Yuv420<T>>, CodecError> {
+        loop {
+            match self.dec.receive_frame(&mut self.frame) {
+                Ok(()) => {
+                    if self.frame.format() != T::FORMAT {
+                        return Err(self.bad(format!(
+                            "pixel format {:?}, {:?} expected",
+                            self.frame.format(),
+                            T::FORMAT
+                        )));
+                    }
+                    return Ok(Some(read_frame(&self.frame)));
+                }
+                Err(ffmpeg::Error::Eof) => return Ok(None),
+                Err(ffmpeg::Error::Other { errno }) if errno == ffmpeg::error::EAGAIN => {}
+                Err(e) => return Err(self.bad(e.to_string())),
+            }
+            if self.drained {
+                return Ok(None);
+            }
+            // The decoder wants input: the next packet of the stream, or the end.
+            let mut packet = ffmpeg::Packet::empty();
+            match packet.read(&mut self.input) {
+                Ok(()) if packet.stream() == self.index => self
+                    .dec
+                    .send_packet(&packet)
+                    .map_err(|e| self.bad(e.to_string()))?,
+                Ok(()) => {}
+                Err(ffmpeg::Error::Eof) => {
+                    self.dec.send_eof().map_err(|e| self.bad(e.to_string()))?;
+                    self.drained = true;
+                }
+                Err(e) => return Err(self.bad(e.to_string())),
+            }
+        }
+    }
 }
 
 #[cfg(test)]

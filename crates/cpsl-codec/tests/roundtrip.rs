@@ -3,7 +3,7 @@
 
 use cpsl_codec::{
     decode_segment, decode_stream, encode_stream, has_encoder, CodingOptions, PackageWriter,
-    RateControl, SegmentFrame,
+    RateControl, SegmentFrame, SegmentReader,
 };
 use cpsl_core::{LayerSet, Pose};
 use cpsl_layering::LayeringConfig;
@@ -113,11 +113,26 @@ fn package_round_trip_meets_budget_and_quality() {
         rate >= 0.5 * budget,
         "{rate} bit/s leaves most of {budget} unused"
     );
+    let e = SegmentReader::open(&pkg, segs.len())
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(e.contains(&format!("no segment {}", segs.len())), "{e}");
     // Salient / edge-rich layers get more weight and no worse quality than the background.
     let mut worst = f64::INFINITY;
     for (i, seg) in segs.iter().enumerate() {
         let dec = decode_segment(&pkg, i).unwrap();
         assert_eq!(dec.len(), seg.len());
+        // Frame by frame, as a player reads: the same pictures, then the end for good.
+        let mut reader = SegmentReader::open(&pkg, i).unwrap();
+        assert_eq!(reader.frames() as usize, seg.len());
+        for d in &dec {
+            let r = reader.next().unwrap().unwrap();
+            for (a, b) in r.set.layers().iter().zip(d.set.layers()) {
+                assert_eq!(a.image.as_bytes(), b.image.as_bytes());
+            }
+        }
+        assert!(reader.next().is_none() && reader.next().is_none());
         for (d, s) in dec.iter().zip(seg) {
             assert_eq!(d.set.len(), s.set.len());
             assert_eq!(d.side.edc, cpsl_package::summarise_edc(&s.edc));

@@ -68,18 +68,15 @@ pub fn unstack_colour_grey(p: &Yuv420, width: u32, height: u32) -> (Vec<u8>, Vec
     let (w, h) = (width as usize, height as usize);
     let mut rgb = vec![0u8; w * h * 3];
     let mut grey = vec![0u8; w * h];
-    unstack_with(
-        p,
-        w,
-        h,
-        |i, colour, g| {
-            grey[i] = g;
-            if let Some(c) = colour {
-                rgb[i * 3..i * 3 + 3].copy_from_slice(&c);
-            }
-        },
-        false,
-    );
+    let t = tables();
+    for y in 0..h {
+        let (luma, g, u, v) = rows_of(p, y, w);
+        for x in 0..w {
+            let i = y * w + x;
+            grey[i] = t.grey[g[x] as usize];
+            rgb[i * 3..i * 3 + 3].copy_from_slice(&t.rgb(luma[x], u[x / 2], v[x / 2]));
+        }
+    }
     (rgb, grey)
 }
 
@@ -181,59 +178,145 @@ fn stack_with(width: u32, height: u32, at: impl Fn(usize, usize) -> [u8; 4]) -> 
 /// Reads a `width x height` layer back from its colour-over-alpha picture. Colour is clamped
 /// to alpha so that the result is a valid premultiplied image.
 pub fn unstack(p: &Yuv420, width: u32, height: u32) -> PremulImage {
-    let (w, h) = (width as usize, height as usize);
-    let mut out = vec![0u8; w * h * 4];
-    unstack_with(
-        p,
-        w,
-        h,
-        |i, colour, a| {
-            out[i * 4 + 3] = a;
-            if let Some(c) = colour {
-                for k in 0..3 {
-                    out[i * 4 + k] = c[k].min(a);
-                }
-            }
-        },
-        true,
-    );
-    PremulImage::from_premul(width, height, out).expect("colour clamped to alpha")
-}
-
-/// Converts every pixel of a stacked picture back and hands `put` its index, its colour and
-/// its grey value; where `skip_zero` and the grey value is 0 the colour is not converted
-/// (`None`).
-fn unstack_with(
-    p: &Yuv420,
-    w: usize,
-    h: usize,
-    mut put: impl FnMut(usize, Option<[u8; 3]>, u8),
-    skip_zero: bool,
-) {
-    let ch = p.height / 2;
-    for y in 0..h {
-        for x in 0..w {
-            let a = q((p.y[(y + ch) * p.width + x] as f32 - 16.0) * 255.0 / 219.0);
-            let i = y * w + x;
-            if skip_zero && a == 0 {
-                put(i, None, a);
+    let w = width as usize;
+    let mut img = PremulImage::new(width, height);
+    let t = tables();
+    for (y, out) in img.as_bytes_mut().chunks_exact_mut(w * 4).enumerate() {
+        let (luma, grey, u, v) = rows_of(p, y, w);
+        // Two pixels share a chroma sample. A transparent pair stays zero (most of a layer).
+        for (x, px) in out.chunks_mut(8).enumerate() {
+            let a = [2 * x, (2 * x + 1).min(w - 1)].map(|i| t.grey[grey[i] as usize]);
+            if a == [0, 0] {
                 continue;
             }
-            let luma = (p.y[y * p.width + x] as f32 - 16.0) / 219.0;
-            let ci = (y / 2) * (p.width / 2) + x / 2;
-            let cb = (p.u[ci] as f32 - 128.0) / 224.0;
-            let cr = (p.v[ci] as f32 - 128.0) / 224.0;
-            let r = luma + 2.0 * (1.0 - KR) * cr;
-            let b = luma + 2.0 * (1.0 - KB) * cb;
-            let g = (luma - KR * r - KB * b) / KG;
-            put(i, Some([r, g, b].map(|v| q(v * 255.0))), a);
+            let chroma = t.chroma(u[x], v[x]);
+            for (k, px) in px.chunks_exact_mut(4).enumerate() {
+                let (c, a) = (t.rgb_with(luma[2 * x + k], chroma), a[k]);
+                px.copy_from_slice(&[c[0].min(a), c[1].min(a), c[2].min(a), a]);
+            }
         }
     }
+    img
+}
+
+/// Row `y` of a stacked picture: colour luma, grey, and the chroma rows (`w` wide).
+fn rows_of(p: &Yuv420, y: usize, w: usize) -> (&[u8], &[u8], &[u8], &[u8]) {
+    let (ch, cw) = (p.height / 2, p.width / 2);
+    (
+        &p.y[y * p.width..][..w],
+        &p.y[(y + ch) * p.width..][..w],
+        &p.u[(y / 2) * cw..][..cw],
+        &p.v[(y / 2) * cw..][..cw],
+    )
+}
+
+/// The BT.709 limited-range conversion back to 8-bit RGB as tables, in 0..255 units with
+/// 16 fractional bits: `R = Y + Cr_r`, `G = Y + Cb_g + Cr_g`, `B = Y + Cb_b`. Integer sums and
+/// one rounding per channel, where the float formula cost a libm `roundf` per channel (no
+/// rounding instruction in the baseline x86-64 target).
+struct Tables {
+    y: [i32; 256],
+    cr_r: [i32; 256],
+    cb_g: [i32; 256],
+    cr_g: [i32; 256],
+    cb_b: [i32; 256],
+    /// Limited-range luma as an 8-bit full-range value (the alpha half).
+    grey: [u8; 256],
+}
+
+fn tables() -> &'static Tables {
+    static TABLES: std::sync::OnceLock<Tables> = std::sync::OnceLock::new();
+    TABLES.get_or_init(|| {
+        let fixed = |v: f64| (v * 255.0 * 65536.0).round() as i32;
+        let mut t = Tables {
+            y: [0; 256],
+            cr_r: [0; 256],
+            cb_g: [0; 256],
+            cr_g: [0; 256],
+            cb_b: [0; 256],
+            grey: [0; 256],
+        };
+        let (kr, kb) = (KR as f64, KB as f64);
+        let kg = 1.0 - kr - kb;
+        for v in 0..256 {
+            let c = (v as f64 - 128.0) / 224.0;
+            let (r, b) = (2.0 * (1.0 - kr) * c, 2.0 * (1.0 - kb) * c);
+            t.y[v] = fixed((v as f64 - 16.0) / 219.0);
+            t.cr_r[v] = fixed(r);
+            t.cb_b[v] = fixed(b);
+            t.cr_g[v] = fixed(-kr / kg * r);
+            t.cb_g[v] = fixed(-kb / kg * b);
+            t.grey[v] = q((v as f32 - 16.0) * 255.0 / 219.0);
+        }
+        t
+    })
+}
+
+impl Tables {
+    /// The chroma terms of R, G and B for one (Cb, Cr) sample.
+    #[inline]
+    fn chroma(&self, cb: u8, cr: u8) -> [i32; 3] {
+        let (cb, cr) = (cb as usize, cr as usize);
+        [self.cr_r[cr], self.cb_g[cb] + self.cr_g[cr], self.cb_b[cb]]
+    }
+
+    /// The 8-bit RGB of a luma sample with its chroma terms.
+    #[inline]
+    fn rgb_with(&self, y: u8, chroma: [i32; 3]) -> [u8; 3] {
+        let l = self.y[y as usize];
+        chroma.map(|c| byte(l + c))
+    }
+
+    /// The 8-bit RGB of one Y'CbCr sample.
+    #[inline]
+    fn rgb(&self, y: u8, cb: u8, cr: u8) -> [u8; 3] {
+        self.rgb_with(y, self.chroma(cb, cr))
+    }
+}
+
+/// A fixed-point 0..255 value rounded and clamped to a byte.
+#[inline]
+fn byte(v: i32) -> u8 {
+    ((v + 32768) >> 16).clamp(0, 255) as u8
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_tables_match_the_float_conversion() {
+        // The BT.709 limited-range formula in floating point, rounded once per channel.
+        let float = |y: u8, u: u8, v: u8| {
+            let luma = (y as f32 - 16.0) / 219.0;
+            let (cb, cr) = ((u as f32 - 128.0) / 224.0, (v as f32 - 128.0) / 224.0);
+            let r = luma + 2.0 * (1.0 - KR) * cr;
+            let b = luma + 2.0 * (1.0 - KB) * cb;
+            let g = (luma - KR * r - KB * b) / KG;
+            [r, g, b].map(|c| q(c * 255.0))
+        };
+        let mut worst = 0;
+        for y in (0..=255u8).step_by(3) {
+            for u in (0..=255u8).step_by(5) {
+                for v in (0..=255u8).step_by(5) {
+                    // A 2x2 opaque layer of one colour.
+                    let p = Yuv420 {
+                        width: 2,
+                        height: 4,
+                        y: [[y; 4], [235; 4]].concat(),
+                        u: vec![u],
+                        v: vec![v],
+                    };
+                    let (rgb, alpha) = unstack_colour_grey(&p, 2, 2);
+                    assert_eq!(alpha, [255; 4]);
+                    for (a, b) in rgb[..3].iter().zip(float(y, u, v)) {
+                        worst = worst.max((*a as i32 - b as i32).abs());
+                    }
+                }
+            }
+        }
+        assert!(worst <= 1, "{worst} levels off");
+    }
 
     #[test]
     fn stack_then_unstack_is_close() {

@@ -1,6 +1,7 @@
 //! Layers converted once into the renderer's working form.
 
 use cpsl_core::{Camera, LayerSet};
+use rayon::prelude::*;
 
 /// Side of the square source blocks whose occupancy is summarised.
 pub(crate) const BLOCK: usize = 16;
@@ -114,7 +115,7 @@ impl PreparedLayers {
         let (bw, bh) = (w.div_ceil(BLOCK), h.div_ceil(BLOCK));
         let layers = set
             .layers()
-            .iter()
+            .par_iter()
             .map(|layer| {
                 let bytes = layer.image.as_bytes();
                 let mut texels = vec![0u32; pitch * (h + 2)];
@@ -123,23 +124,23 @@ impl PreparedLayers {
                 let mut row_extent = vec![[0u32; 2]; h];
                 for y in 0..h {
                     let row = &mut texels[(y + 1) * pitch + 1..(y + 1) * pitch + 1 + w];
-                    for (x, (t, p)) in row
-                        .iter_mut()
-                        .zip(bytes[y * w * 4..].chunks_exact(4))
-                        .enumerate()
-                    {
+                    for (t, p) in row.iter_mut().zip(bytes[y * w * 4..].chunks_exact(4)) {
                         *t = u32::from_le_bytes([p[0], p[1], p[2], p[3]]);
-                        let b = (y / BLOCK) * bw + x / BLOCK;
-                        any[b] |= p[3] != 0;
-                        translucent[b] |= p[3] != 255;
-                        if p[3] != 0 {
-                            let e = &mut row_extent[y];
-                            if e[0] >= e[1] {
-                                *e = [x as u32, x as u32 + 1];
-                            } else {
-                                e[1] = x as u32 + 1;
-                            }
-                        }
+                    }
+                    // Per block of the row: any alpha above 0, any below 255.
+                    let blocks = (y / BLOCK) * bw;
+                    for (bx, chunk) in row.chunks(BLOCK).enumerate() {
+                        let (or, and) = chunk
+                            .iter()
+                            .fold((0, 255), |(o, a), &t| (o | t >> 24, a & t >> 24));
+                        any[blocks + bx] |= or != 0;
+                        translucent[blocks + bx] |= and != 255;
+                    }
+                    let covered = |t: &u32| t >> 24 != 0;
+                    if let (Some(a), Some(b)) =
+                        (row.iter().position(covered), row.iter().rposition(covered))
+                    {
+                        row_extent[y] = [a as u32, b as u32 + 1];
                     }
                 }
                 PreparedLayer {

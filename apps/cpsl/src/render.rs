@@ -194,6 +194,12 @@ impl Source {
         if cpsl_package::is_package(path) {
             return Ok(Source::Package(Box::new(PackagePlayer::open(path)?)));
         }
+        anyhow::ensure!(
+            !path.is_file(),
+            "{} is a file, not a layer-set folder or a package (`cpsl layer` makes layers \
+             from an image, `cpsl encode` a package from a video)",
+            path.display()
+        );
         let set = util::load_layer_set(path)?;
         let edc = cpsl_io::read_edc(path, &set, &cpsl_core::Limits::default())?;
         Ok(Source::Still(Box::new(Frame::new(set, edc))))

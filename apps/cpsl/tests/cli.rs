@@ -162,6 +162,13 @@ fn clear_errors_and_nothing_written() {
         "cannot serve",
     );
     fails(&["bench", "serve", s(d.path())], "no package under");
+    // A video or an image where layers are expected.
+    let file = d.path().join("clip.mp4");
+    std::fs::write(&file, b"not layers").unwrap();
+    fails(
+        &["render", s(&file), "--pose", "0,0,0,0,0,0", "-o", "x.png"],
+        "is a file, not a layer-set folder or a package",
+    );
     // An I/O error named in its wrapper's message is not repeated as the cause.
     fails(&["verify", s(&missing)], "(os error 2)");
     fails(

@@ -511,7 +511,10 @@ fn code(
         if !wanted.iter().any(|f| range.contains(f)) {
             continue;
         }
-        for d in cpsl_codec::decode_segment(&pkg, i)? {
+        // Frame by frame: only the frames scored are kept (a 32-plane MPI segment at 1080p
+        // would otherwise be decoded whole into memory).
+        for d in cpsl_codec::SegmentReader::open(&pkg, i)? {
+            let d = d?;
             if wanted.contains(&(d.side.index as usize)) {
                 frames.insert(d.side.index as usize, (d.set, d.side.edc));
             }

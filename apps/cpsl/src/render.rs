@@ -263,12 +263,21 @@ impl PackagePlayer {
         }
         let (_, reader, next) = self.reader.as_mut().expect("opened above");
         loop {
-            let decoded = reader
-                .next()
-                .with_context(|| format!("segment {seg} ended before frame {f}"))?
-                .with_context(|| {
-                    format!("decoding segment {seg} of {}", self.pkg.opened().display())
-                })?;
+            let decoded = match reader.next() {
+                Some(Ok(d)) => d,
+                failed => {
+                    // A failed reader is not reused: the next request reopens the segment.
+                    self.reader = None;
+                    let e = match failed {
+                        Some(Err(e)) => anyhow::Error::new(e),
+                        _ => anyhow::anyhow!("segment {seg} ended before frame {f}"),
+                    };
+                    return Err(e.context(format!(
+                        "decoding segment {seg} of {}",
+                        self.pkg.opened().display()
+                    )));
+                }
+            };
             *next += 1;
             if *next > f {
                 self.current = Some((f, Frame::new(decoded.set, Some(decoded.side.edc))));

@@ -536,7 +536,8 @@ pub struct SegmentReader {
     side: std::vec::IntoIter<SideFrame>,
     frames: u32,
     done: u32,
-    failed: bool,
+    /// No more items: the end was reached (and checked) or an error returned.
+    ended: bool,
 }
 
 impl SegmentReader {
@@ -572,7 +573,7 @@ impl SegmentReader {
             side: side.frames.into_iter(),
             frames: seg.frames,
             done: 0,
-            failed: false,
+            ended: false,
         })
     }
 
@@ -647,18 +648,18 @@ impl Iterator for SegmentReader {
     type Item = Result<DecodedFrame, CodecError>;
 
     fn next(&mut self) -> Option<Self::Item> {
-        if self.failed {
+        if self.ended {
             return None;
         }
         let result = match self.side.next() {
             Some(f) => self.next_frame(f),
-            None => match self.check_end() {
-                Ok(()) => return None,
-                Err(e) => Err(e),
-            },
+            None => {
+                self.ended = true;
+                return self.check_end().err().map(Err);
+            }
         };
         self.done += 1;
-        self.failed = result.is_err();
+        self.ended = result.is_err();
         Some(result)
     }
 }

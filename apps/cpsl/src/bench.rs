@@ -649,9 +649,10 @@ fn bench_play(a: BenchPlayArgs) -> Result<()> {
         layers = layers.max(decoded.set.len());
         let t = Instant::now();
         let frame = crate::render::Frame::new(decoded.set, Some(decoded.side.edc));
+        let prepared = frame.prepared();
         prepare.push(t.elapsed().as_secs_f64() * 1e3);
         let t = Instant::now();
-        crate::render::render_pose(&frame.prepared, !a.no_dps, &a.pose, &cam, &mut img);
+        crate::render::render_pose(prepared, !a.no_dps, &a.pose, &cam, &mut img);
         render.push(t.elapsed().as_secs_f64() * 1e3);
     }
     let wall = started.elapsed().as_secs_f64();

@@ -54,19 +54,30 @@ pub struct Frame {
     pub set: LayerSet,
     /// Their Edge-Depth Cache, when there is one.
     pub edc: Option<Edc>,
-    /// Prepared for the CPU renderer.
-    pub prepared: PreparedLayers,
+    /// Prepared for the CPU renderer, on its first use (the GPU renderer and the viewer
+    /// upload the layers themselves).
+    prepared: std::sync::OnceLock<PreparedLayers>,
 }
 
 impl Frame {
-    /// Prepares `set` (with `edc`) for rendering.
+    /// A frame of `set` (with `edc`) to render.
     pub fn new(set: LayerSet, edc: Option<Edc>) -> Self {
-        let prepared = PreparedLayers::new(&set);
-        let prepared = match &edc {
-            Some(e) => prepared.with_edc(e),
-            None => prepared,
-        };
-        Self { set, edc, prepared }
+        Self {
+            set,
+            edc,
+            prepared: std::sync::OnceLock::new(),
+        }
+    }
+
+    /// The layers prepared for the CPU renderer.
+    pub fn prepared(&self) -> &PreparedLayers {
+        self.prepared.get_or_init(|| {
+            let prepared = PreparedLayers::new(&self.set);
+            match &self.edc {
+                Some(e) => prepared.with_edc(e),
+                None => prepared,
+            }
+        })
     }
 }
 
@@ -107,7 +118,7 @@ impl Backend {
         img: &mut PremulImage,
     ) -> Result<()> {
         match self {
-            Backend::Cpu => render_pose(&frame.prepared, dps, pose, target, img),
+            Backend::Cpu => render_pose(frame.prepared(), dps, pose, target, img),
             Backend::Gpu(g) => {
                 let cfg = cpsl_render::DpsConfig::default();
                 let layers = g.prepare(&frame.set, frame.edc.as_ref())?;

@@ -52,6 +52,17 @@ fn encodes_verifies_and_renders_a_package() {
         s(&png),
     ]);
     assert!(!o.status.success(), "frame 7 of 7 must be refused");
+    // A sweep longer than the package plays it frame by frame, back to its first segment.
+    let sweep = dir.path().join("sweep");
+    ok(&[
+        "render",
+        s(&pkg),
+        "--sweep",
+        "tx:-0.05:0.05:9",
+        "-o",
+        s(&sweep),
+    ]);
+    assert!(sweep.join("frame_008.png").is_file());
     // Playback benchmark: 9 frames of 7 loop over both segments into the first again.
     let report = ok(&["bench", "play", s(&pkg), "--frames", "9", "--json"]);
     let v: serde_json::Value = serde_json::from_str(&report).unwrap();

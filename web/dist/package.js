@@ -1,18 +1,23 @@
 // The package format (crates/cpsl-package): the manifest and the per-segment side stream.
+/** The downscale factors a stream may have in a package of `version` (as cpsl-package's
+ * `scales_of`). */
+function scalesOf(version) {
+    return version <= 1 ? [1] : version === 2 ? [1, 2, 4] : [1, 2, 4, 8];
+}
 /** Checks what the player relies on; throws a readable error otherwise. */
 export function checkManifest(m) {
     if (m.format !== "cpsl-package")
         throw new Error(`not a cpsl package (format '${m.format}')`);
-    if (!(m.version >= 1 && m.version <= 2))
-        throw new Error(`package version ${m.version}: this player reads versions 1 and 2`);
+    if (!(m.version >= 1 && m.version <= 3))
+        throw new Error(`package version ${m.version}: this player reads versions 1 to 3`);
     if (m.layout?.kind !== "colour-over-alpha")
         throw new Error(`layout '${m.layout?.kind}' is not supported`);
     if (!m.segments?.length)
         throw new Error("the package has no segments");
     for (const s of m.segments)
         for (const t of s.streams)
-            if (![1, 2, 4].includes(t.scale ?? 1))
-                throw new Error(`stream ${t.file.path}: scale ${t.scale} is not 1, 2 or 4`);
+            if (!scalesOf(m.version).includes(t.scale ?? 1))
+                throw new Error(`stream ${t.file.path}: scale ${t.scale} is not one of ${scalesOf(m.version).join(", ")} (version ${m.version} packages)`);
     return m;
 }
 /** Bits per second of a segment's files. */

@@ -12,7 +12,7 @@ export interface StreamEntry {
   file: FileEntry;
   track?: number;
   bitrate: number;
-  /** Downscale factor the stream was coded at (1, 2 or 4; absent: 1). */
+  /** Downscale factor the stream was coded at (1, 2, 4 or 8; 8 from version 3; absent: 1). */
   scale?: number;
 }
 
@@ -36,14 +36,20 @@ export interface Manifest {
   segments: Segment[];
 }
 
+/** The downscale factors a stream may have in a package of `version` (as cpsl-package's
+ * `scales_of`). */
+function scalesOf(version: number): number[] {
+  return version <= 1 ? [1] : version === 2 ? [1, 2, 4] : [1, 2, 4, 8];
+}
+
 /** Checks what the player relies on; throws a readable error otherwise. */
 export function checkManifest(m: Manifest): Manifest {
   if (m.format !== "cpsl-package") throw new Error(`not a cpsl package (format '${m.format}')`);
-  if (!(m.version >= 1 && m.version <= 2)) throw new Error(`package version ${m.version}: this player reads versions 1 and 2`);
+  if (!(m.version >= 1 && m.version <= 3)) throw new Error(`package version ${m.version}: this player reads versions 1 to 3`);
   if (m.layout?.kind !== "colour-over-alpha") throw new Error(`layout '${m.layout?.kind}' is not supported`);
   if (!m.segments?.length) throw new Error("the package has no segments");
   for (const s of m.segments)
-    for (const t of s.streams) if (![1, 2, 4].includes(t.scale ?? 1)) throw new Error(`stream ${t.file.path}: scale ${t.scale} is not 1, 2 or 4`);
+    for (const t of s.streams) if (!scalesOf(m.version).includes(t.scale ?? 1)) throw new Error(`stream ${t.file.path}: scale ${t.scale} is not one of ${scalesOf(m.version).join(", ")} (version ${m.version} packages)`);
   return m;
 }
 

@@ -378,7 +378,7 @@ pub fn info(a: PackageArgs) -> Result<()> {
             None => " (constant quality)".into(),
         }
     );
-    println!("  segment  frames      streams  kbit/s  quality per stream (/2, /4: coded at half, quarter size)");
+    println!("  segment  frames      streams  kbit/s  quality per stream (/2, /4, /8: coded at half, quarter, eighth size)");
     for (i, s) in m.segments.iter().enumerate() {
         let kbps: f64 = s.streams.iter().map(|t| t.bitrate as f64).sum::<f64>() / 1e3;
         let q: Vec<String> = s

@@ -4,8 +4,8 @@
 //!
 //! **Layout.** Each layer of a segment is one MP4 file of 8-bit 4:2:0 pictures twice the frame
 //! height: premultiplied colour on top, alpha as grey below ([`yuv`]), tagged BT.709 limited
-//! range; under a tight budget a stream may be coded at a half or a quarter of the frame size
-//! ([`scale`]). Per-layer streams keep per-layer rate control exact; a segment's streams hold the
+//! range; under a tight budget a stream may be coded at a half, a quarter or an eighth of the
+//! frame size ([`scale`]). Per-layer streams keep per-layer rate control exact; a segment's streams hold the
 //! same frames and start with a key frame, so a player decodes them in lock-step (the browser
 //! player with WebCodecs). The side stream (`side.bin`, see `cpsl-package`) maps each frame's
 //! layers to streams and carries depths, confidence, refresh flags and the Edge-Depth Cache.
@@ -784,7 +784,11 @@ impl PackageWriter {
         let (cw, ch) = yuv::coded_size(self.camera.width, self.camera.height);
         let m = cpsl_package::PackageManifest {
             format: cpsl_package::PACKAGE_FORMAT.into(),
-            version: cpsl_package::PACKAGE_VERSION,
+            version: cpsl_package::version_for(
+                self.segments
+                    .iter()
+                    .flat_map(|s| s.streams.iter().map(|t| t.scale)),
+            ),
             camera: self.camera,
             frame_rate: self.opts.fps,
             frames: self.frames,

@@ -1,12 +1,12 @@
 //! The resolution ladder of layer streams: under a tight budget a layer may be coded at a
-//! half or a quarter of the frame size (box-filtered), and is brought back to the frame size
+//! half, a quarter or an eighth of the frame size (box-filtered), and is brought back to the frame size
 //! after decoding by bilinear interpolation of its premultiplied RGBA. The browser player
 //! (`web/src/render.ts`) upsamples with the same rule.
 
 use cpsl_core::PremulImage;
 
 /// The downscale factors a stream may be coded at, full size first.
-pub const LADDER: [u32; 3] = [1, 2, 4];
+pub const LADDER: [u32; 4] = [1, 2, 4, 8];
 
 /// Smallest coded layer side a rung may have (SVT-AV1 refuses pictures under 64 pixels).
 const MIN_SIDE: u32 = 64;
@@ -102,7 +102,8 @@ mod tests {
 
     #[test]
     fn rungs_keep_coded_sides_of_64() {
-        assert_eq!(rungs(1920, 1080), vec![1, 2, 4]);
+        assert_eq!(rungs(1920, 1080), vec![1, 2, 4, 8]);
+        assert_eq!(rungs(640, 480), vec![1, 2, 4]);
         assert_eq!(rungs(320, 240), vec![1, 2]);
         assert_eq!(rungs(100, 60), vec![1]);
         assert_eq!(scaled_size(541, 961, 2), (271, 481));

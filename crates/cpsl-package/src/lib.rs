@@ -25,8 +25,8 @@ mod side;
 
 pub use archive::{is_archive, pack, unpack};
 pub use manifest::{
-    sha256_hex, unsafe_path, Codec, FileEntry, Layout, ManifestError, PackageManifest, Segment,
-    StreamEntry, MANIFEST_FILE, PACKAGE_FORMAT, PACKAGE_VERSION,
+    scales_of, sha256_hex, unsafe_path, version_for, Codec, FileEntry, Layout, ManifestError,
+    PackageManifest, Segment, StreamEntry, MANIFEST_FILE, PACKAGE_FORMAT, PACKAGE_VERSION,
 };
 pub use side::{
     summarise_edc, RefreshReason, SideError, SideFrame, SideLayer, SideStream, MAX_SEGMENT_FRAMES,

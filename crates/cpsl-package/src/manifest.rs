@@ -1,5 +1,7 @@
-//! The package manifest (`manifest.json`), format `cpsl-package` version 2 (version 1, read
-//! too, lacks the per-stream `scale`: every stream at full size).
+//! The package manifest (`manifest.json`), format `cpsl-package` version 3. Older versions
+//! read too: version 1 lacks the per-stream `scale` (every stream at full size), version 2
+//! allows scales 1, 2 and 4, version 3 adds 8. A package without an eighth-size stream is
+//! still written as version 2 ([`version_for`]), so players that read version 2 read it.
 //!
 //! The manifest names every file of the package with its size and SHA-256, so that a reader
 //! (or `cpsl verify`) can check each part, and carries its own checksum: the SHA-256 of the
@@ -14,7 +16,28 @@ use thiserror::Error;
 /// Format name written in every package manifest.
 pub const PACKAGE_FORMAT: &str = "cpsl-package";
 /// Newest package version this build reads and writes.
-pub const PACKAGE_VERSION: u32 = 2;
+pub const PACKAGE_VERSION: u32 = 3;
+
+/// The downscale factors a stream may have in a package of `version`.
+pub fn scales_of(version: u32) -> &'static [u32] {
+    match version {
+        0 | 1 => &[1],
+        2 => &[1, 2, 4],
+        _ => &[1, 2, 4, 8],
+    }
+}
+
+/// The version a package whose streams have the downscale factors `scales` is written with:
+/// the lowest that allows them, and at least 2 (what this format wrote before version 3).
+pub fn version_for(scales: impl IntoIterator<Item = u32>) -> u32 {
+    scales.into_iter().fold(2, |v, s| {
+        v.max(
+            (1..=PACKAGE_VERSION)
+                .find(|&v| scales_of(v).contains(&s))
+                .unwrap_or(PACKAGE_VERSION),
+        )
+    })
+}
 /// File name of the manifest inside a package.
 pub const MANIFEST_FILE: &str = "manifest.json";
 const CHECKSUM_KEY: &str = "\"checksum\": \"";
@@ -103,7 +126,7 @@ pub struct StreamEntry {
     pub bitrate: u64,
     /// The encoder's quality setting (CRF) it was coded with.
     pub quality: f32,
-    /// The downscale factor it was coded at (1, 2 or 4): its pictures are the layer size
+    /// The downscale factor it was coded at (1, 2, 4 or 8): its pictures are the layer size
     /// divided by it, rounded up, then rounded up to even; players upsample bilinearly.
     #[serde(default = "full_size", skip_serializing_if = "is_full_size")]
     pub scale: u32,
@@ -301,13 +324,17 @@ impl PackageManifest {
             if s.streams.is_empty() || s.streams.len() > crate::side::MAX_STREAMS as usize {
                 return Err(field(at("streams"), "1 to 64 streams per segment"));
             }
-            if let Some(t) = s.streams.iter().find(|t| ![1, 2, 4].contains(&t.scale)) {
-                return Err(field(at("scale"), format!("{} is not 1, 2 or 4", t.scale)));
-            }
-            if self.version < 2 && s.streams.iter().any(|t| t.scale != 1) {
+            let allowed = scales_of(self.version);
+            if let Some(t) = s.streams.iter().find(|t| !allowed.contains(&t.scale)) {
+                let list: Vec<String> = allowed.iter().map(u32::to_string).collect();
                 return Err(field(
                     at("scale"),
-                    "version 1 packages have no downscaled streams",
+                    format!(
+                        "{} is not one of {} (version {} packages)",
+                        t.scale,
+                        list.join(", "),
+                        self.version
+                    ),
                 ));
             }
             let files = s.streams.iter().map(|t| &t.file).chain([&s.side]);

@@ -144,7 +144,22 @@ fn manifest_round_trips_and_checks_itself() {
     let e = PackageManifest::parse(&m4.to_json())
         .unwrap_err()
         .to_string();
-    assert!(e.contains("scale") && e.contains("not 1, 2 or 4"), "{e}");
+    assert!(
+        e.contains("scale") && e.contains("not one of 1, 2, 4, 8"),
+        "{e}"
+    );
+    // Eighth size needs version 3; packages without it are written as version 2.
+    let mut m7 = manifest();
+    m7.segments[0].streams[0].scale = 8;
+    assert!(PackageManifest::parse(&m7.to_json()).is_ok());
+    m7.version = 2;
+    let e = PackageManifest::parse(&m7.to_json())
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("not one of 1, 2, 4 (version 2"), "{e}");
+    assert_eq!(cpsl_package::version_for([1, 2, 4, 2]), 2);
+    assert_eq!(cpsl_package::version_for([1, 8]), 3);
+    assert_eq!(cpsl_package::version_for([1, 1]), 2);
     // Version 1 manifests (no `scale`) still read, every stream at full size.
     let mut m5 = manifest();
     m5.version = 1;

@@ -309,6 +309,8 @@ mod tests {
                     };
                     let (rgb, alpha) = unstack_colour_grey(&p, 2, 2);
                     assert_eq!(alpha, [255; 4]);
+                    // The layer path (opaque: colour as it is) agrees.
+                    assert_eq!(&unstack(&p, 2, 2).as_bytes()[..3], &rgb[..3]);
                     for (a, b) in rgb[..3].iter().zip(float(y, u, v)) {
                         worst = worst.max((*a as i32 - b as i32).abs());
                     }

@@ -233,8 +233,8 @@ impl Source {
 /// segment at its key frame).
 pub struct PackagePlayer {
     pkg: cpsl_package::Package,
-    /// The open segment, and the index of the next frame its reader gives.
-    reader: Option<(usize, cpsl_codec::SegmentReader, u32)>,
+    /// The open segment and its reader.
+    reader: Option<(usize, cpsl_codec::SegmentReader)>,
     current: Option<(u32, Frame)>,
 }
 
@@ -265,14 +265,15 @@ impl PackagePlayer {
             .segment_of(f)
             .with_context(|| format!("frame {f}: the package has {} frames", m.frames))?;
         let start = m.segments[seg].start;
-        let reopen = !matches!(&self.reader, Some((s, _, next)) if *s == seg && *next <= f);
-        if reopen {
+        let ahead =
+            |(s, r): &(usize, cpsl_codec::SegmentReader)| *s == seg && start + r.given() <= f;
+        if !self.reader.as_ref().is_some_and(ahead) {
             let r = cpsl_codec::SegmentReader::open(&self.pkg, seg).with_context(|| {
                 format!("opening segment {seg} of {}", self.pkg.opened().display())
             })?;
-            self.reader = Some((seg, r, start));
+            self.reader = Some((seg, r));
         }
-        let (_, reader, next) = self.reader.as_mut().expect("opened above");
+        let (_, reader) = self.reader.as_mut().expect("opened above");
         loop {
             let decoded = match reader.next() {
                 Some(Ok(d)) => d,
@@ -289,8 +290,7 @@ impl PackagePlayer {
                     )));
                 }
             };
-            *next += 1;
-            if *next > f {
+            if decoded.side.index == f {
                 self.current = Some((f, Frame::new(decoded.set, Some(decoded.side.edc))));
                 return Ok(&self.current.as_ref().unwrap().1);
             }

@@ -582,6 +582,11 @@ impl SegmentReader {
         self.frames
     }
 
+    /// How many frames the reader has given so far.
+    pub fn given(&self) -> u32 {
+        self.done
+    }
+
     fn next_frame(&mut self, f: SideFrame) -> Result<DecodedFrame, CodecError> {
         let (cam, done, frames) = (self.camera, self.done, self.frames);
         let mut pictures: Vec<Option<PremulImage>> = self

@@ -2,15 +2,18 @@
 //! minimise `sum_k w_k D_k(r_k)` subject to `sum_k r_k <= R`.
 //!
 //! Each layer stream's rate and distortion are modelled as functions of the encoder's quality
-//! setting `q` (CRF) from two trial encodes of the segment: `ln r_k(q)` and `ln D_k(q)` are
-//! straight lines through the two measured points (rate roughly halves every 6 CRF steps;
-//! distortion grows geometrically), so `D_k(r_k)` is a power law. A stream has one such model
-//! per rung of the resolution ladder ([`crate::scale`]), its distortion measured at the frame
-//! size after upsampling, so that rungs compete on the same scale. The constrained problem is
-//! solved by Lagrangian relaxation on the grid of rungs and integer qualities: for a
-//! multiplier `lambda`, every layer independently picks the `(rung, q)` minimising
-//! `w_k D_k + lambda r_k`; `lambda` is bisected (in log space) to the smallest value whose
-//! total rate fits the budget.
+//! setting `q` (CRF) from two trial encodes of the segment: `ln D_k(q)` is the straight line
+//! through the two measured points (distortion grows geometrically), and `ln r_k(q)` is
+//! piecewise linear through every measured point, the trials and then each final encode
+//! (rate roughly halves every 6 CRF steps, but flattens towards a fixed cost at high `q`, so
+//! a line through two points extrapolates low). A stream has one such model per rung of the
+//! resolution ladder ([`crate::scale`]), its distortion measured at the frame size after
+//! upsampling, so that rungs compete on the same scale. The constrained problem is solved by
+//! Lagrangian relaxation on the grid of rungs and integer qualities: for a multiplier
+//! `lambda`, every layer independently picks the `(rung, q)` minimising `w_k D_k + lambda r_k`;
+//! `lambda` is bisected (in log space) to the smallest value whose total rate fits the
+//! budget. When the encoded streams miss the budget, [`correct`] adds their measured rates to
+//! the models and allocates again.
 //!
 //! `D_k` is the visibility-weighted squared error of the decoded premultiplied RGBA against the
 //! source ([`distortion`]); `w_k` rises with the layer's saliency and its share of depth-edge
@@ -19,11 +22,15 @@
 use cpsl_core::PremulImage;
 
 /// A rate-distortion model of one layer stream, fitted to two trial encodes.
-#[derive(Debug, Clone, Copy, PartialEq)]
+///
+/// The rate is piecewise linear in `ln r` through every measured point: the two trials and
+/// each final encode the correction rounds anchor ([`RdModel::anchor_rate`]), so that a
+/// quality between measured points is interpolated and only the ends extrapolate.
+#[derive(Debug, Clone, PartialEq)]
 pub struct RdModel {
+    /// Measured `(q, ln bits)`, sorted by quality, at least two.
+    rates: Vec<(f64, f64)>,
     q0: f64,
-    ln_r0: f64,
-    slope_r: f64,
     ln_d0: f64,
     slope_d: f64,
 }
@@ -31,29 +38,55 @@ pub struct RdModel {
 /// Smallest distortion the model takes (an empty layer codes without error).
 const MIN_D: f64 = 1e-4;
 
+/// Fewest quality steps between the points that set an end's extrapolation slope (nearer
+/// points give noisy slopes).
+const MIN_SPAN: f64 = 4.0;
+
 impl RdModel {
     /// Fits the model through `(q, bits, distortion)` at two qualities `a.0 < b.0`. Rates are
     /// forced to fall and distortions to rise with `q`, as encoders behave.
     pub fn fit(a: (f32, f64, f64), b: (f32, f64, f64)) -> Self {
         let dq = (b.0 - a.0).max(1e-3) as f64;
         let ln = |v: f64| v.max(MIN_D).ln();
+        let ln_rb = ln(b.1).min(ln(a.1) - 1e-3 * dq);
         Self {
+            rates: vec![(a.0 as f64, ln(a.1)), (a.0 as f64 + dq, ln_rb)],
             q0: a.0 as f64,
-            ln_r0: ln(a.1),
-            slope_r: ((ln(b.1) - ln(a.1)) / dq).min(-1e-3),
             ln_d0: ln(a.2),
             slope_d: ((ln(b.2) - ln(a.2)) / dq).max(1e-3),
         }
     }
 
-    /// Moves the rate line (same slope) through a measured `bits` at quality `q`.
+    /// Adds a measured `bits` at quality `q` to the rate model (replacing one at the same
+    /// quality).
     pub fn anchor_rate(&mut self, q: f32, bits: f64) {
-        self.ln_r0 = bits.max(MIN_D).ln() - self.slope_r * (q as f64 - self.q0);
+        let q = q as f64;
+        self.rates.retain(|p| (p.0 - q).abs() >= 0.5);
+        let at = self.rates.partition_point(|p| p.0 < q);
+        self.rates.insert(at, (q, bits.max(MIN_D).ln()));
     }
 
     /// Modelled bits at quality `q`.
     pub fn rate(&self, q: f32) -> f64 {
-        (self.ln_r0 + self.slope_r * (q as f64 - self.q0)).exp()
+        let (p, q) = (&self.rates, q as f64);
+        let i = p.partition_point(|pt| pt.0 <= q);
+        let ln_r = if i == 0 || i == p.len() {
+            // Beyond an end: the slope to the nearest point at least MIN_SPAN away.
+            let (end, other) = if i == 0 {
+                let o = p.iter().find(|pt| pt.0 - p[0].0 >= MIN_SPAN);
+                (p[0], *o.unwrap_or(&p[p.len() - 1]))
+            } else {
+                let last = p[p.len() - 1];
+                let o = p.iter().rev().find(|pt| last.0 - pt.0 >= MIN_SPAN);
+                (last, *o.unwrap_or(&p[0]))
+            };
+            let slope = ((other.1 - end.1) / (other.0 - end.0)).min(-1e-3);
+            end.1 + slope * (q - end.0)
+        } else {
+            let (a, b) = (p[i - 1], p[i]);
+            a.1 + (b.1 - a.1) * (q - a.0) / (b.0 - a.0)
+        };
+        ln_r.exp()
     }
 
     /// Modelled distortion at quality `q`.
@@ -143,6 +176,59 @@ pub fn allocate(
     finish(pick(hi.exp()), true)
 }
 
+/// The streams' codings as encoded: rung and quality per stream, and the measured bits.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Coding {
+    /// Rung per stream.
+    pub rung: Vec<usize>,
+    /// Quality per stream.
+    pub quality: Vec<f32>,
+    /// Measured bits per stream.
+    pub bits: Vec<f64>,
+}
+
+/// The correction rounds after the first encode, at most `rounds`: while the measured bits
+/// exceed `budget` by more than 2 % and some stream can still go cheaper, every stream's
+/// measured bits join its rung's rate model ([`RdModel::anchor_rate`]), the allocation is
+/// redone, and the streams whose choice changed are encoded again by `encode` (given
+/// `(stream, rung, quality)` jobs, it returns their bits in order). Returns the number of
+/// encodes and whether every reallocation found the budget feasible.
+pub fn correct<E>(
+    models: &mut [Vec<RdModel>],
+    weights: &[f32],
+    budget: f64,
+    (q_min, q_max): (f32, f32),
+    coding: &mut Coding,
+    rounds: usize,
+    mut encode: impl FnMut(&[(usize, usize, f32)]) -> Result<Vec<f64>, E>,
+) -> Result<(usize, bool), E> {
+    let (mut encodes, mut feasible) = (0, true);
+    for _ in 0..rounds {
+        let at_floor = (0..models.len())
+            .all(|k| coding.quality[k] >= q_max && coding.rung[k] == models[k].len() - 1);
+        if coding.bits.iter().sum::<f64>() <= budget * 1.02 || at_floor {
+            break;
+        }
+        for (k, m) in models.iter_mut().enumerate() {
+            m[coding.rung[k]].anchor_rate(coding.quality[k], coding.bits[k]);
+        }
+        let a = allocate(models, weights, budget, q_min, q_max);
+        feasible &= a.feasible;
+        let jobs: Vec<(usize, usize, f32)> = (0..models.len())
+            .filter(|&k| (a.rung[k], a.quality[k]) != (coding.rung[k], coding.quality[k]))
+            .map(|k| (k, a.rung[k], a.quality[k]))
+            .collect();
+        if jobs.is_empty() {
+            break;
+        }
+        for (&(k, r, q), bits) in jobs.iter().zip(encode(&jobs)?) {
+            (coding.rung[k], coding.quality[k], coding.bits[k]) = (r, q, bits);
+        }
+        encodes += jobs.len();
+    }
+    Ok((encodes, feasible))
+}
+
 /// The allocation weight of a layer: `(1 + saliency) * (1 + edge_share)`, where `edge_share`
 /// is the layer's share of Edge-Depth Cache samples relative to the layer with the most.
 pub fn weight(saliency: f32, edge_samples: usize, max_edge_samples: usize) -> f32 {
@@ -227,7 +313,7 @@ mod tests {
         // Rung 1 costs a quarter of the rate and carries a distortion floor of its own.
         let full = model(1e6, 10.0);
         let half = RdModel::fit((20.0, 2.5e5, 40.0), (26.0, 1.25e5, 60.0));
-        let models = vec![vec![full, half]; 2];
+        let models = vec![vec![full.clone(), half]; 2];
         let floor_full = 2.0 * full.rate(51.0);
         // Generous: full size. Below the full-size floor: the half rung, within the budget.
         let a = allocate(&models, &[1.0; 2], 4e6, 10.0, 51.0);
@@ -246,6 +332,85 @@ mod tests {
                 .sum()
         };
         assert!(d(&c) <= 2.0 * full.distortion(44.0), "{c:?}");
+    }
+
+    #[test]
+    fn anchored_rates_interpolate_and_extrapolate_from_points_apart() {
+        let mut m = model(1e6, 10.0);
+        let line_30 = m.rate(30.0);
+        m.anchor_rate(30.0, 2.0 * line_30);
+        assert!((m.rate(30.0) / (2.0 * line_30) - 1.0).abs() < 1e-9);
+        // Between 26 and 30: geometric interpolation; the trials stay as measured.
+        let mid = (m.rate(26.0) * m.rate(30.0)).sqrt();
+        assert!((m.rate(28.0) / mid - 1.0).abs() < 1e-9);
+        assert!((m.rate(20.0) / 1e6 - 1.0).abs() < 1e-9);
+        // A point 2 steps from the end does not set the slope beyond it: 26 (6 steps) does.
+        m.anchor_rate(32.0, 1.3 * line_30);
+        let slope = (m.rate(32.0) / m.rate(26.0)).ln() / 6.0;
+        assert!((m.rate(40.0) / (m.rate(32.0) * (8.0 * slope).exp()) - 1.0).abs() < 1e-9);
+        // Anchoring the same quality again replaces the point.
+        m.anchor_rate(32.0, 1.1 * line_30);
+        assert!((m.rate(32.0) / (1.1 * line_30) - 1.0).abs() < 1e-9);
+    }
+
+    #[test]
+    fn correction_rounds_bring_flattening_rates_within_the_budget() {
+        // Rates that flatten towards a fixed cost at high quality values, as encoders' do, so
+        // that lines through the full-size trials extrapolate low. Four streams, four rungs,
+        // each a quarter of the rate of the one above and blurrier.
+        let bits = |k: usize, r: usize, q: f32| {
+            (1.0 + k as f64) / 4f64.powi(r as i32) * (2e6 * (-0.12 * (q as f64 - 20.0)).exp() + 4e4)
+        };
+        let dist = |k: usize, r: usize, q: f32| {
+            (1.0 + k as f64) * ([0.0, 3.0, 8.0, 15.0][r] + (0.1 * (q as f64 - 20.0)).exp())
+        };
+        let fitted: Vec<Vec<RdModel>> = (0..4)
+            .map(|k| {
+                (0..4)
+                    .map(|r| {
+                        let [a, b] = if r == 0 { [20.0, 35.0] } else { [35.0, 51.0] };
+                        RdModel::fit(
+                            (a, bits(k, r, a), dist(k, r, a)),
+                            (b, bits(k, r, b), dist(k, r, b)),
+                        )
+                    })
+                    .collect()
+            })
+            .collect();
+        let weights = [1.0; 4];
+        let measure = |jobs: &[(usize, usize, f32)]| -> Result<Vec<f64>, ()> {
+            Ok(jobs.iter().map(|&(k, r, q)| bits(k, r, q)).collect())
+        };
+        let mut missed = 0;
+        for budget in [1.4e6, 6e5, 2e5] {
+            let mut models = fitted.clone();
+            let a = allocate(&models, &weights, budget, 10.0, 51.0);
+            let jobs: Vec<_> = (0..4).map(|k| (k, a.rung[k], a.quality[k])).collect();
+            let mut coding = Coding {
+                bits: measure(&jobs).unwrap(),
+                rung: a.rung,
+                quality: a.quality,
+            };
+            missed += usize::from(coding.bits.iter().sum::<f64>() > 1.02 * budget);
+            let (_, feasible) = correct(
+                &mut models,
+                &weights,
+                budget,
+                (10.0, 51.0),
+                &mut coding,
+                4,
+                measure,
+            )
+            .unwrap();
+            let spent = coding.bits.iter().sum::<f64>();
+            assert!(feasible);
+            assert!(
+                spent <= 1.02 * budget && spent > 0.8 * budget,
+                "{budget}: {spent}"
+            );
+        }
+        // The first allocation misses at least once: the rounds are what the test checks.
+        assert!(missed > 0);
     }
 
     #[test]

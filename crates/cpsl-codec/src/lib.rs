@@ -304,7 +304,7 @@ pub fn encode_segment(
     let seconds = frames.len() as f64 / opts.fps;
     let (q_min, q_max, _) = quality_range(opts.codec);
     let mut encodes = 0;
-    let (mut rung, mut quality, feasible, budget) = match opts.rate {
+    let (rung, quality, feasible, budget) = match opts.rate {
         RateControl::Quality(q) => (
             vec![0; n_streams],
             vec![q.clamp(q_min, q_max); n_streams],
@@ -331,7 +331,7 @@ pub fn encode_segment(
             let mut a = alloc::allocate(&models, &weights, budget, q_min, q_max);
             // The smaller rungs are fitted only when full size would need a quality worse
             // than the upper trial's: within the trials' range full size wins anyway.
-            let upper = trial_qualities(opts.codec)[1];
+            let upper = trial_qualities(opts.codec, 0)[1];
             if rungs.len() > 1 && !(a.feasible && a.quality.iter().all(|&q| q <= upper)) {
                 let lower: Vec<usize> = (1..rungs.len()).collect();
                 pics(0, 1);
@@ -345,63 +345,55 @@ pub fn encode_segment(
         }
     };
     let budget_bits = budget.as_ref().map(|b| b.0);
-    let mut sizes: Vec<u64> = (0..n_streams)
-        .into_par_iter()
-        .map(|k| encode_one(k, rung[k], quality[k], &root.join(stream_rel(k))))
-        .collect::<Result<_, _>>()?;
+    let encode_jobs = |jobs: &[(usize, usize, f32)]| -> Result<Vec<f64>, CodecError> {
+        jobs.par_iter()
+            .map(|&(k, r, q)| {
+                encode_one(k, r, q, &root.join(stream_rel(k))).map(|bytes| bytes as f64 * 8.0)
+            })
+            .collect()
+    };
+    let jobs: Vec<(usize, usize, f32)> = (0..n_streams).map(|k| (k, rung[k], quality[k])).collect();
+    let mut coding = alloc::Coding {
+        bits: encode_jobs(&jobs)?,
+        rung,
+        quality,
+    };
     encodes += n_streams;
+    let side_bits = side_bytes.len() as f64 * 8.0;
     let mut feasible = feasible;
-    // A correction pass when the model was too optimistic: scale the budget by the miss.
+    // Rates extrapolated beyond the trial qualities may miss, and a correction may move a
+    // stream to a rung whose model is not yet anchored: up to four correction rounds.
     if let Some((total, mut models)) = budget {
-        let spent = |s: &[u64]| s.iter().sum::<u64>() as f64 * 8.0 + side_bytes.len() as f64 * 8.0;
-        let cheapest = models[0].len() - 1;
-        // Rates extrapolated far above the trial qualities run low, and a correction may
-        // move a stream to another rung whose line is still unanchored: up to four rounds.
-        for _ in 0..4 {
-            let at_floor = (0..n_streams).all(|k| quality[k] >= q_max && rung[k] == cheapest);
-            if spent(&sizes) <= total * 1.02 || at_floor {
-                break;
-            }
-            // Keep the fitted slopes, move each chosen rate line through the measured point.
-            for k in 0..n_streams {
-                models[k][rung[k]].anchor_rate(quality[k], sizes[k] as f64 * 8.0);
-            }
-            let budget = total - side_bytes.len() as f64 * 8.0;
-            let a = alloc::allocate(&models, &weights, budget, q_min, q_max);
-            feasible &= a.feasible;
-            let changed: Vec<usize> = (0..n_streams)
-                .filter(|&k| (a.rung[k], a.quality[k]) != (rung[k], quality[k]))
-                .collect();
-            if changed.is_empty() {
-                break;
-            }
-            (rung, quality) = (a.rung, a.quality);
-            let redo: Vec<(usize, u64)> = changed
-                .par_iter()
-                .map(|&k| {
-                    encode_one(k, rung[k], quality[k], &root.join(stream_rel(k))).map(|s| (k, s))
-                })
-                .collect::<Result<_, _>>()?;
-            encodes += redo.len();
-            for (k, s) in redo {
-                sizes[k] = s;
-            }
-        }
-        feasible &= spent(&sizes) <= total * 1.1;
+        let (n, ok) = alloc::correct(
+            &mut models,
+            &weights,
+            total - side_bits,
+            (q_min, q_max),
+            &mut coding,
+            4,
+            encode_jobs,
+        )?;
+        encodes += n;
+        feasible &= ok && coding.bits.iter().sum::<f64>() + side_bits <= total * 1.1;
     }
+    let alloc::Coding {
+        rung,
+        quality,
+        bits: sizes,
+    } = coding;
     let scale: Vec<u32> = rung.iter().map(|&r| rungs[r]).collect();
     let mut streams = Vec::with_capacity(n_streams);
     for k in 0..n_streams {
         streams.push(StreamEntry {
             file: file_entry(root, &stream_rel(k))?,
             track: first.set.layers()[k].meta.track,
-            bitrate: (sizes[k] as f64 * 8.0 / seconds).round() as u64,
+            bitrate: (sizes[k] / seconds).round() as u64,
             quality: quality[k],
             scale: scale[k],
             weight: weights[k],
         });
     }
-    let bits = (sizes.iter().sum::<u64>() + side_bytes.len() as u64) as f64 * 8.0;
+    let bits = sizes.iter().sum::<f64>() + side_bits;
     Ok((
         Segment {
             start: first.index,
@@ -420,13 +412,18 @@ pub fn encode_segment(
     ))
 }
 
-/// The qualities of the two trial encodes: a quarter and three fifths of the quality range.
-fn trial_qualities(codec: Codec) -> [f32; 2] {
+/// The qualities of the two trial encodes of rung `rung`. Full size: a quarter and three
+/// fifths of the quality range. The smaller rungs are tried only when full size would need a
+/// quality beyond its upper trial's (see [`encode_segment`]), so theirs span the rest: from
+/// that quality to the range's end, where they are then interpolated, not extrapolated.
+fn trial_qualities(codec: Codec, rung: usize) -> [f32; 2] {
     let (q_min, q_max, _) = quality_range(codec);
-    [
-        (q_min + 0.25 * (q_max - q_min)).round(),
-        (q_min + 0.6 * (q_max - q_min)).round(),
-    ]
+    let upper = (q_min + 0.6 * (q_max - q_min)).round();
+    if rung == 0 {
+        [(q_min + 0.25 * (q_max - q_min)).round(), upper]
+    } else {
+        [upper, q_max]
+    }
 }
 
 /// Two trial encodes per stream and rung `which` of the ladder `rungs` (at the
@@ -445,7 +442,6 @@ fn trial_models<'a>(
     map: &[Vec<u8>],
     opts: &CodingOptions,
 ) -> Result<Vec<Vec<alloc::RdModel>>, CodecError> {
-    let trials = trial_qualities(opts.codec);
     let step = frames.len().div_ceil(8).max(1);
     let sampled: Vec<usize> = (0..frames.len()).step_by(step).collect();
     let (w, h) = (frames[0].set.camera().width, frames[0].set.camera().height);
@@ -474,7 +470,7 @@ fn trial_models<'a>(
         .map(|(k, r)| {
             let (sw, sh) = scale::scaled_size(w, h, rungs[r]);
             let mut points = Vec::new();
-            for (t, &q) in trials.iter().enumerate() {
+            for (t, q) in trial_qualities(opts.codec, r).into_iter().enumerate() {
                 let path = root.join(stream_rel(k).replace(".mp4", &format!(".trial{r}{t}.mp4")));
                 let bytes = encode_stream(&path, &pics(k, r), opts.codec, q, opts.fps);
                 let decoded = bytes.and_then(|b| decode_pictures(&path, sw, sh).map(|d| (b, d)));

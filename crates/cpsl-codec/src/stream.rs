@@ -196,6 +196,9 @@ pub fn encode_pictures<T: Sample>(
     ost.set_time_base(rate.invert());
     let mut mux_opts = ffmpeg::Dictionary::new();
     mux_opts.set("movflags", "+faststart");
+    // No muxer banner (the `encoder` tag naming the libavformat version): 37 bytes per
+    // stream and segment, and the same bytes whichever FFmpeg wrote them.
+    mux_opts.set("fflags", "+bitexact");
     octx.write_header_with(mux_opts)
         .map_err(ff("writing the header"))?;
     let ost_tb = octx.stream(0).expect("stream 0").time_base();

@@ -2,18 +2,18 @@
 //! minimise `sum_k w_k D_k(r_k)` subject to `sum_k r_k <= R`.
 //!
 //! Each layer stream's rate and distortion are modelled as functions of the encoder's quality
-//! setting `q` (CRF) from two trial encodes of the segment: `ln D_k(q)` is the straight line
-//! through the two measured points (distortion grows geometrically), and `ln r_k(q)` is
-//! piecewise linear through every measured point, the trials and then each final encode
-//! (rate roughly halves every 6 CRF steps, but flattens towards a fixed cost at high `q`, so
-//! a line through two points extrapolates low). A stream has one such model per rung of the
-//! resolution ladder ([`crate::scale`]), its distortion measured at the frame size after
-//! upsampling, so that rungs compete on the same scale. The constrained problem is solved by
-//! Lagrangian relaxation on the grid of rungs and integer qualities: for a multiplier
-//! `lambda`, every layer independently picks the `(rung, q)` minimising `w_k D_k + lambda r_k`;
-//! `lambda` is bisected (in log space) to the smallest value whose total rate fits the
-//! budget. When the encoded streams miss the budget, [`correct`] adds their measured rates to
-//! the models and allocates again.
+//! setting `q` (CRF) from trial encodes of the segment: `ln r_k(q)` and `ln D_k(q)` are
+//! piecewise linear through the measured points, and the rate also through each final
+//! encode's (rate roughly halves every 6 CRF steps but flattens towards a fixed cost at high
+//! `q`, so a line through two points extrapolates low; distortion grows geometrically). A
+//! stream has one such model per rung of the resolution ladder ([`crate::scale`]), its
+//! distortion measured at the frame size after upsampling, so that rungs compete on the same
+//! scale. The constrained problem is solved by Lagrangian relaxation on the grid of rungs and
+//! integer qualities: for a multiplier `lambda`, every layer independently picks the
+//! `(rung, q)` minimising `w_k D_k + lambda r_k`; `lambda` is bisected (in log space) to the
+//! smallest value whose total rate fits the budget, and what is left is spent greedily. When
+//! the encoded streams overshoot, [`correct`] adds their measured rates to the models and
+//! allocates again, no stream costing more than it did.
 //!
 //! `D_k` is the visibility-weighted squared error of the decoded premultiplied RGBA against the
 //! source ([`distortion`]); `w_k` rises with the layer's saliency and its share of depth-edge
@@ -21,18 +21,18 @@
 
 use cpsl_core::PremulImage;
 
-/// A rate-distortion model of one layer stream, fitted to two trial encodes.
+/// A rate-distortion model of one layer stream, fitted to its trial encodes.
 ///
-/// The rate is piecewise linear in `ln r` through every measured point: the two trials and
-/// each final encode the correction rounds anchor ([`RdModel::anchor_rate`]), so that a
-/// quality between measured points is interpolated and only the ends extrapolate.
+/// Rate and distortion are piecewise linear in `ln r` and `ln D` through the measured points:
+/// the trials, and for the rate also each final encode the correction rounds add
+/// ([`RdModel::anchor_rate`]), so that a quality between measured points is interpolated and
+/// only the ends extrapolate.
 #[derive(Debug, Clone, PartialEq)]
 pub struct RdModel {
     /// Measured `(q, ln bits)`, sorted by quality, at least two.
     rates: Vec<(f64, f64)>,
-    q0: f64,
-    ln_d0: f64,
-    slope_d: f64,
+    /// Measured `(q, ln distortion)`, sorted by quality, at least two.
+    distortions: Vec<(f64, f64)>,
 }
 
 /// Smallest distortion the model takes (an empty layer codes without error).
@@ -42,19 +42,32 @@ const MIN_D: f64 = 1e-4;
 /// points give noisy slopes).
 const MIN_SPAN: f64 = 4.0;
 
+/// Least slope of `ln r` (falling) and `ln D` (rising) per quality step.
+const MIN_SLOPE: f64 = 1e-3;
+
 impl RdModel {
-    /// Fits the model through `(q, bits, distortion)` at two qualities `a.0 < b.0`. Rates are
-    /// forced to fall and distortions to rise with `q`, as encoders behave.
-    pub fn fit(a: (f32, f64, f64), b: (f32, f64, f64)) -> Self {
-        let dq = (b.0 - a.0).max(1e-3) as f64;
+    /// Fits the model through `(q, bits, distortion)` measured at two or more distinct
+    /// qualities, in increasing order. Rates are forced to fall and distortions to rise with
+    /// `q`, as encoders behave.
+    ///
+    /// # Panics
+    /// With fewer than two points.
+    pub fn fit(points: &[(f32, f64, f64)]) -> Self {
+        assert!(points.len() >= 2, "an RD model needs two trials");
         let ln = |v: f64| v.max(MIN_D).ln();
-        let ln_rb = ln(b.1).min(ln(a.1) - 1e-3 * dq);
-        Self {
-            rates: vec![(a.0 as f64, ln(a.1)), (a.0 as f64 + dq, ln_rb)],
-            q0: a.0 as f64,
-            ln_d0: ln(a.2),
-            slope_d: ((ln(b.2) - ln(a.2)) / dq).max(1e-3),
+        let (mut rates, mut distortions) = (Vec::new(), Vec::new());
+        for &(q, r, d) in points {
+            let q = q as f64;
+            let (mut lr, mut ld) = (ln(r), ln(d));
+            if let (Some(&(pq, pr)), Some(&(_, pd))) = (rates.last(), distortions.last()) {
+                let dq: f64 = q - pq;
+                lr = lr.min(pr - MIN_SLOPE * dq);
+                ld = ld.max(pd + MIN_SLOPE * dq);
+            }
+            rates.push((q, lr));
+            distortions.push((q, ld));
         }
+        Self { rates, distortions }
     }
 
     /// Adds a measured `bits` at quality `q` to the rate model (replacing one at the same
@@ -68,30 +81,32 @@ impl RdModel {
 
     /// Modelled bits at quality `q`.
     pub fn rate(&self, q: f32) -> f64 {
-        let (p, q) = (&self.rates, q as f64);
-        let i = p.partition_point(|pt| pt.0 <= q);
-        let ln_r = if i == 0 || i == p.len() {
-            // Beyond an end: the slope to the nearest point at least MIN_SPAN away.
-            let (end, other) = if i == 0 {
-                let o = p.iter().find(|pt| pt.0 - p[0].0 >= MIN_SPAN);
-                (p[0], *o.unwrap_or(&p[p.len() - 1]))
-            } else {
-                let last = p[p.len() - 1];
-                let o = p.iter().rev().find(|pt| last.0 - pt.0 >= MIN_SPAN);
-                (last, *o.unwrap_or(&p[0]))
-            };
-            let slope = ((other.1 - end.1) / (other.0 - end.0)).min(-1e-3);
-            end.1 + slope * (q - end.0)
-        } else {
-            let (a, b) = (p[i - 1], p[i]);
-            a.1 + (b.1 - a.1) * (q - a.0) / (b.0 - a.0)
-        };
-        ln_r.exp()
+        piecewise(&self.rates, q as f64, |s| s.min(-MIN_SLOPE)).exp()
     }
 
     /// Modelled distortion at quality `q`.
     pub fn distortion(&self, q: f32) -> f64 {
-        (self.ln_d0 + self.slope_d * (q as f64 - self.q0)).exp()
+        piecewise(&self.distortions, q as f64, |s| s.max(MIN_SLOPE)).exp()
+    }
+}
+
+/// The piecewise-linear function through `p` (sorted, at least two points) at `q`; beyond an
+/// end, the slope to the nearest point at least [`MIN_SPAN`] away, passed through `clamp`.
+fn piecewise(p: &[(f64, f64)], q: f64, clamp: impl Fn(f64) -> f64) -> f64 {
+    let i = p.partition_point(|pt| pt.0 <= q);
+    if i == 0 || i == p.len() {
+        let (end, other) = if i == 0 {
+            let o = p.iter().find(|pt| pt.0 - p[0].0 >= MIN_SPAN);
+            (p[0], *o.unwrap_or(&p[p.len() - 1]))
+        } else {
+            let last = p[p.len() - 1];
+            let o = p.iter().rev().find(|pt| last.0 - pt.0 >= MIN_SPAN);
+            (last, *o.unwrap_or(&p[0]))
+        };
+        end.1 + clamp((other.1 - end.1) / (other.0 - end.0)) * (q - end.0)
+    } else {
+        let (a, b) = (p[i - 1], p[i]);
+        a.1 + (b.1 - a.1) * (q - a.0) / (b.0 - a.0)
     }
 }
 
@@ -119,23 +134,51 @@ pub fn allocate(
     q_min: f32,
     q_max: f32,
 ) -> Allocation {
+    allocate_capped(models, weights, budget, (q_min, q_max), None)
+}
+
+/// [`allocate`], with stream `k` limited to choices whose modelled rate is at most
+/// `caps[k]` where caps are given. After the Lagrangian search, what the budget has left is
+/// spent greedily, on the change that lowers `w_k D_k` most per extra bit: the multiplier's
+/// choices jump between discrete options, so the search alone may leave much unspent.
+fn allocate_capped(
+    models: &[Vec<RdModel>],
+    weights: &[f32],
+    budget: f64,
+    (q_min, q_max): (f32, f32),
+    caps: Option<&[f64]>,
+) -> Allocation {
     let grid: Vec<f32> = (q_min.ceil() as i32..=q_max.floor() as i32)
         .map(|q| q as f32)
         .collect();
+    let rate = |k: usize, (r, q): (usize, f32)| models[k][r].rate(q);
+    let cost = |k: usize, (r, q): (usize, f32)| weights[k] as f64 * models[k][r].distortion(q);
     let options = |k: usize| {
         let grid = &grid;
-        (0..models[k].len()).flat_map(move |r| grid.iter().map(move |&q| (r, q)))
+        let cap = caps.map_or(f64::INFINITY, |c| c[k] * (1.0 + 1e-9));
+        (0..models[k].len())
+            .flat_map(move |r| grid.iter().map(move |&q| (r, q)))
+            .filter(move |&o| rate(k, o) <= cap)
     };
-    let rate = |k: usize, (r, q): (usize, f32)| models[k][r].rate(q);
+    // The cheapest choice per stream (under a cap, at least the capped one exists).
+    let cheapest = |k: usize| {
+        let all = (0..models[k].len()).flat_map(|r| grid.iter().map(move |&q| (r, q)));
+        options(k)
+            .chain(
+                if caps.is_some() { None } else { Some(all) }
+                    .into_iter()
+                    .flatten(),
+            )
+            .min_by(|&a, &b| rate(k, a).total_cmp(&rate(k, b)))
+            .expect("non-empty grid")
+    };
     let pick = |lambda: f64| -> Vec<(usize, f32)> {
         (0..models.len())
             .map(|k| {
-                let cost = |o: (usize, f32)| {
-                    weights[k] as f64 * models[k][o.0].distortion(o.1) + lambda * rate(k, o)
-                };
+                let c = |o| cost(k, o) + lambda * rate(k, o);
                 options(k)
-                    .min_by(|&a, &b| cost(a).total_cmp(&cost(b)))
-                    .expect("non-empty grid")
+                    .min_by(|&a, &b| c(a).total_cmp(&c(b)))
+                    .unwrap_or_else(|| cheapest(k))
             })
             .collect()
     };
@@ -151,29 +194,44 @@ pub fn allocate(
         quality: choice.iter().map(|o| o.1).collect(),
         feasible,
     };
-    let cheapest: Vec<(usize, f32)> = (0..models.len())
-        .map(|k| {
-            options(k)
-                .min_by(|&a, &b| rate(k, a).total_cmp(&rate(k, b)))
-                .expect("non-empty grid")
-        })
-        .collect();
-    if total(&cheapest) > budget {
-        return finish(cheapest, false);
+    let floor: Vec<(usize, f32)> = (0..models.len()).map(cheapest).collect();
+    if total(&floor) > budget {
+        return finish(floor, false);
     }
     let (mut lo, mut hi) = (-40.0f64, 40.0f64);
-    if total(&pick(lo.exp())) <= budget {
-        return finish(pick(lo.exp()), true);
-    }
-    for _ in 0..80 {
-        let mid = 0.5 * (lo + hi);
-        if total(&pick(mid.exp())) <= budget {
-            hi = mid;
-        } else {
-            lo = mid;
+    let mut choice = pick(lo.exp());
+    if total(&choice) > budget {
+        for _ in 0..80 {
+            let mid = 0.5 * (lo + hi);
+            if total(&pick(mid.exp())) <= budget {
+                hi = mid;
+            } else {
+                lo = mid;
+            }
         }
+        choice = pick(hi.exp());
     }
-    finish(pick(hi.exp()), true)
+    // Spend the rest greedily.
+    let mut spent = total(&choice);
+    loop {
+        let mut best: Option<(f64, usize, (usize, f32))> = None;
+        for (k, &now) in choice.iter().enumerate() {
+            let (r0, c0) = (rate(k, now), cost(k, now));
+            for o in options(k) {
+                let (r, c) = (rate(k, o), cost(k, o));
+                if c < c0 && spent - r0 + r <= budget {
+                    let gain = (c0 - c) / (r - r0).max(1e-9);
+                    if best.is_none_or(|b| gain > b.0) {
+                        best = Some((gain, k, o));
+                    }
+                }
+            }
+        }
+        let Some((_, k, o)) = best else { break };
+        spent += rate(k, o) - rate(k, choice[k]);
+        choice[k] = o;
+    }
+    finish(choice, true)
 }
 
 /// The streams' codings as encoded: rung and quality per stream, and the measured bits.
@@ -212,7 +270,10 @@ pub fn correct<E>(
         for (k, m) in models.iter_mut().enumerate() {
             m[coding.rung[k]].anchor_rate(coding.quality[k], coding.bits[k]);
         }
-        let a = allocate(models, weights, budget, q_min, q_max);
+        // Over the budget: no stream may cost more than it did, so that rounds cannot swap
+        // bits between streams back and forth.
+        let caps = coding.bits.clone();
+        let a = allocate_capped(models, weights, budget, (q_min, q_max), Some(&caps));
         feasible &= a.feasible;
         let jobs: Vec<(usize, usize, f32)> = (0..models.len())
             .filter(|&k| (a.rung[k], a.quality[k]) != (coding.rung[k], coding.quality[k]))
@@ -279,10 +340,10 @@ mod tests {
 
     fn model(r_at_20: f64, d_at_20: f64) -> RdModel {
         // Rate halves and distortion doubles every 6 steps.
-        RdModel::fit(
+        RdModel::fit(&[
             (20.0, r_at_20, d_at_20),
             (26.0, r_at_20 / 2.0, d_at_20 * 2.0),
-        )
+        ])
     }
 
     #[test]
@@ -309,10 +370,32 @@ mod tests {
     }
 
     #[test]
+    fn what_the_search_leaves_is_spent() {
+        // Streams of different sizes, so that the multiplier's choices jump unevenly.
+        let models: Vec<Vec<RdModel>> = (0..3)
+            .map(|k| vec![model(1e6 * (1 + 3 * k) as f64, 10.0 * (k + 1) as f64)])
+            .collect();
+        for weights in [[4.0, 1.0, 1.0], [1.0, 2.0, 3.0]] {
+            for budget in [5e5, 9e5, 1.3e6, 3.1e6] {
+                let a = allocate(&models, &weights, budget, 10.0, 51.0);
+                let spent: f64 = a.bits.iter().sum();
+                assert!(a.feasible && spent <= budget, "{budget}: {spent}");
+                // No stream can take one quality step better within the budget.
+                for ((m, &q), &bits) in models.iter().zip(&a.quality).zip(&a.bits) {
+                    if q > 10.0 {
+                        let more = m[0].rate(q - 1.0) - bits;
+                        assert!(spent + more > budget, "{budget} {weights:?}: {a:?}");
+                    }
+                }
+            }
+        }
+    }
+
+    #[test]
     fn a_budget_below_the_full_size_floor_goes_down_the_ladder() {
         // Rung 1 costs a quarter of the rate and carries a distortion floor of its own.
         let full = model(1e6, 10.0);
-        let half = RdModel::fit((20.0, 2.5e5, 40.0), (26.0, 1.25e5, 60.0));
+        let half = RdModel::fit(&[(20.0, 2.5e5, 40.0), (26.0, 1.25e5, 60.0)]);
         let models = vec![vec![full.clone(), half]; 2];
         let floor_full = 2.0 * full.rate(51.0);
         // Generous: full size. Below the full-size floor: the half rung, within the budget.
@@ -357,22 +440,28 @@ mod tests {
     fn correction_rounds_bring_flattening_rates_within_the_budget() {
         // Rates that flatten towards a fixed cost at high quality values, as encoders' do, so
         // that lines through the full-size trials extrapolate low. Four streams, four rungs,
-        // each a quarter of the rate of the one above and blurrier.
+        // each a quarter of the rate of the one above and blurrier, the smaller ones tried
+        // also at the worst quality.
         let bits = |k: usize, r: usize, q: f32| {
             (1.0 + k as f64) / 4f64.powi(r as i32) * (2e6 * (-0.12 * (q as f64 - 20.0)).exp() + 4e4)
         };
         let dist = |k: usize, r: usize, q: f32| {
-            (1.0 + k as f64) * ([0.0, 3.0, 8.0, 15.0][r] + (0.1 * (q as f64 - 20.0)).exp())
+            (1.0 + k as f64) * ([0.0, 20.0, 50.0, 100.0][r] + (0.1 * (q as f64 - 20.0)).exp())
         };
         let fitted: Vec<Vec<RdModel>> = (0..4)
             .map(|k| {
                 (0..4)
                     .map(|r| {
-                        let [a, b] = if r == 0 { [20.0, 35.0] } else { [35.0, 51.0] };
-                        RdModel::fit(
-                            (a, bits(k, r, a), dist(k, r, a)),
-                            (b, bits(k, r, b), dist(k, r, b)),
-                        )
+                        let trials: &[f32] = if r == 0 {
+                            &[20.0, 35.0]
+                        } else {
+                            &[20.0, 35.0, 51.0]
+                        };
+                        let points: Vec<_> = trials
+                            .iter()
+                            .map(|&q| (q, bits(k, r, q), dist(k, r, q)))
+                            .collect();
+                        RdModel::fit(&points)
                     })
                     .collect()
             })
@@ -403,6 +492,7 @@ mod tests {
             )
             .unwrap();
             let spent = coding.bits.iter().sum::<f64>();
+
             assert!(feasible);
             assert!(
                 spent <= 1.02 * budget && spent > 0.8 * budget,

@@ -338,7 +338,7 @@ pub fn encode_segment(
                 for (m, l) in models.iter_mut().zip(fit(&lower)?) {
                     m.extend(l);
                 }
-                encodes += 2 * n_streams * lower.len();
+                encodes += 3 * n_streams * lower.len();
                 a = alloc::allocate(&models, &weights, budget, q_min, q_max);
             }
             (a.rung, a.quality, a.feasible, Some((bps * seconds, models)))
@@ -412,21 +412,24 @@ pub fn encode_segment(
     ))
 }
 
-/// The qualities of the two trial encodes of rung `rung`. Full size: a quarter and three
-/// fifths of the quality range. The smaller rungs are tried only when full size would need a
-/// quality beyond its upper trial's (see [`encode_segment`]), so theirs span the rest: from
-/// that quality to the range's end, where they are then interpolated, not extrapolated.
-fn trial_qualities(codec: Codec, rung: usize) -> [f32; 2] {
+/// The qualities of the trial encodes of rung `rung`: a quarter and three fifths of the
+/// quality range, and for the smaller rungs also the range's end. The smaller rungs are tried
+/// only when full size would need a quality beyond its upper trial's (see
+/// [`encode_segment`]), so that is where they are used: measured there, they are
+/// interpolated, not extrapolated (rates flatten at the worst qualities).
+fn trial_qualities(codec: Codec, rung: usize) -> Vec<f32> {
     let (q_min, q_max, _) = quality_range(codec);
-    let upper = (q_min + 0.6 * (q_max - q_min)).round();
-    if rung == 0 {
-        [(q_min + 0.25 * (q_max - q_min)).round(), upper]
-    } else {
-        [upper, q_max]
+    let mut q = vec![
+        (q_min + 0.25 * (q_max - q_min)).round(),
+        (q_min + 0.6 * (q_max - q_min)).round(),
+    ];
+    if rung > 0 {
+        q.push(q_max);
     }
+    q
 }
 
-/// Two trial encodes per stream and rung `which` of the ladder `rungs` (at the
+/// Trial encodes per stream and rung `which` of the ladder `rungs` (at the
 /// [`trial_qualities`]), each decoded, brought back to the frame size and scored with the
 /// proxy distortion on up to 8 evenly spaced frames. Returns the models per stream, then per
 /// rung of `which`.
@@ -490,7 +493,7 @@ fn trial_models<'a>(
                 let norm = 4.0 * (w * h) as f64 * sampled.len() as f64;
                 points.push((q, bytes as f64 * 8.0, e / norm));
             }
-            Ok(alloc::RdModel::fit(points[0], points[1]))
+            Ok(alloc::RdModel::fit(&points))
         })
         .collect::<Result<_, CodecError>>()?;
     Ok(fitted.chunks(which.len()).map(<[_]>::to_vec).collect())

@@ -1,0 +1,27 @@
+//! Criterion benchmark of bringing a layer coded at an eighth of a phone-size frame
+//! (1080x1920, the fox at a mobile budget) back to the frame size, as every trial encode of a
+//! smaller rung and every decoded frame of such a stream does.
+#![allow(missing_docs)] // criterion_group! generates undocumented items
+
+use cpsl_codec::scale::{downscale, upscale};
+use cpsl_core::PremulImage;
+use criterion::{criterion_group, criterion_main, Criterion};
+
+fn bench(c: &mut Criterion) {
+    let (w, h) = (1080u32, 1920u32);
+    let data: Vec<u8> = (0..w * h)
+        .flat_map(|i| {
+            let (x, y) = (i % w, i / w);
+            let a = if (x / 64 + y / 64) % 3 == 0 { 0 } else { 255 };
+            [(x % 256) as u8 & a, (y % 256) as u8 & a, 128 & a, a]
+        })
+        .collect();
+    let frame = PremulImage::from_premul(w, h, data).expect("premultiplied");
+    let small = downscale(&frame, 8);
+    c.bench_function("upscale_1080x1920_from_eighth", |b| {
+        b.iter(|| upscale(small.clone(), w, h, 8))
+    });
+}
+
+criterion_group!(benches, bench);
+criterion_main!(benches);

@@ -160,17 +160,13 @@ fn allocate_capped(
             .flat_map(move |r| grid.iter().map(move |&q| (r, q)))
             .filter(move |&o| rate(k, o) <= cap)
     };
-    // The cheapest choice per stream (under a cap, at least the capped one exists).
+    // Never empty: under a cap (from `correct`), the stream's current choice, whose measured
+    // rate its model runs through, is within it.
+    let within = "a choice within the cap";
     let cheapest = |k: usize| {
-        let all = (0..models[k].len()).flat_map(|r| grid.iter().map(move |&q| (r, q)));
         options(k)
-            .chain(
-                if caps.is_some() { None } else { Some(all) }
-                    .into_iter()
-                    .flatten(),
-            )
             .min_by(|&a, &b| rate(k, a).total_cmp(&rate(k, b)))
-            .expect("non-empty grid")
+            .expect(within)
     };
     let pick = |lambda: f64| -> Vec<(usize, f32)> {
         (0..models.len())
@@ -178,7 +174,7 @@ fn allocate_capped(
                 let c = |o| cost(k, o) + lambda * rate(k, o);
                 options(k)
                     .min_by(|&a, &b| c(a).total_cmp(&c(b)))
-                    .unwrap_or_else(|| cheapest(k))
+                    .expect(within)
             })
             .collect()
     };

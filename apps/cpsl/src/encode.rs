@@ -202,17 +202,12 @@ pub fn run(a: EncodeArgs) -> Result<()> {
                     format!("coding the segment from frame {}", pending[0].index)
                 })?;
                 if !r.feasible {
-                    let cam = pending[0].set.camera();
-                    let smallest = cpsl_codec::scale::rungs(cam.width, cam.height);
-                    let floor = r.quality.iter().zip(&r.scale).all(|(&q, s)| {
-                        q >= cpsl_codec::quality_range(codec).1 && Some(s) == smallest.last()
-                    });
                     tracing::warn!(
                         "segment at frame {}: {:.0} bits spent of a budget of {:.0} ({})",
                         pending[0].index,
                         r.bits,
                         r.budget_bits.unwrap_or(0.0),
-                        if floor {
+                        if r.at_floor {
                             "the cheapest coding, lowest quality at the smallest size, needs more"
                         } else {
                             "the allocator's correction rounds did not reach it"

@@ -241,6 +241,13 @@ pub struct Coding {
     pub bits: Vec<f64>,
 }
 
+impl Coding {
+    /// Whether every stream is at its cheapest choice: quality `q_max` on rung `cheapest(k)`.
+    pub fn at_floor(&self, q_max: f32, cheapest: impl Fn(usize) -> usize) -> bool {
+        (0..self.rung.len()).all(|k| self.quality[k] >= q_max && self.rung[k] == cheapest(k))
+    }
+}
+
 /// The correction rounds after the first encode, at most `rounds`: while the measured bits
 /// exceed `budget` by more than 2 % and some stream can still go cheaper, every stream's
 /// measured bits join its rung's rate model ([`RdModel::anchor_rate`]), the allocation is
@@ -258,8 +265,7 @@ pub fn correct<E>(
 ) -> Result<(usize, bool), E> {
     let (mut encodes, mut feasible) = (0, true);
     for _ in 0..rounds {
-        let at_floor = (0..models.len())
-            .all(|k| coding.quality[k] >= q_max && coding.rung[k] == models[k].len() - 1);
+        let at_floor = coding.at_floor(q_max, |k| models[k].len() - 1);
         if coding.bits.iter().sum::<f64>() <= budget * 1.02 || at_floor {
             break;
         }

@@ -143,6 +143,9 @@ pub struct SegmentReport {
     pub scale: Vec<u32>,
     /// Whether the budget could be met.
     pub feasible: bool,
+    /// Whether every stream is at the cheapest coding: the worst quality at the smallest
+    /// size of the ladder (an unmet budget is then below what any coding needs).
+    pub at_floor: bool,
     /// Encodes run (trials, final and corrections), over all streams.
     pub encodes: usize,
 }
@@ -376,6 +379,7 @@ pub fn encode_segment(
         encodes += n;
         feasible &= ok && coding.bits.iter().sum::<f64>() + side_bits <= total * 1.1;
     }
+    let at_floor = coding.at_floor(q_max, |_| rungs.len() - 1);
     let alloc::Coding {
         rung,
         quality,
@@ -407,6 +411,7 @@ pub fn encode_segment(
             quality,
             scale,
             feasible,
+            at_floor,
             encodes,
         },
     ))

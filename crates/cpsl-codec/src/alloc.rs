@@ -322,18 +322,18 @@ pub fn visibility(front: &[&PremulImage], width: u32, height: u32) -> Vec<u8> {
 /// its sum over a stream's sampled frames divided by the same (picture-size) constant for
 /// every stream, so that a small layer weighs its share of the picture.
 pub fn distortion(src: &PremulImage, dec: &PremulImage, vis: &[u8]) -> f64 {
-    let mut err = 0f64;
-    for ((s, d), &v) in src
+    // In integers, exactly: the weight is (255 + 4 v) / 1275.
+    let err: u64 = src
         .as_bytes()
         .chunks_exact(4)
         .zip(dec.as_bytes().chunks_exact(4))
         .zip(vis)
-    {
-        let w = 0.2 + 0.8 * v as f64 / 255.0;
-        let e: i32 = (0..4).map(|c| (s[c] as i32 - d[c] as i32).pow(2)).sum();
-        err += w * e as f64;
-    }
-    err
+        .map(|((s, d), &v)| {
+            let e: u32 = (0..4).map(|c| u32::from(s[c].abs_diff(d[c])).pow(2)).sum();
+            u64::from(e * (255 + 4 * u32::from(v)))
+        })
+        .sum();
+    err as f64 / 1275.0
 }
 
 #[cfg(test)]

@@ -4,10 +4,10 @@
 //! halves; the player reads alpha from the bottom half's luma.
 
 use cpsl_core::PremulImage;
+use rayon::prelude::*;
 
 const KR: f32 = 0.2126;
 const KB: f32 = 0.0722;
-const KG: f32 = 1.0 - KR - KB;
 
 /// A planar 4:2:0 picture: `width x height` luma, `width/2 x height/2` chroma, no padding.
 /// Samples are 8-bit (`u8`) or 10-bit (`u16`, values up to 1023).
@@ -137,35 +137,98 @@ pub fn unstack_colour_grey16(p: &Yuv420<u16>, width: u32, height: u32) -> (Vec<u
     (rgb, grey)
 }
 
-/// The stacking of [`stack`] with pixel `(x, y)` read as `[r, g, b, grey]` by `at`.
-fn stack_with(width: u32, height: u32, at: impl Fn(usize, usize) -> [u8; 4]) -> Yuv420 {
+/// The forward BT.709 limited-range conversion in fixed point (16 fractional bits): luma from
+/// one pixel's RGB, chroma from the sums of a 2x2 block's RGB (4:2:0, the block's mean). One
+/// rounding per sample, where the float formula cost a libm `roundf` each.
+struct Forward {
+    y: [i32; 3],
+    cb: [i32; 3],
+    cr: [i32; 3],
+}
+
+impl Forward {
+    const fn fixed(v: f64) -> i32 {
+        let v = v * 65536.0;
+        (if v < 0.0 { v - 0.5 } else { v + 0.5 }) as i32
+    }
+
+    const fn new() -> Self {
+        let (kr, kb) = (KR as f64, KB as f64);
+        let kg = 1.0 - kr - kb;
+        // Per unit of an 8-bit sample, and per unit of a sum of four for chroma.
+        let (ys, cbs, crs) = (
+            219.0 / 255.0,
+            224.0 / (2.0 * (1.0 - kb)) / 1020.0,
+            224.0 / (2.0 * (1.0 - kr)) / 1020.0,
+        );
+        let f = Self::fixed;
+        Self {
+            y: [f(ys * kr), f(ys * kg), f(ys * kb)],
+            cb: [f(-cbs * kr), f(-cbs * kg), f(cbs * (1.0 - kb))],
+            cr: [f(crs * (1.0 - kr)), f(-crs * kg), f(-crs * kb)],
+        }
+    }
+
+    #[inline]
+    fn dot(c: &[i32; 3], p: [i32; 3], offset: i32) -> u8 {
+        ((c[0] * p[0] + c[1] * p[1] + c[2] * p[2] + (offset << 16) + 32768) >> 16).clamp(0, 255)
+            as u8
+    }
+
+    #[inline]
+    fn luma(&self, p: [u8; 4]) -> u8 {
+        Self::dot(&self.y, [p[0], p[1], p[2]].map(i32::from), 16)
+    }
+
+    /// Cb and Cr of the sums of a block's four pixels.
+    #[inline]
+    fn chroma(&self, sum: [i32; 3]) -> (u8, u8) {
+        (Self::dot(&self.cb, sum, 128), Self::dot(&self.cr, sum, 128))
+    }
+}
+
+const FORWARD: Forward = Forward::new();
+
+/// An 8-bit grey value as limited-range luma (`16 + 219 g / 255`, rounded; never a tie).
+#[inline]
+fn grey_luma(g: u8) -> u8 {
+    (16 + (219 * u32::from(g) + 127) / 255) as u8
+}
+
+/// The stacking of [`stack`] with pixel `(x, y)` read as `[r, g, b, grey]` by `at`, rows of
+/// 2x2 blocks in parallel.
+fn stack_with(
+    width: u32,
+    height: u32,
+    at: impl Fn(usize, usize) -> [u8; 4] + Sync,
+) -> Yuv420 {
     let (cw, ch) = coded_size(width, height);
     let (pw, ph) = (cw, 2 * ch);
     let mut y_plane = vec![0u8; pw * ph];
     let mut u = vec![128u8; pw / 2 * ph / 2];
     let mut v = vec![128u8; pw / 2 * ph / 2];
-    for yy in 0..ch {
-        for xx in 0..cw {
-            let p = at(xx, yy);
-            let luma = (KR * p[0] as f32 + KG * p[1] as f32 + KB * p[2] as f32) / 255.0;
-            y_plane[yy * pw + xx] = q(16.0 + 219.0 * luma);
-            y_plane[(yy + ch) * pw + xx] = q(16.0 + 219.0 * p[3] as f32 / 255.0);
-        }
-    }
-    for by in 0..ch / 2 {
-        for bx in 0..cw / 2 {
-            let mut s = [0f32; 3];
-            for (dx, dy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
-                let p = at(2 * bx + dx, 2 * by + dy);
-                for c in 0..3 {
-                    s[c] += p[c] as f32 / (4.0 * 255.0);
+    let (colour, grey) = y_plane.split_at_mut(pw * ch);
+    let f = &FORWARD;
+    colour
+        .par_chunks_mut(2 * pw)
+        .zip(grey.par_chunks_mut(2 * pw))
+        .zip(u.par_chunks_mut(pw / 2).zip(v.par_chunks_mut(pw / 2)))
+        .enumerate()
+        .for_each(|(by, ((colour, grey), (u, v)))| {
+            for bx in 0..cw / 2 {
+                let mut sum = [0i32; 3];
+                for (dx, dy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+                    let (x, y) = (2 * bx + dx, 2 * by + dy);
+                    let p = at(x, y);
+                    colour[dy * pw + x] = f.luma(p);
+                    grey[dy * pw + x] = grey_luma(p[3]);
+                    for c in 0..3 {
+                        sum[c] += i32::from(p[c]);
+                    }
                 }
+                (u[bx], v[bx]) = f.chroma(sum);
             }
-            let luma = KR * s[0] + KG * s[1] + KB * s[2];
-            u[by * pw / 2 + bx] = q(128.0 + 224.0 * (s[2] - luma) / (2.0 * (1.0 - KB)));
-            v[by * pw / 2 + bx] = q(128.0 + 224.0 * (s[0] - luma) / (2.0 * (1.0 - KR)));
-        }
-    }
+        });
     Yuv420 {
         width: pw,
         height: ph,
@@ -283,6 +346,61 @@ fn byte(v: i32) -> u8 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    const KG: f32 = 1.0 - KR - KB;
+
+    #[test]
+    fn fixed_point_stacking_matches_the_float_formula() {
+        // The forward formula in f64, rounded once per sample: the fixed point gives the same
+        // samples.
+        let r = |v: f64| v.round().clamp(0.0, 255.0) as u8;
+        let (kr, kb) = (KR as f64, KB as f64);
+        let kg = 1.0 - kr - kb;
+        let luma = |p: [f64; 3]| (kr * p[0] + kg * p[1] + kb * p[2]) / 255.0;
+        // Odd size: the last column and row are replicated.
+        let (w, h) = (37u32, 23u32);
+        let mut seed = 0x2545_f491_u32;
+        let mut next = || {
+            seed ^= seed << 13;
+            seed ^= seed >> 17;
+            seed ^= seed << 5;
+            seed
+        };
+        let data: Vec<u8> = (0..w * h)
+            .flat_map(|_| {
+                let a = (next() % 256) as u8;
+                let c = next().to_le_bytes();
+                [0, 1, 2].map(|i| cpsl_core::image::premultiply(c[i], a)).into_iter().chain([a])
+            })
+            .collect();
+        let img = PremulImage::from_premul(w, h, data).unwrap();
+        let p = stack(&img);
+        let (cw, ch) = coded_size(w, h);
+        let at = |x: usize, y: usize| img.pixel((x as u32).min(w - 1), (y as u32).min(h - 1));
+        let check = |got: u8, want: u8| assert_eq!(got, want);
+        for y in 0..ch {
+            for x in 0..cw {
+                let q = at(x, y).map(f64::from);
+                check(p.y[y * cw + x], r(16.0 + 219.0 * luma([q[0], q[1], q[2]])));
+                check(p.y[(y + ch) * cw + x], r(16.0 + 219.0 * q[3] / 255.0));
+            }
+        }
+        for by in 0..ch / 2 {
+            for bx in 0..cw / 2 {
+                let mut s = [0.0; 3];
+                for (dx, dy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+                    let q = at(2 * bx + dx, 2 * by + dy);
+                    for c in 0..3 {
+                        s[c] += f64::from(q[c]) / 4.0;
+                    }
+                }
+                let l = luma(s);
+                let i = by * cw / 2 + bx;
+                check(p.u[i], r(128.0 + 224.0 * (s[2] / 255.0 - l) / (2.0 * (1.0 - kb))));
+                check(p.v[i], r(128.0 + 224.0 * (s[0] / 255.0 - l) / (2.0 * (1.0 - kr))));
+            }
+        }
+    }
 
     #[test]
     fn the_tables_match_the_float_conversion() {

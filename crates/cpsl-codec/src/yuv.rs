@@ -197,11 +197,7 @@ fn grey_luma(g: u8) -> u8 {
 
 /// The stacking of [`stack`] with pixel `(x, y)` read as `[r, g, b, grey]` by `at`, rows of
 /// 2x2 blocks in parallel.
-fn stack_with(
-    width: u32,
-    height: u32,
-    at: impl Fn(usize, usize) -> [u8; 4] + Sync,
-) -> Yuv420 {
+fn stack_with(width: u32, height: u32, at: impl Fn(usize, usize) -> [u8; 4] + Sync) -> Yuv420 {
     let (cw, ch) = coded_size(width, height);
     let (pw, ph) = (cw, 2 * ch);
     let mut y_plane = vec![0u8; pw * ph];
@@ -370,7 +366,10 @@ mod tests {
             .flat_map(|_| {
                 let a = (next() % 256) as u8;
                 let c = next().to_le_bytes();
-                [0, 1, 2].map(|i| cpsl_core::image::premultiply(c[i], a)).into_iter().chain([a])
+                [0, 1, 2]
+                    .map(|i| cpsl_core::image::premultiply(c[i], a))
+                    .into_iter()
+                    .chain([a])
             })
             .collect();
         let img = PremulImage::from_premul(w, h, data).unwrap();
@@ -396,8 +395,14 @@ mod tests {
                 }
                 let l = luma(s);
                 let i = by * cw / 2 + bx;
-                check(p.u[i], r(128.0 + 224.0 * (s[2] / 255.0 - l) / (2.0 * (1.0 - kb))));
-                check(p.v[i], r(128.0 + 224.0 * (s[0] / 255.0 - l) / (2.0 * (1.0 - kr))));
+                check(
+                    p.u[i],
+                    r(128.0 + 224.0 * (s[2] / 255.0 - l) / (2.0 * (1.0 - kb))),
+                );
+                check(
+                    p.v[i],
+                    r(128.0 + 224.0 * (s[0] / 255.0 - l) / (2.0 * (1.0 - kr))),
+                );
             }
         }
     }

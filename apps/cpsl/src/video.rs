@@ -319,6 +319,7 @@ pub fn run(a: LayerVideoArgs) -> Result<()> {
         "fps": info.fps,
         "width": info.width,
         "height": info.height,
+        "rotation": info.rotation,
         "depth": depth.name(),
         "gop": gop,
         "layering": cfg,

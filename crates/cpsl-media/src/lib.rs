@@ -1,6 +1,12 @@
 //! Media input: RGB frames from a video file (through FFmpeg: any container and codec it
 //! reads) or from a folder of images (an image sequence, in file-name order).
 //!
+//! Y'CbCr video is converted to RGB with the matrix and range the stream declares (BT.709,
+//! BT.601, BT.2020, SMPTE 240M; limited or full range). Where it declares no matrix, BT.601
+//! is used, as FFmpeg's own scaler does (and as the `ffmpeg` tool encodes untagged video).
+//! Pictures are turned upright by the stream's display matrix (quarter turns), as players
+//! show them.
+//!
 //! H.264 streams are decoded with `flags2=+export_mvs`, and each frame carries the decoder's
 //! motion vectors as a dense backward motion field ([`Frame::motion`]) when they describe it
 //! (P-frames predicted from the previous frame only); callers fall back to optical flow
@@ -63,6 +69,35 @@ pub struct Motion {
     pub data: Vec<f32>,
 }
 
+impl Motion {
+    /// The field of the picture turned clockwise by `degrees` (a quarter turn): positions
+    /// and vectors turn with it.
+    pub fn rotated(self, degrees: u32) -> Self {
+        if degrees == 0 {
+            return self;
+        }
+        let mut data = rotate(self.data, self.width, self.height, 2, degrees);
+        for v in data.chunks_exact_mut(2) {
+            let (dx, dy) = (v[0], v[1]);
+            [v[0], v[1]] = match degrees {
+                90 => [-dy, dx],
+                180 => [-dx, -dy],
+                _ => [dy, -dx],
+            };
+        }
+        let (width, height) = if degrees == 180 {
+            (self.width, self.height)
+        } else {
+            (self.height, self.width)
+        };
+        Self {
+            width,
+            height,
+            data,
+        }
+    }
+}
+
 /// One decoded frame.
 #[derive(Debug, Clone)]
 pub struct Frame {
@@ -87,6 +122,10 @@ pub struct Info {
     pub frames: Option<usize>,
     /// Codec name (`image` for image sequences).
     pub codec: String,
+    /// Clockwise rotation applied to every decoded picture, in degrees (0, 90, 180 or 270):
+    /// the stream's display matrix, as players show it (phone videos filmed upright). The
+    /// width and height above are after it.
+    pub rotation: u32,
 }
 
 /// A source of frames.
@@ -141,6 +180,7 @@ impl ImageSequence {
                 fps: 30.0,
                 frames: Some(files.len()),
                 codec: "image".into(),
+                rotation: 0,
             },
             files,
             next: 0,
@@ -184,11 +224,27 @@ pub struct VideoFile {
     input: ffmpeg::format::context::Input,
     stream: usize,
     decoder: ffmpeg::decoder::Video,
-    scaler: ffmpeg::software::scaling::Context,
+    /// To 8-bit RGB (RGB and grey sources) or to 8-bit 4:4:4 Y'CbCr in the source's range,
+    /// converted to RGB here with the frame's matrix; none for 8-bit 4:2:0 sources, whose
+    /// chroma is upsampled here.
+    scaler: Option<ffmpeg::software::scaling::Context>,
+    ycc: Option<YccSource>,
+    /// Decoded (coded) picture size, before the rotation.
+    coded: (usize, usize),
     info: Info,
     decoded: usize,
     flushed: bool,
     mvs: bool,
+}
+
+/// How a Y'CbCr source's samples are read.
+struct YccSource {
+    /// The pixel format says full range (`yuvj*`).
+    full: bool,
+    /// 8-bit planar 4:2:0 (`yuv420p`, `yuvj420p`): converted without the scaler.
+    planar420: bool,
+    /// Tables of the last (matrix, range).
+    tables: Option<(Matrix, bool, YccTables)>,
 }
 
 impl VideoFile {
@@ -217,6 +273,10 @@ impl VideoFile {
             30.0
         };
         let frames = (st.frames() > 0).then_some(st.frames() as usize);
+        let rotation = st
+            .side_data()
+            .find(|d| d.kind() == ffmpeg::codec::packet::side_data::Type::DisplayMatrix)
+            .map_or(0, |d| rotation_of(d.data()));
         let ctx = ffmpeg::codec::context::Context::from_parameters(st.parameters())
             .map_err(|e| fail(e.to_string()))?;
         let id = ctx.id();
@@ -236,28 +296,49 @@ impl VideoFile {
         if w == 0 || h == 0 {
             return Err(fail("the video stream has no size".into()));
         }
-        let scaler = ffmpeg::software::scaling::Context::get(
-            decoder.format(),
-            w,
-            h,
-            ffmpeg::format::Pixel::RGB24,
-            w,
-            h,
-            ffmpeg::software::scaling::Flags::BILINEAR,
-        )
-        .map_err(|e| fail(e.to_string()))?;
+        let name = decoder.format().descriptor().map_or("", |d| d.name());
+        let ycc = (!is_rgb_format(name)).then(|| YccSource {
+            full: name.starts_with("yuvj"),
+            planar420: name == "yuv420p" || name == "yuvj420p",
+            tables: None,
+        });
+        use ffmpeg::format::Pixel;
+        let target = match &ycc {
+            None => Some(Pixel::RGB24),
+            Some(y) if y.planar420 => None,
+            Some(y) if y.full => Some(Pixel::YUVJ444P),
+            Some(_) => Some(Pixel::YUV444P),
+        };
+        let scaler = target
+            .map(|t| {
+                ffmpeg::software::scaling::Context::get(
+                    decoder.format(),
+                    w,
+                    h,
+                    t,
+                    w,
+                    h,
+                    ffmpeg::software::scaling::Flags::BILINEAR,
+                )
+            })
+            .transpose()
+            .map_err(|e| fail(e.to_string()))?;
+        let (width, height) = if rotation % 180 == 90 { (h, w) } else { (w, h) };
         Ok(Self {
             path: path.to_path_buf(),
             input,
             stream,
             decoder,
             scaler,
+            ycc,
+            coded: (w as usize, h as usize),
             info: Info {
-                width: w,
-                height: h,
+                width,
+                height,
                 fps,
                 frames,
                 codec: codec.name().to_string(),
+                rotation,
             },
             decoded: 0,
             flushed: false,
@@ -266,16 +347,58 @@ impl VideoFile {
     }
 
     fn convert(&mut self, frame: &ffmpeg::frame::Video) -> Result<Frame, MediaError> {
-        let mut rgb = ffmpeg::frame::Video::empty();
-        self.scaler
-            .run(frame, &mut rgb)
-            .map_err(|e| self.decode_error(e))?;
-        let (w, h) = (self.info.width as usize, self.info.height as usize);
-        let stride = rgb.stride(0);
-        let data = rgb.data(0);
-        let mut out = Vec::with_capacity(w * h * 3);
-        for y in 0..h {
-            out.extend_from_slice(&data[y * stride..y * stride + w * 3]);
+        let mut scaled = ffmpeg::frame::Video::empty();
+        let pic = match &mut self.scaler {
+            Some(scaler) => {
+                let run = scaler.run(frame, &mut scaled);
+                run.map_err(|e| self.decode_error(e))?;
+                &scaled
+            }
+            None => frame,
+        };
+        let (w, h) = self.coded;
+        let mut rgb = vec![0u8; w * h * 3];
+        match &mut self.ycc {
+            None => {
+                let (stride, data) = (pic.stride(0), pic.data(0));
+                for (y, out) in rgb.chunks_exact_mut(w * 3).enumerate() {
+                    out.copy_from_slice(&data[y * stride..][..w * 3]);
+                }
+            }
+            Some(src) => {
+                let matrix = Matrix::of(frame.color_space());
+                let full = src.full || frame.color_range() == ffmpeg::color::Range::JPEG;
+                if src
+                    .tables
+                    .as_ref()
+                    .is_none_or(|t| (t.0, t.1) != (matrix, full))
+                {
+                    src.tables = Some((matrix, full, YccTables::new(matrix, full)));
+                }
+                let t = &src.tables.as_ref().expect("set above").2;
+                let plane = |i: usize| (pic.stride(i), pic.data(i));
+                let ((sy, py), (su, pu), (sv, pv)) = (plane(0), plane(1), plane(2));
+                if src.planar420 {
+                    let (cw, ch) = (w.div_ceil(2), h.div_ceil(2));
+                    let (mut cb, mut cr) = (vec![0u8; w], vec![0u8; w]);
+                    let mut rows = Vec::with_capacity(cw + 1);
+                    for (y, out) in rgb.chunks_exact_mut(w * 3).enumerate() {
+                        upsample_chroma(pu, (su, cw, ch), y, &mut rows, &mut cb);
+                        upsample_chroma(pv, (sv, cw, ch), y, &mut rows, &mut cr);
+                        let luma = &py[y * sy..][..w];
+                        for (x, px) in out.chunks_exact_mut(3).enumerate() {
+                            px.copy_from_slice(&t.rgb(luma[x], cb[x], cr[x]));
+                        }
+                    }
+                } else {
+                    for (y, out) in rgb.chunks_exact_mut(w * 3).enumerate() {
+                        let (ly, lu, lv) = (&py[y * sy..], &pu[y * su..], &pv[y * sv..]);
+                        for (x, px) in out.chunks_exact_mut(3).enumerate() {
+                            px.copy_from_slice(&t.rgb(ly[x], lu[x], lv[x]));
+                        }
+                    }
+                }
+            }
         }
         let motion = if self.mvs {
             frame
@@ -287,8 +410,8 @@ impl VideoFile {
         self.decoded += 1;
         Ok(Frame {
             index: self.decoded - 1,
-            rgb: out,
-            motion,
+            rgb: rotate(rgb, w, h, 3, self.info.rotation),
+            motion: motion.map(|m| m.rotated(self.info.rotation)),
         })
     }
 
@@ -299,6 +422,162 @@ impl VideoFile {
             reason: e.to_string(),
         }
     }
+}
+
+/// Row `y` of a 4:2:0 chroma plane (`cw x ch` samples, `stride` apart) upsampled to the luma
+/// width (`out.len()`), bilinearly, with the chroma siting of H.264, H.265 and MPEG-2 (left):
+/// a sample sits on the even luma columns and halfway between two luma rows. `rows` is
+/// scratch space.
+fn upsample_chroma(
+    plane: &[u8],
+    (stride, cw, ch): (usize, usize, usize),
+    y: usize,
+    rows: &mut Vec<u16>,
+    out: &mut [u8],
+) {
+    let c = y / 2;
+    // The nearer chroma row weighs 3/4, the other (above for even rows) 1/4.
+    let other = if y % 2 == 0 {
+        c.saturating_sub(1)
+    } else {
+        (c + 1).min(ch - 1)
+    };
+    let (near, far) = (&plane[c * stride..][..cw], &plane[other * stride..][..cw]);
+    rows.clear();
+    rows.extend(
+        near.iter()
+            .zip(far)
+            .map(|(&n, &f)| 3 * u16::from(n) + u16::from(f)),
+    );
+    rows.push(rows[cw - 1]);
+    // In eighths: even columns on a sample, odd ones halfway to the next.
+    for (i, o) in out.chunks_mut(2).enumerate() {
+        let (a, b) = (rows[i], rows[i + 1]);
+        o[0] = ((2 * a + 4) >> 3) as u8;
+        if let Some(odd) = o.get_mut(1) {
+            *odd = ((a + b + 4) >> 3) as u8;
+        }
+    }
+}
+
+/// Whether an FFmpeg pixel format holds RGB or grey samples (converted to RGB by FFmpeg's
+/// scaler) rather than Y'CbCr.
+fn is_rgb_format(name: &str) -> bool {
+    ["rgb", "bgr", "gbr", "gray", "ya8", "ya16", "pal8", "mono"]
+        .iter()
+        .any(|k| name.contains(k))
+}
+
+/// The luma coefficients `(K_R, K_B)` of a Y'CbCr matrix.
+#[derive(Debug, Clone, Copy, PartialEq)]
+struct Matrix(f64, f64);
+
+impl Matrix {
+    /// The matrix a stream declares; BT.601 where it declares none (FFmpeg's default).
+    fn of(space: ffmpeg::color::Space) -> Self {
+        use ffmpeg::color::Space;
+        match space {
+            Space::BT709 => Self(0.2126, 0.0722),
+            Space::BT2020NCL | Space::BT2020CL => Self(0.2627, 0.0593),
+            Space::SMPTE240M => Self(0.212, 0.087),
+            Space::FCC => Self(0.30, 0.11),
+            _ => Self(0.299, 0.114),
+        }
+    }
+}
+
+/// Y'CbCr to 8-bit RGB as tables in 0..255 units with 16 fractional bits: `R = Y + Cr_r`,
+/// `G = Y + Cb_g + Cr_g`, `B = Y + Cb_b`, one rounding per channel.
+struct YccTables {
+    y: [i32; 256],
+    cr_r: [i32; 256],
+    cb_g: [i32; 256],
+    cr_g: [i32; 256],
+    cb_b: [i32; 256],
+}
+
+impl YccTables {
+    fn new(Matrix(kr, kb): Matrix, full: bool) -> Self {
+        let kg = 1.0 - kr - kb;
+        let (y0, ys, cs) = if full {
+            (0.0, 255.0, 255.0)
+        } else {
+            (16.0, 219.0, 224.0)
+        };
+        let fixed = |v: f64| (v * 255.0 * 65536.0).round() as i32;
+        let mut t = Self {
+            y: [0; 256],
+            cr_r: [0; 256],
+            cb_g: [0; 256],
+            cr_g: [0; 256],
+            cb_b: [0; 256],
+        };
+        for v in 0..256 {
+            let c = (v as f64 - 128.0) / cs;
+            let (r, b) = (2.0 * (1.0 - kr) * c, 2.0 * (1.0 - kb) * c);
+            t.y[v] = fixed((v as f64 - y0) / ys);
+            t.cr_r[v] = fixed(r);
+            t.cb_b[v] = fixed(b);
+            t.cr_g[v] = fixed(-kr / kg * r);
+            t.cb_g[v] = fixed(-kb / kg * b);
+        }
+        t
+    }
+
+    #[inline]
+    fn rgb(&self, y: u8, cb: u8, cr: u8) -> [u8; 3] {
+        let (l, cb, cr) = (self.y[y as usize], cb as usize, cr as usize);
+        [
+            l + self.cr_r[cr],
+            l + self.cb_g[cb] + self.cr_g[cr],
+            l + self.cb_b[cb],
+        ]
+        .map(|v| ((v + 32768) >> 16).clamp(0, 255) as u8)
+    }
+}
+
+/// The clockwise rotation (0, 90, 180 or 270 degrees) that shows a picture upright, from a
+/// display matrix (nine 32-bit integers, 16.16 fixed point), as FFmpeg's tools apply it; 0
+/// for a rotation that is not a quarter turn.
+pub fn rotation_of(matrix: &[u8]) -> u32 {
+    if matrix.len() < 36 {
+        return 0;
+    }
+    let m = |i: usize| {
+        i32::from_ne_bytes(matrix[4 * i..4 * i + 4].try_into().expect("4 bytes")) as f64 / 65536.0
+    };
+    let (s0, s1) = (m(0).hypot(m(3)), m(1).hypot(m(4)));
+    if s0 == 0.0 || s1 == 0.0 {
+        return 0;
+    }
+    let deg = (m(1) / s1).atan2(m(0) / s0).to_degrees().round();
+    let deg = deg.rem_euclid(360.0) as u32;
+    if deg % 90 == 0 {
+        deg % 360
+    } else {
+        0
+    }
+}
+
+/// A `w x h` picture of `n`-sample pixels turned clockwise by `degrees` (0, 90, 180 or 270).
+pub fn rotate<T: Copy>(data: Vec<T>, w: usize, h: usize, n: usize, degrees: u32) -> Vec<T> {
+    if degrees == 0 {
+        return data;
+    }
+    let (ow, oh) = if degrees == 180 { (w, h) } else { (h, w) };
+    let mut out = Vec::with_capacity(data.len());
+    for y in 0..oh {
+        for x in 0..ow {
+            // The source pixel that lands on (x, y).
+            let (sx, sy) = match degrees {
+                90 => (y, h - 1 - x),
+                180 => (w - 1 - x, h - 1 - y),
+                _ => (w - 1 - y, x),
+            };
+            out.extend_from_slice(&data[(sy * w + sx) * n..][..n]);
+        }
+    }
+    out
 }
 
 impl FrameSource for VideoFile {
@@ -402,4 +681,59 @@ pub fn motion_from_vectors(raw: &[u8], w: usize, h: usize) -> Option<Motion> {
         height: h,
         data,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn chroma_is_upsampled_with_left_siting() {
+        // 2x2 chroma samples for a 3x4 picture (odd width), stride 5.
+        let plane = [0u8, 80, 9, 9, 9, 160, 240, 9, 9, 9];
+        let mut rows = Vec::new();
+        let mut out = [0u8; 3];
+        let mut row = |y| {
+            upsample_chroma(&plane, (5, 2, 2), y, &mut rows, &mut out);
+            out
+        };
+        // Even columns sit on a sample, odd ones halfway; rows are 3:1 blends of the nearer
+        // and the other chroma row (clamped at the edges).
+        assert_eq!(row(0), [0, 40, 80]);
+        assert_eq!(row(1), [40, 80, 120]);
+        assert_eq!(row(2), [120, 160, 200]);
+        assert_eq!(row(3), [160, 200, 240]);
+    }
+
+    #[test]
+    fn tables_invert_the_forward_matrix() {
+        for (space, full) in [
+            (ffmpeg::color::Space::BT709, false),
+            (ffmpeg::color::Space::BT470BG, true),
+            (ffmpeg::color::Space::BT2020NCL, false),
+        ] {
+            let Matrix(kr, kb) = Matrix::of(space);
+            let t = YccTables::new(Matrix(kr, kb), full);
+            let (y0, ys, cs) = if full {
+                (0.0, 255.0, 255.0)
+            } else {
+                (16.0, 219.0, 224.0)
+            };
+            for rgb in [[200u8, 50, 20], [0, 0, 0], [255, 255, 255], [30, 140, 250]] {
+                let [r, g, b] = rgb.map(|v| v as f64 / 255.0);
+                let l = kr * r + (1.0 - kr - kb) * g + kb * b;
+                let q = |v: f64| v.round().clamp(0.0, 255.0) as u8;
+                let y = q(y0 + ys * l);
+                let cb = q(128.0 + cs * (b - l) / (2.0 * (1.0 - kb)));
+                let cr = q(128.0 + cs * (r - l) / (2.0 * (1.0 - kr)));
+                let back = t.rgb(y, cb, cr);
+                for (a, b) in back.iter().zip(rgb) {
+                    assert!(
+                        a.abs_diff(b) <= 2,
+                        "{space:?} full={full}: {back:?} for {rgb:?}"
+                    );
+                }
+            }
+        }
+    }
 }

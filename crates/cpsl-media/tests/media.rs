@@ -143,3 +143,187 @@ fn image_sequences_in_name_order_with_size_checks() {
         Err(MediaError::FrameSize { .. })
     ));
 }
+
+/// Runs the `ffmpeg` tool.
+fn ffmpeg(args: &[&str]) {
+    let status = Command::new("ffmpeg")
+        .args(["-v", "error", "-y"])
+        .args(args)
+        .status()
+        .expect("the ffmpeg tool");
+    assert!(status.success(), "ffmpeg {args:?}");
+}
+
+#[test]
+fn colour_follows_the_declared_matrix_and_range() {
+    let dir = tempfile::tempdir().unwrap();
+    // (200, 50, 20) flat, coded with each matrix and range and tagged with it; the last is
+    // untagged, coded as the ffmpeg tool does by default (BT.601, limited).
+    let cases: [(&str, &[&str]); 6] = [
+        (
+            "bt709",
+            &[
+                "-vf",
+                "scale=out_color_matrix=bt709:out_range=tv,format=yuv420p",
+                "-colorspace",
+                "bt709",
+                "-color_range",
+                "tv",
+            ],
+        ),
+        (
+            "bt601",
+            &[
+                "-vf",
+                "scale=out_color_matrix=bt601:out_range=tv,format=yuv420p",
+                "-colorspace",
+                "smpte170m",
+                "-color_range",
+                "tv",
+            ],
+        ),
+        (
+            "bt2020",
+            &[
+                "-vf",
+                "scale=out_color_matrix=bt2020:out_range=tv,format=yuv420p",
+                "-colorspace",
+                "bt2020nc",
+                "-color_range",
+                "tv",
+            ],
+        ),
+        (
+            "bt709-full",
+            &[
+                "-vf",
+                "scale=out_color_matrix=bt709:out_range=pc,format=yuvj420p",
+                "-colorspace",
+                "bt709",
+                "-color_range",
+                "pc",
+            ],
+        ),
+        (
+            "bt709-vp9",
+            &[
+                "-vf",
+                "scale=out_color_matrix=bt709:out_range=tv,format=yuv420p",
+                "-colorspace",
+                "bt709",
+                "-color_range",
+                "tv",
+                "-c:v",
+                "libvpx-vp9",
+            ],
+        ),
+        ("untagged", &["-pix_fmt", "yuv420p"]),
+    ];
+    for (name, args) in cases {
+        let ext = if name.ends_with("vp9") { "webm" } else { "mp4" };
+        let path = dir.path().join(format!("{name}.{ext}"));
+        let mut a = vec![
+            "-f",
+            "lavfi",
+            "-i",
+            "color=c=0xC83214:s=64x48:r=10",
+            "-frames:v",
+            "2",
+        ];
+        a.extend_from_slice(args);
+        a.push(path.to_str().unwrap());
+        ffmpeg(&a);
+        let mut src = open(&path).unwrap();
+        let f = src.next_frame().unwrap().unwrap();
+        let px = &f.rgb[(24 * 64 + 32) * 3..][..3];
+        for (got, want) in px.iter().zip([200u8, 50, 20]) {
+            assert!(got.abs_diff(want) <= 3, "{name}: {px:?} for [200, 50, 20]");
+        }
+    }
+}
+
+/// Decodes a whole file to RGB with the `ffmpeg` tool (which turns pictures upright).
+fn ffmpeg_rgb(path: &Path) -> Vec<u8> {
+    let out = Command::new("ffmpeg")
+        .args(["-v", "error", "-i"])
+        .arg(path)
+        .args(["-f", "rawvideo", "-pix_fmt", "rgb24", "-"])
+        .output()
+        .expect("the ffmpeg tool");
+    assert!(out.status.success());
+    out.stdout
+}
+
+#[test]
+fn pictures_and_motion_turn_with_the_display_matrix() {
+    let dir = tempfile::tempdir().unwrap();
+    let plain = encode(
+        dir.path(),
+        "plain.mp4",
+        6,
+        &[
+            "-c:v", "libx264", "-bf", "0", "-refs", "1", "-pix_fmt", "yuv420p",
+        ],
+    );
+    let upright = drain(open(&plain).unwrap().as_mut()).unwrap();
+    let upright_rgb = |turn: u32| -> Vec<u8> {
+        upright
+            .iter()
+            .flat_map(|f| cpsl_media::rotate(f.rgb.clone(), 160, 120, 3, turn))
+            .collect()
+    };
+    let mean_diff = |a: &[u8], b: &[u8]| {
+        assert_eq!(a.len(), b.len());
+        a.iter()
+            .zip(b)
+            .map(|(a, b)| a.abs_diff(*b) as f64)
+            .sum::<f64>()
+            / a.len() as f64
+    };
+    for rotate in ["90", "180", "270"] {
+        let path = dir.path().join(format!("r{rotate}.mp4"));
+        let meta = format!("rotate={rotate}");
+        ffmpeg(&[
+            "-i",
+            plain.to_str().unwrap(),
+            "-c",
+            "copy",
+            "-metadata:s:v:0",
+            &meta,
+            path.to_str().unwrap(),
+        ]);
+        let mut src = open(&path).unwrap();
+        let info = src.info().clone();
+        let size = if info.rotation == 180 {
+            (160, 120)
+        } else {
+            (120, 160)
+        };
+        assert!(info.rotation != 0, "rotate={rotate}: no rotation read");
+        assert_eq!((info.width, info.height), size, "rotate={rotate}");
+        let frames = drain(src.as_mut()).unwrap();
+        // Our upright pictures, turned.
+        let ours: Vec<u8> = frames.iter().flat_map(|f| f.rgb.clone()).collect();
+        assert_eq!(ours, upright_rgb(info.rotation), "rotate={rotate}");
+        // Turned as the ffmpeg tool shows the file: of the turns giving this size, ours is
+        // the nearest to the tool's pictures (which differ from ours by their chroma
+        // upsampling: nearest samples, about 5 levels on this pattern).
+        let tool = ffmpeg_rgb(&path);
+        let d = mean_diff(&ours, &tool);
+        assert!(d < 8.0, "rotate={rotate}: {d} levels from the tool");
+        for other in [0, 90, 180, 270] {
+            if other != info.rotation && (other % 180 == info.rotation % 180) {
+                let o = mean_diff(&upright_rgb(other), &tool);
+                assert!(
+                    o > 3.0 * d,
+                    "rotate={rotate}: a turn of {other} is {o} from the tool, ours {d}"
+                );
+            }
+        }
+        // Motion turns with the picture: the field of the upright decode, rotated.
+        for (f, u) in frames.iter().zip(&upright) {
+            assert_eq!(f.motion, u.motion.clone().map(|m| m.rotated(info.rotation)));
+        }
+        assert!(frames.iter().any(|f| f.motion.is_some()));
+    }
+}

@@ -93,7 +93,8 @@ pub fn have_ffmpeg() -> bool {
         .unwrap_or(false)
 }
 
-/// Encodes numbered PNG frames (`pattern` like `frame_%03d.png` in `dir`) to an H.264 MP4.
+/// Encodes numbered PNG frames (`pattern` like `frame_%03d.png` in `dir`) to an H.264 MP4,
+/// converted with the BT.709 matrix (limited range) it is tagged with.
 pub fn encode_mp4(dir: &Path, pattern: &str, fps: u32, out: &Path) -> Result<()> {
     let status = Command::new("ffmpeg")
         .current_dir(dir)
@@ -108,7 +109,7 @@ pub fn encode_mp4(dir: &Path, pattern: &str, fps: u32, out: &Path) -> Result<()>
         ])
         .args([
             "-vf",
-            "pad=ceil(iw/2)*2:ceil(ih/2)*2",
+            "pad=ceil(iw/2)*2:ceil(ih/2)*2,scale=out_color_matrix=bt709:out_range=tv",
             "-c:v",
             "libx264",
             "-pix_fmt",
@@ -128,4 +129,37 @@ pub fn encode_mp4(dir: &Path, pattern: &str, fps: u32, out: &Path) -> Result<()>
         .context("running ffmpeg")?;
     anyhow::ensure!(status.success(), "ffmpeg failed with {status}");
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn mp4_colours_follow_their_bt709_tag() {
+        if !have_ffmpeg() {
+            eprintln!("skipped: no ffmpeg");
+            return;
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let (w, h) = (33u32, 20u32);
+        let rgb = [200u8, 50, 20].repeat((w * h) as usize);
+        for i in 0..2 {
+            write_png(&dir.path().join(format!("f_{i:03}.png")), w, h, 3, &rgb).unwrap();
+        }
+        let out = dir.path().join("v.mp4");
+        encode_mp4(dir.path(), "f_%03d.png", 10, &out).unwrap();
+        let mut src = cpsl_media::open(&out).unwrap();
+        assert_eq!(
+            (src.info().width, src.info().height),
+            (34, 20),
+            "padded to even"
+        );
+        let f = src.next_frame().unwrap().unwrap();
+        // Converted with BT.601 but tagged BT.709, this was [214, 63, 16].
+        let px = &f.rgb[(10 * 34 + 16) * 3..][..3];
+        for (got, want) in px.iter().zip([200u8, 50, 20]) {
+            assert!(got.abs_diff(want) <= 3, "{px:?} for [200, 50, 20]");
+        }
+    }
 }

@@ -184,6 +184,13 @@ pub fn layer_video(
     let mut src =
         cpsl_media::open(input).with_context(|| format!("opening {}", input.display()))?;
     let info = src.info().clone();
+    if let Some(trc) = info.hdr {
+        tracing::warn!(
+            "{} is HDR ({trc}): its pictures are read as SDR, without tone mapping, and will \
+             look flat; convert it to SDR BT.709 first for faithful colours",
+            input.display()
+        );
+    }
     let cam = how.camera.camera(info.width, info.height)?;
     let mut cfg = *cfg;
     cfg.cues.allow_missing_depth = true;
@@ -320,6 +327,7 @@ pub fn run(a: LayerVideoArgs) -> Result<()> {
         "width": info.width,
         "height": info.height,
         "rotation": info.rotation,
+        "hdr": info.hdr,
         "depth": depth.name(),
         "gop": gop,
         "layering": cfg,

@@ -126,6 +126,10 @@ pub struct Info {
     /// the stream's display matrix, as players show it (phone videos filmed upright). The
     /// width and height above are after it.
     pub rotation: u32,
+    /// The transfer function of an HDR video (`PQ` or `HLG`), whose pictures are converted
+    /// as if they were SDR: without tone mapping or a change of primaries, so they look flat
+    /// and desaturated. `None` for SDR video and images.
+    pub hdr: Option<&'static str>,
 }
 
 /// A source of frames.
@@ -181,6 +185,7 @@ impl ImageSequence {
                 frames: Some(files.len()),
                 codec: "image".into(),
                 rotation: 0,
+                hdr: None,
             },
             files,
             next: 0,
@@ -324,6 +329,11 @@ impl VideoFile {
             .transpose()
             .map_err(|e| fail(e.to_string()))?;
         let (width, height) = if rotation % 180 == 90 { (h, w) } else { (w, h) };
+        let hdr = match decoder.color_transfer_characteristic() {
+            ffmpeg::color::TransferCharacteristic::SMPTE2084 => Some("PQ"),
+            ffmpeg::color::TransferCharacteristic::ARIB_STD_B67 => Some("HLG"),
+            _ => None,
+        };
         Ok(Self {
             path: path.to_path_buf(),
             input,
@@ -339,6 +349,7 @@ impl VideoFile {
                 frames,
                 codec: codec.name().to_string(),
                 rotation,
+                hdr,
             },
             decoded: 0,
             flushed: false,

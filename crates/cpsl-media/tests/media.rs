@@ -159,7 +159,7 @@ fn colour_follows_the_declared_matrix_and_range() {
     let dir = tempfile::tempdir().unwrap();
     // (200, 50, 20) flat, coded with each matrix and range and tagged with it; the last is
     // untagged, coded as the ffmpeg tool does by default (BT.601, limited).
-    let cases: [(&str, &[&str]); 6] = [
+    let cases: [(&str, &[&str]); 7] = [
         (
             "bt709",
             &[
@@ -218,8 +218,23 @@ fn colour_follows_the_declared_matrix_and_range() {
             ],
         ),
         ("untagged", &["-pix_fmt", "yuv420p"]),
+        // Tagged HLG (its samples are BT.709 here): read as SDR, and reported as HDR.
+        (
+            "hlg",
+            &[
+                "-vf",
+                "scale=out_color_matrix=bt709:out_range=tv,format=yuv420p",
+                "-colorspace",
+                "bt709",
+                "-color_range",
+                "tv",
+                "-color_trc",
+                "arib-std-b67",
+            ],
+        ),
     ];
     for (name, args) in cases {
+        let hdr = name == "hlg";
         let ext = if name.ends_with("vp9") { "webm" } else { "mp4" };
         let path = dir.path().join(format!("{name}.{ext}"));
         let mut a = vec![
@@ -234,6 +249,7 @@ fn colour_follows_the_declared_matrix_and_range() {
         a.push(path.to_str().unwrap());
         ffmpeg(&a);
         let mut src = open(&path).unwrap();
+        assert_eq!(src.info().hdr, hdr.then_some("HLG"), "{name}");
         let f = src.next_frame().unwrap().unwrap();
         let px = &f.rgb[(24 * 64 + 32) * 3..][..3];
         for (got, want) in px.iter().zip([200u8, 50, 20]) {

@@ -3,11 +3,9 @@
 //! chroma in the bottom half. Any 8-bit 4:2:0 decoder (browsers included) reproduces both
 //! halves; the player reads alpha from the bottom half's luma.
 
+use cpsl_core::ycbcr::{Matrix, ToRgb};
 use cpsl_core::PremulImage;
 use rayon::prelude::*;
-
-const KR: f32 = 0.2126;
-const KB: f32 = 0.0722;
 
 /// A planar 4:2:0 picture: `width x height` luma, `width/2 x height/2` chroma, no padding.
 /// Samples are 8-bit (`u8`) or 10-bit (`u16`, values up to 1023).
@@ -74,7 +72,7 @@ pub fn unstack_colour_grey(p: &Yuv420, width: u32, height: u32) -> (Vec<u8>, Vec
         for x in 0..w {
             let i = y * w + x;
             grey[i] = t.grey[g[x] as usize];
-            rgb[i * 3..i * 3 + 3].copy_from_slice(&t.rgb(luma[x], u[x / 2], v[x / 2]));
+            rgb[i * 3..i * 3 + 3].copy_from_slice(&t.rgb.rgb(luma[x], u[x / 2], v[x / 2]));
         }
     }
     (rgb, grey)
@@ -153,7 +151,7 @@ impl Forward {
     }
 
     const fn new() -> Self {
-        let (kr, kb) = (KR as f64, KB as f64);
+        let Matrix { kr, kb } = Matrix::BT709;
         let kg = 1.0 - kr - kb;
         // Per unit of an 8-bit sample, and per unit of a sum of four for chroma.
         let (ys, cbs, crs) = (
@@ -248,9 +246,9 @@ pub fn unstack(p: &Yuv420, width: u32, height: u32) -> PremulImage {
             if a == [0, 0] {
                 continue;
             }
-            let chroma = t.chroma(u[x], v[x]);
+            let chroma = t.rgb.chroma(u[x], v[x]);
             for (k, px) in px.chunks_exact_mut(4).enumerate() {
-                let (c, a) = (t.rgb_with(luma[2 * x + k], chroma), a[k]);
+                let (c, a) = (t.rgb.rgb_with(luma[2 * x + k], chroma), a[k]);
                 px.copy_from_slice(&[c[0].min(a), c[1].min(a), c[2].min(a), a]);
             }
         }
@@ -269,16 +267,10 @@ fn rows_of(p: &Yuv420, y: usize, w: usize) -> (&[u8], &[u8], &[u8], &[u8]) {
     )
 }
 
-/// The BT.709 limited-range conversion back to 8-bit RGB as tables, in 0..255 units with
-/// 16 fractional bits: `R = Y + Cr_r`, `G = Y + Cb_g + Cr_g`, `B = Y + Cb_b`. Integer sums and
-/// one rounding per channel, where the float formula cost a libm `roundf` per channel (no
-/// rounding instruction in the baseline x86-64 target).
+/// The BT.709 limited-range conversion back to 8-bit RGB, and the alpha half's luma back to
+/// an 8-bit value.
 struct Tables {
-    y: [i32; 256],
-    cr_r: [i32; 256],
-    cb_g: [i32; 256],
-    cr_g: [i32; 256],
-    cb_b: [i32; 256],
+    rgb: ToRgb,
     /// Limited-range luma as an 8-bit full-range value (the alpha half).
     grey: [u8; 256],
 }
@@ -286,63 +278,23 @@ struct Tables {
 fn tables() -> &'static Tables {
     static TABLES: std::sync::OnceLock<Tables> = std::sync::OnceLock::new();
     TABLES.get_or_init(|| {
-        let fixed = |v: f64| (v * 255.0 * 65536.0).round() as i32;
-        let mut t = Tables {
-            y: [0; 256],
-            cr_r: [0; 256],
-            cb_g: [0; 256],
-            cr_g: [0; 256],
-            cb_b: [0; 256],
-            grey: [0; 256],
-        };
-        let (kr, kb) = (KR as f64, KB as f64);
-        let kg = 1.0 - kr - kb;
-        for v in 0..256 {
-            let c = (v as f64 - 128.0) / 224.0;
-            let (r, b) = (2.0 * (1.0 - kr) * c, 2.0 * (1.0 - kb) * c);
-            t.y[v] = fixed((v as f64 - 16.0) / 219.0);
-            t.cr_r[v] = fixed(r);
-            t.cb_b[v] = fixed(b);
-            t.cr_g[v] = fixed(-kr / kg * r);
-            t.cb_g[v] = fixed(-kb / kg * b);
-            t.grey[v] = q((v as f32 - 16.0) * 255.0 / 219.0);
+        let mut grey = [0; 256];
+        for (v, g) in grey.iter_mut().enumerate() {
+            *g = q((v as f32 - 16.0) * 255.0 / 219.0);
         }
-        t
+        Tables {
+            rgb: ToRgb::new(Matrix::BT709, false),
+            grey,
+        }
     })
-}
-
-impl Tables {
-    /// The chroma terms of R, G and B for one (Cb, Cr) sample.
-    #[inline]
-    fn chroma(&self, cb: u8, cr: u8) -> [i32; 3] {
-        let (cb, cr) = (cb as usize, cr as usize);
-        [self.cr_r[cr], self.cb_g[cb] + self.cr_g[cr], self.cb_b[cb]]
-    }
-
-    /// The 8-bit RGB of a luma sample with its chroma terms.
-    #[inline]
-    fn rgb_with(&self, y: u8, chroma: [i32; 3]) -> [u8; 3] {
-        let l = self.y[y as usize];
-        chroma.map(|c| byte(l + c))
-    }
-
-    /// The 8-bit RGB of one Y'CbCr sample.
-    #[inline]
-    fn rgb(&self, y: u8, cb: u8, cr: u8) -> [u8; 3] {
-        self.rgb_with(y, self.chroma(cb, cr))
-    }
-}
-
-/// A fixed-point 0..255 value rounded and clamped to a byte.
-#[inline]
-fn byte(v: i32) -> u8 {
-    ((v + 32768) >> 16).clamp(0, 255) as u8
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
 
+    const KR: f32 = Matrix::BT709.kr as f32;
+    const KB: f32 = Matrix::BT709.kb as f32;
     const KG: f32 = 1.0 - KR - KB;
 
     #[test]
@@ -350,7 +302,7 @@ mod tests {
         // The forward formula in f64, rounded once per sample: the fixed point gives the same
         // samples.
         let r = |v: f64| v.round().clamp(0.0, 255.0) as u8;
-        let (kr, kb) = (KR as f64, KB as f64);
+        let Matrix { kr, kb } = Matrix::BT709;
         let kg = 1.0 - kr - kb;
         let luma = |p: [f64; 3]| (kr * p[0] + kg * p[1] + kb * p[2]) / 255.0;
         // Odd size: the last column and row are replicated.

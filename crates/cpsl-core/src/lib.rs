@@ -24,6 +24,7 @@ pub mod manifest;
 pub mod math;
 pub mod pose;
 pub mod progress;
+pub mod ycbcr;
 
 pub use camera::Camera;
 pub use depth::{DepthSource, DepthSourceError, FixedDepth};

@@ -12,6 +12,7 @@
 //! (P-frames predicted from the previous frame only); callers fall back to optical flow
 //! otherwise.
 
+use cpsl_core::ycbcr::{Matrix, ToRgb};
 use ffmpeg_next as ffmpeg;
 use std::path::{Path, PathBuf};
 use thiserror::Error;
@@ -249,7 +250,7 @@ struct YccSource {
     /// 8-bit planar 4:2:0 (`yuv420p`, `yuvj420p`): converted without the scaler.
     planar420: bool,
     /// Tables of the last (matrix, range).
-    tables: Option<(Matrix, bool, YccTables)>,
+    tables: Option<(Matrix, bool, ToRgb)>,
 }
 
 impl VideoFile {
@@ -377,14 +378,14 @@ impl VideoFile {
                 }
             }
             Some(src) => {
-                let matrix = Matrix::of(frame.color_space());
+                let matrix = matrix_of(frame.color_space());
                 let full = src.full || frame.color_range() == ffmpeg::color::Range::JPEG;
                 if src
                     .tables
                     .as_ref()
                     .is_none_or(|t| (t.0, t.1) != (matrix, full))
                 {
-                    src.tables = Some((matrix, full, YccTables::new(matrix, full)));
+                    src.tables = Some((matrix, full, ToRgb::new(matrix, full)));
                 }
                 let t = &src.tables.as_ref().expect("set above").2;
                 let plane = |i: usize| (pic.stride(i), pic.data(i));
@@ -479,71 +480,15 @@ fn is_rgb_format(name: &str) -> bool {
         .any(|k| name.contains(k))
 }
 
-/// The luma coefficients `(K_R, K_B)` of a Y'CbCr matrix.
-#[derive(Debug, Clone, Copy, PartialEq)]
-struct Matrix(f64, f64);
-
-impl Matrix {
-    /// The matrix a stream declares; BT.601 where it declares none (FFmpeg's default).
-    fn of(space: ffmpeg::color::Space) -> Self {
-        use ffmpeg::color::Space;
-        match space {
-            Space::BT709 => Self(0.2126, 0.0722),
-            Space::BT2020NCL | Space::BT2020CL => Self(0.2627, 0.0593),
-            Space::SMPTE240M => Self(0.212, 0.087),
-            Space::FCC => Self(0.30, 0.11),
-            _ => Self(0.299, 0.114),
-        }
-    }
-}
-
-/// Y'CbCr to 8-bit RGB as tables in 0..255 units with 16 fractional bits: `R = Y + Cr_r`,
-/// `G = Y + Cb_g + Cr_g`, `B = Y + Cb_b`, one rounding per channel.
-struct YccTables {
-    y: [i32; 256],
-    cr_r: [i32; 256],
-    cb_g: [i32; 256],
-    cr_g: [i32; 256],
-    cb_b: [i32; 256],
-}
-
-impl YccTables {
-    fn new(Matrix(kr, kb): Matrix, full: bool) -> Self {
-        let kg = 1.0 - kr - kb;
-        let (y0, ys, cs) = if full {
-            (0.0, 255.0, 255.0)
-        } else {
-            (16.0, 219.0, 224.0)
-        };
-        let fixed = |v: f64| (v * 255.0 * 65536.0).round() as i32;
-        let mut t = Self {
-            y: [0; 256],
-            cr_r: [0; 256],
-            cb_g: [0; 256],
-            cr_g: [0; 256],
-            cb_b: [0; 256],
-        };
-        for v in 0..256 {
-            let c = (v as f64 - 128.0) / cs;
-            let (r, b) = (2.0 * (1.0 - kr) * c, 2.0 * (1.0 - kb) * c);
-            t.y[v] = fixed((v as f64 - y0) / ys);
-            t.cr_r[v] = fixed(r);
-            t.cb_b[v] = fixed(b);
-            t.cr_g[v] = fixed(-kr / kg * r);
-            t.cb_g[v] = fixed(-kb / kg * b);
-        }
-        t
-    }
-
-    #[inline]
-    fn rgb(&self, y: u8, cb: u8, cr: u8) -> [u8; 3] {
-        let (l, cb, cr) = (self.y[y as usize], cb as usize, cr as usize);
-        [
-            l + self.cr_r[cr],
-            l + self.cb_g[cb] + self.cr_g[cr],
-            l + self.cb_b[cb],
-        ]
-        .map(|v| ((v + 32768) >> 16).clamp(0, 255) as u8)
+/// The matrix a stream declares; BT.601 where it declares none (FFmpeg's default).
+fn matrix_of(space: ffmpeg::color::Space) -> Matrix {
+    use ffmpeg::color::Space;
+    match space {
+        Space::BT709 => Matrix::BT709,
+        Space::BT2020NCL | Space::BT2020CL => Matrix::BT2020,
+        Space::SMPTE240M => Matrix::SMPTE240M,
+        Space::FCC => Matrix::FCC,
+        _ => Matrix::BT601,
     }
 }
 
@@ -714,37 +659,5 @@ mod tests {
         assert_eq!(row(1), [40, 80, 120]);
         assert_eq!(row(2), [120, 160, 200]);
         assert_eq!(row(3), [160, 200, 240]);
-    }
-
-    #[test]
-    fn tables_invert_the_forward_matrix() {
-        for (space, full) in [
-            (ffmpeg::color::Space::BT709, false),
-            (ffmpeg::color::Space::BT470BG, true),
-            (ffmpeg::color::Space::BT2020NCL, false),
-        ] {
-            let Matrix(kr, kb) = Matrix::of(space);
-            let t = YccTables::new(Matrix(kr, kb), full);
-            let (y0, ys, cs) = if full {
-                (0.0, 255.0, 255.0)
-            } else {
-                (16.0, 219.0, 224.0)
-            };
-            for rgb in [[200u8, 50, 20], [0, 0, 0], [255, 255, 255], [30, 140, 250]] {
-                let [r, g, b] = rgb.map(|v| v as f64 / 255.0);
-                let l = kr * r + (1.0 - kr - kb) * g + kb * b;
-                let q = |v: f64| v.round().clamp(0.0, 255.0) as u8;
-                let y = q(y0 + ys * l);
-                let cb = q(128.0 + cs * (b - l) / (2.0 * (1.0 - kb)));
-                let cr = q(128.0 + cs * (r - l) / (2.0 * (1.0 - kr)));
-                let back = t.rgb(y, cb, cr);
-                for (a, b) in back.iter().zip(rgb) {
-                    assert!(
-                        a.abs_diff(b) <= 2,
-                        "{space:?} full={full}: {back:?} for {rgb:?}"
-                    );
-                }
-            }
-        }
     }
 }

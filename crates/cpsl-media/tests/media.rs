@@ -157,99 +157,49 @@ fn ffmpeg(args: &[&str]) {
 #[test]
 fn colour_follows_the_declared_matrix_and_range() {
     let dir = tempfile::tempdir().unwrap();
-    // (200, 50, 20) flat, coded with each matrix and range and tagged with it; the last is
-    // untagged, coded as the ffmpeg tool does by default (BT.601, limited).
-    let cases: [(&str, &[&str]); 7] = [
-        (
-            "bt709",
-            &[
-                "-vf",
-                "scale=out_color_matrix=bt709:out_range=tv,format=yuv420p",
-                "-colorspace",
-                "bt709",
-                "-color_range",
-                "tv",
-            ],
-        ),
-        (
-            "bt601",
-            &[
-                "-vf",
-                "scale=out_color_matrix=bt601:out_range=tv,format=yuv420p",
-                "-colorspace",
-                "smpte170m",
-                "-color_range",
-                "tv",
-            ],
-        ),
-        (
-            "bt2020",
-            &[
-                "-vf",
-                "scale=out_color_matrix=bt2020:out_range=tv,format=yuv420p",
-                "-colorspace",
-                "bt2020nc",
-                "-color_range",
-                "tv",
-            ],
-        ),
-        (
-            "bt709-full",
-            &[
-                "-vf",
-                "scale=out_color_matrix=bt709:out_range=pc,format=yuvj420p",
-                "-colorspace",
-                "bt709",
-                "-color_range",
-                "pc",
-            ],
-        ),
+    // (200, 50, 20) flat, coded with a matrix and range and tagged with them (`None`: coded
+    // untagged, as the ffmpeg tool does by default: BT.601, limited), then extra arguments.
+    let cases = [
+        ("bt709", Some(("bt709", "bt709", "tv")), &[][..]),
+        ("bt601", Some(("bt601", "smpte170m", "tv")), &[]),
+        ("bt2020", Some(("bt2020", "bt2020nc", "tv")), &[]),
+        ("bt709-full", Some(("bt709", "bt709", "pc")), &[]),
         (
             "bt709-vp9",
-            &[
-                "-vf",
-                "scale=out_color_matrix=bt709:out_range=tv,format=yuv420p",
-                "-colorspace",
-                "bt709",
-                "-color_range",
-                "tv",
-                "-c:v",
-                "libvpx-vp9",
-            ],
+            Some(("bt709", "bt709", "tv")),
+            &["-c:v", "libvpx-vp9"],
         ),
-        ("untagged", &["-pix_fmt", "yuv420p"]),
-        // Tagged HLG (its samples are BT.709 here): read as SDR, and reported as HDR.
+        ("untagged", None, &[]),
+        // Tagged HLG (its samples BT.709): read as SDR, and reported as HDR.
         (
             "hlg",
-            &[
-                "-vf",
-                "scale=out_color_matrix=bt709:out_range=tv,format=yuv420p",
-                "-colorspace",
-                "bt709",
-                "-color_range",
-                "tv",
-                "-color_trc",
-                "arib-std-b67",
-            ],
+            Some(("bt709", "bt709", "tv")),
+            &["-color_trc", "arib-std-b67"],
         ),
     ];
-    for (name, args) in cases {
-        let hdr = name == "hlg";
+    for (name, tags, extra) in cases {
         let ext = if name.ends_with("vp9") { "webm" } else { "mp4" };
         let path = dir.path().join(format!("{name}.{ext}"));
-        let mut a = vec![
-            "-f",
-            "lavfi",
-            "-i",
-            "color=c=0xC83214:s=64x48:r=10",
-            "-frames:v",
-            "2",
-        ];
-        a.extend_from_slice(args);
-        a.push(path.to_str().unwrap());
-        ffmpeg(&a);
+        let mut a: Vec<String> = ["-f", "lavfi", "-i", "color=c=0xC83214:s=64x48:r=10"]
+            .into_iter()
+            .map(String::from)
+            .collect();
+        a.extend(["-frames:v".into(), "2".into()]);
+        match tags {
+            Some((matrix, space, range)) => {
+                let fmt = if range == "pc" { "yuvj420p" } else { "yuv420p" };
+                let vf = format!("scale=out_color_matrix={matrix}:out_range={range},format={fmt}");
+                for s in ["-vf", &vf, "-colorspace", space, "-color_range", range] {
+                    a.push(s.into());
+                }
+            }
+            None => a.extend(["-pix_fmt".into(), "yuv420p".into()]),
+        }
+        a.extend(extra.iter().map(|s| s.to_string()));
+        a.push(path.to_str().unwrap().into());
+        ffmpeg(&a.iter().map(String::as_str).collect::<Vec<_>>());
         let mut src = open(&path).unwrap();
-        assert_eq!(src.info().hdr, hdr.then_some("HLG"), "{name}");
+        assert_eq!(src.info().hdr, (name == "hlg").then_some("HLG"), "{name}");
         let f = src.next_frame().unwrap().unwrap();
         let px = &f.rgb[(24 * 64 + 32) * 3..][..3];
         for (got, want) in px.iter().zip([200u8, 50, 20]) {

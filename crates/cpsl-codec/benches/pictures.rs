@@ -1,9 +1,12 @@
-//! Criterion benchmark of bringing a layer coded at an eighth of a phone-size frame
-//! (1080x1920, the fox at a mobile budget) back to the frame size, as every trial encode of a
-//! smaller rung and every decoded frame of such a stream does.
+//! Criterion benchmarks of the picture work around the codec on a phone-size layer
+//! (1080x1920, the fox): stacking it into its colour-over-alpha picture, as every encode of a
+//! full-size stream does for every picture (trial encodes included), and bringing a layer
+//! coded at an eighth of that size back to it, as every trial encode of a smaller rung and
+//! every decoded frame of such a stream does.
 #![allow(missing_docs)] // criterion_group! generates undocumented items
 
 use cpsl_codec::scale::{downscale, upscale};
+use cpsl_codec::yuv::stack;
 use cpsl_core::PremulImage;
 use criterion::{criterion_group, criterion_main, Criterion};
 
@@ -17,6 +20,7 @@ fn bench(c: &mut Criterion) {
         })
         .collect();
     let frame = PremulImage::from_premul(w, h, data).expect("premultiplied");
+    c.bench_function("stack_1080x1920", |b| b.iter(|| stack(&frame)));
     let small = downscale(&frame, 8);
     c.bench_function("upscale_1080x1920_from_eighth", |b| {
         b.iter(|| upscale(small.clone(), w, h, 8))

@@ -184,13 +184,6 @@ pub fn layer_video(
     let mut src =
         cpsl_media::open(input).with_context(|| format!("opening {}", input.display()))?;
     let info = src.info().clone();
-    if let Some(trc) = info.hdr {
-        tracing::warn!(
-            "{} is HDR ({trc}): its pictures are read as SDR, without tone mapping, and will \
-             look flat; convert it to SDR BT.709 first for faithful colours",
-            input.display()
-        );
-    }
     let cam = how.camera.camera(info.width, info.height)?;
     let mut cfg = *cfg;
     cfg.cues.allow_missing_depth = true;

@@ -4,6 +4,7 @@
 //! Y'CbCr video is converted to RGB with the matrix and range the stream declares (BT.709,
 //! BT.601, BT.2020, SMPTE 240M; limited or full range). Where it declares no matrix, BT.601
 //! is used, as FFmpeg's own scaler does (and as the `ffmpeg` tool encodes untagged video).
+//! HDR video (PQ or HLG with BT.2020 primaries, as phones record it) is mapped to SDR BT.709.
 //! Pictures are turned upright by the stream's display matrix (quarter turns), as players
 //! show them.
 //!
@@ -14,6 +15,7 @@
 
 use cpsl_core::ycbcr::{Matrix, ToRgb};
 use ffmpeg_next as ffmpeg;
+use rayon::prelude::*;
 use std::path::{Path, PathBuf};
 use thiserror::Error;
 
@@ -127,9 +129,9 @@ pub struct Info {
     /// the stream's display matrix, as players show it (phone videos filmed upright). The
     /// width and height above are after it.
     pub rotation: u32,
-    /// The transfer function of an HDR video (`PQ` or `HLG`), whose pictures are converted
-    /// as if they were SDR: without tone mapping or a change of primaries, so they look flat
-    /// and desaturated. `None` for SDR video and images.
+    /// The transfer function of an HDR video (`PQ` or `HLG`, BT.2020 primaries), whose
+    /// pictures are mapped to SDR BT.709: reference white (203 cd/m2) to white, highlights
+    /// rolled off. `None` for SDR video and images.
     pub hdr: Option<&'static str>,
 }
 
@@ -235,6 +237,8 @@ pub struct VideoFile {
     /// chroma is upsampled here.
     scaler: Option<ffmpeg::software::scaling::Context>,
     ycc: Option<YccSource>,
+    /// HDR video: the mapping of its BT.2020 R'G'B' to SDR BT.709.
+    to_sdr: Option<ToSdr>,
     /// Decoded (coded) picture size, before the rotation.
     coded: (usize, usize),
     info: Info,
@@ -330,10 +334,14 @@ impl VideoFile {
             .transpose()
             .map_err(|e| fail(e.to_string()))?;
         let (width, height) = if rotation % 180 == 90 { (h, w) } else { (w, h) };
-        let hdr = match decoder.color_transfer_characteristic() {
-            ffmpeg::color::TransferCharacteristic::SMPTE2084 => Some("PQ"),
-            ffmpeg::color::TransferCharacteristic::ARIB_STD_B67 => Some("HLG"),
-            _ => None,
+        let (hdr, to_sdr) = match decoder.color_transfer_characteristic() {
+            ffmpeg::color::TransferCharacteristic::SMPTE2084 => {
+                (Some("PQ"), Some(ToSdr::new(Transfer::Pq)))
+            }
+            ffmpeg::color::TransferCharacteristic::ARIB_STD_B67 => {
+                (Some("HLG"), Some(ToSdr::new(Transfer::Hlg)))
+            }
+            _ => (None, None),
         };
         Ok(Self {
             path: path.to_path_buf(),
@@ -342,6 +350,7 @@ impl VideoFile {
             decoder,
             scaler,
             ycc,
+            to_sdr,
             coded: (w as usize, h as usize),
             info: Info {
                 width,
@@ -412,6 +421,9 @@ impl VideoFile {
                 }
             }
         }
+        if let Some(map) = &self.to_sdr {
+            map.apply(&mut rgb);
+        }
         let motion = if self.mvs {
             frame
                 .side_data(ffmpeg::frame::side_data::Type::MotionVectors)
@@ -478,6 +490,111 @@ fn is_rgb_format(name: &str) -> bool {
     ["rgb", "bgr", "gbr", "gray", "ya8", "ya16", "pal8", "mono"]
         .iter()
         .any(|k| name.contains(k))
+}
+
+/// The transfer function of an HDR video.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Transfer {
+    /// SMPTE ST 2084 (perceptual quantiser): absolute display light up to 10 000 cd/m2.
+    Pq,
+    /// ARIB STD-B67 (hybrid log-gamma): relative scene light.
+    Hlg,
+}
+
+/// Display light of HDR reference white (ITU-R BT.2408), which SDR white is mapped to.
+const HDR_WHITE_NITS: f32 = 203.0;
+/// Peak of the HLG reference display (ITU-R BT.2100).
+const HLG_PEAK_NITS: f32 = 1000.0;
+/// Highlights above this share of SDR white are rolled off towards white.
+const KNEE: f32 = 0.75;
+
+/// HDR (BT.2100: BT.2020 primaries, PQ or HLG) to SDR BT.709 R'G'B' for a display with
+/// gamma 2.4: linear display light relative to reference white (HLG through the reference
+/// display's system gamma, 1.2 at 1000 cd/m2), BT.2020 to BT.709 primaries, highlights above
+/// 0.75 of white compressed smoothly towards it (by the largest channel, so hues keep their
+/// ratios), colours outside BT.709 clipped.
+struct ToSdr {
+    transfer: Transfer,
+    /// 8-bit R'G'B' code to linear light (PQ: relative to reference white; HLG: scene light).
+    linear: [f32; 256],
+    /// Linear SDR light in [0, 1] (4096 steps) to 8-bit code.
+    encode: Vec<u8>,
+    /// HLG: the reference display's gain `Lw / white * Ys^(gamma - 1)` over `sqrt(Ys)` in
+    /// [0, 1] (4096 steps: fine near black, where `Ys^0.2` is steep).
+    ootf: Vec<f32>,
+}
+
+impl ToSdr {
+    fn new(transfer: Transfer) -> Self {
+        let mut linear = [0f32; 256];
+        for (i, l) in linear.iter_mut().enumerate() {
+            let e = i as f64 / 255.0;
+            *l = match transfer {
+                Transfer::Pq => {
+                    let (m1, m2) = (0.1593017578125, 78.84375);
+                    let (c1, c2, c3) = (0.8359375, 18.8515625, 18.6875);
+                    let n = e.powf(1.0 / m2);
+                    let nits = 10000.0 * ((n - c1).max(0.0) / (c2 - c3 * n)).powf(1.0 / m1);
+                    (nits / HDR_WHITE_NITS as f64) as f32
+                }
+                Transfer::Hlg => {
+                    let (a, b, c) = (0.17883277, 0.28466892, 0.55991073);
+                    (if e <= 0.5 {
+                        e * e / 3.0
+                    } else {
+                        (((e - c) / a).exp() + b) / 12.0
+                    }) as f32
+                }
+            };
+        }
+        let encode = (0..4096)
+            .map(|i| ((i as f64 / 4095.0).powf(1.0 / 2.4) * 255.0).round() as u8)
+            .collect();
+        let gain = HLG_PEAK_NITS / HDR_WHITE_NITS;
+        let ootf = (0..4096)
+            .map(|i| gain * (i as f32 / 4095.0).powf(0.4))
+            .collect();
+        Self {
+            transfer,
+            linear,
+            encode,
+            ootf,
+        }
+    }
+
+    /// Maps 8-bit BT.2020 R'G'B' pixels in place, in parallel runs.
+    fn apply(&self, rgb: &mut [u8]) {
+        rgb.par_chunks_mut(3 * 4096)
+            .for_each(|run| self.apply_run(run));
+    }
+
+    fn apply_run(&self, rgb: &mut [u8]) {
+        const TO_709: [[f32; 3]; 3] = [
+            [1.6605, -0.5876, -0.0728],
+            [-0.1246, 1.1329, -0.0083],
+            [-0.0182, -0.1006, 1.1187],
+        ];
+        for px in rgb.chunks_exact_mut(3) {
+            let mut c = [0, 1, 2].map(|i| self.linear[px[i] as usize]);
+            if self.transfer == Transfer::Hlg {
+                // The reference display's OOTF: Fd = Lw * Ys^(gamma - 1) * E, gamma 1.2.
+                let ys = 0.2627 * c[0] + 0.6780 * c[1] + 0.0593 * c[2];
+                let k = self.ootf[(ys.clamp(0.0, 1.0).sqrt() * 4095.0 + 0.5) as usize];
+                c = c.map(|v| v * k);
+            }
+            let mut c = TO_709.map(|row| (row[0] * c[0] + row[1] * c[1] + row[2] * c[2]).max(0.0));
+            let m = c[0].max(c[1]).max(c[2]);
+            if m > KNEE {
+                // Slope 1 at the knee, approaching 1 (white) for ever brighter highlights.
+                let t = (m - KNEE) / (1.0 - KNEE);
+                let mapped = KNEE + (1.0 - KNEE) * t / (1.0 + t);
+                c = c.map(|v| v * mapped / m);
+            }
+            for (o, v) in px.iter_mut().zip(c) {
+                *o = self.encode[(v.min(1.0) * 4095.0 + 0.5) as usize];
+            }
+        }
+    }
 }
 
 /// The matrix a stream declares; BT.601 where it declares none (FFmpeg's default).

@@ -239,8 +239,10 @@ pub struct VideoFile {
     ycc: Option<YccSource>,
     /// HDR video: the mapping of its BT.2020 R'G'B' to SDR BT.709.
     to_sdr: Option<ToSdr>,
-    /// Decoded (coded) picture size, before the rotation.
+    /// Decoded (coded) picture size, before the rotation, and format: every frame must keep
+    /// them.
     coded: (usize, usize),
+    format: ffmpeg::format::Pixel,
     info: Info,
     decoded: usize,
     flushed: bool,
@@ -306,7 +308,8 @@ impl VideoFile {
         if w == 0 || h == 0 {
             return Err(fail("the video stream has no size".into()));
         }
-        let name = decoder.format().descriptor().map_or("", |d| d.name());
+        let format = decoder.format();
+        let name = format.descriptor().map_or("", |d| d.name());
         let ycc = (!is_rgb_format(name)).then(|| YccSource {
             full: name.starts_with("yuvj"),
             planar420: name == "yuv420p" || name == "yuvj420p",
@@ -322,7 +325,7 @@ impl VideoFile {
         let scaler = target
             .map(|t| {
                 ffmpeg::software::scaling::Context::get(
-                    decoder.format(),
+                    format,
                     w,
                     h,
                     t,
@@ -352,6 +355,7 @@ impl VideoFile {
             ycc,
             to_sdr,
             coded: (w as usize, h as usize),
+            format,
             info: Info {
                 width,
                 height,
@@ -368,6 +372,21 @@ impl VideoFile {
     }
 
     fn convert(&mut self, frame: &ffmpeg::frame::Video) -> Result<Frame, MediaError> {
+        let (w, h) = self.coded;
+        let size = (frame.width() as usize, frame.height() as usize);
+        if size != (w, h) || frame.format() != self.format {
+            return Err(MediaError::Decode {
+                path: self.path.clone(),
+                frames: self.decoded,
+                reason: format!(
+                    "the pictures change from {w}x{h} {:?} to {}x{} {:?} mid-stream",
+                    self.format,
+                    size.0,
+                    size.1,
+                    frame.format()
+                ),
+            });
+        }
         let mut scaled = ffmpeg::frame::Video::empty();
         let pic = match &mut self.scaler {
             Some(scaler) => {
@@ -377,7 +396,6 @@ impl VideoFile {
             }
             None => frame,
         };
-        let (w, h) = self.coded;
         let mut rgb = vec![0u8; w * h * 3];
         match &mut self.ycc {
             None => {

@@ -365,3 +365,41 @@ fn hdr_video_is_mapped_to_sdr() {
         "HLG white: {px:?}"
     );
 }
+
+#[test]
+fn a_size_change_mid_stream_is_an_error() {
+    let dir = tempfile::tempdir().unwrap();
+    let part = |name: &str, size: &str| {
+        let p = dir.path().join(name);
+        let src = format!("testsrc2=size={size}:rate=10");
+        ffmpeg(&[
+            "-f",
+            "lavfi",
+            "-i",
+            &src,
+            "-frames:v",
+            "3",
+            "-c:v",
+            "libx264",
+            "-pix_fmt",
+            "yuv420p",
+            "-f",
+            "mpegts",
+            p.to_str().unwrap(),
+        ]);
+        std::fs::read(p).unwrap()
+    };
+    // MPEG-TS segments concatenated byte by byte, as a live stream that changes size.
+    let joined = dir.path().join("joined.ts");
+    std::fs::write(
+        &joined,
+        [part("a.ts", "160x120"), part("b.ts", "96x64")].concat(),
+    )
+    .unwrap();
+    let mut src = open(&joined).unwrap();
+    let err = drain(src.as_mut()).unwrap_err();
+    assert!(
+        matches!(&err, MediaError::Decode { frames: 3, reason, .. } if reason.contains("mid-stream")),
+        "{err}"
+    );
+}

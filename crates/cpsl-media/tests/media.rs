@@ -288,28 +288,44 @@ fn pictures_and_motion_turn_with_the_display_matrix() {
     }
 }
 
+/// Codes two frames from `inputs` (ffmpeg arguments) as 10-bit H.265 tagged HDR with the
+/// transfer `trc` and BT.2020 primaries, and reads the first back, checking that it is
+/// reported as HDR (`name`).
+fn first_hdr_frame(dir: &Path, inputs: &[&str], trc: &str, name: &str) -> cpsl_media::Frame {
+    let path = dir.join(format!("{name}.mp4"));
+    let mut a = inputs.to_vec();
+    a.extend([
+        "-frames:v",
+        "2",
+        "-c:v",
+        "libx265",
+        "-x265-params",
+        "log-level=error",
+    ]);
+    a.extend([
+        "-color_trc",
+        trc,
+        "-color_primaries",
+        "bt2020",
+        "-colorspace",
+        "bt2020nc",
+    ]);
+    a.extend(["-color_range", "tv", path.to_str().unwrap()]);
+    ffmpeg(&a);
+    let mut src = open(&path).unwrap();
+    assert_eq!(src.info().hdr, Some(name));
+    src.next_frame().unwrap().unwrap()
+}
+
 #[test]
 fn hdr_video_is_mapped_to_sdr() {
     let dir = tempfile::tempdir().unwrap();
-    let x265 = ["-c:v", "libx265", "-x265-params", "log-level=error"];
-    let tags = |trc| {
-        [
-            "-color_trc",
-            trc,
-            "-color_primaries",
-            "bt2020",
-            "-colorspace",
-            "bt2020nc",
-            "-color_range",
-            "tv",
-        ]
-    };
+    let at = |f: &cpsl_media::Frame, i: usize| <[u8; 3]>::try_from(&f.rgb[i * 3..][..3]).unwrap();
     // PQ: (200, 50, 20) beside grey 128, SDR BT.709 turned into HDR10 by zimg with SDR white
     // at 203 cd/m2 (ITU-R BT.2408), coded 10-bit: they come back.
-    let pq = dir.path().join("pq.mp4");
     let graph = "[0][1]hstack,format=gbrpf32le,zscale=tin=bt709:pin=bt709:min=gbr:rin=pc:\
                  t=smpte2084:p=bt2020:m=bt2020nc:r=tv:npl=203,format=yuv420p10le";
-    let mut a = vec![
+    let inputs = [
         "-f",
         "lavfi",
         "-i",
@@ -320,46 +336,28 @@ fn hdr_video_is_mapped_to_sdr() {
         "color=c=0x808080:s=64x48:r=10",
         "-filter_complex",
         graph,
-        "-frames:v",
-        "2",
     ];
-    a.extend(x265);
-    a.extend(tags("smpte2084"));
-    a.push(pq.to_str().unwrap());
-    ffmpeg(&a);
-    let mut src = open(&pq).unwrap();
-    assert_eq!(src.info().hdr, Some("PQ"));
-    let f = src.next_frame().unwrap().unwrap();
-    let at = |f: &cpsl_media::Frame, i: usize| <[u8; 3]>::try_from(&f.rgb[i * 3..][..3]).unwrap();
-    for (px, want) in [
-        (at(&f, 24 * 128 + 32), [200u8, 50, 20]),
-        (at(&f, 24 * 128 + 96), [128; 3]),
-    ] {
+    let f = first_hdr_frame(dir.path(), &inputs, "smpte2084", "PQ");
+    for (i, want) in [(24 * 128 + 32, [200u8, 50, 20]), (24 * 128 + 96, [128; 3])] {
+        let px = at(&f, i);
         for (g, w) in px.iter().zip(want) {
             assert!(g.abs_diff(w) <= 4, "PQ: {px:?} for {want:?}");
         }
     }
     // HLG: grey at 75 % of the signal is reference white (203 cd/m2 on the 1000 cd/m2
     // reference display): near SDR white, below it only by the highlight roll-off.
-    let hlg = dir.path().join("hlg.mp4");
-    let mut a = vec![
+    let inputs = [
         "-f",
         "lavfi",
         "-i",
         "color=c=0xBFBFBF:s=64x48:r=10",
-        "-frames:v",
-        "2",
         "-vf",
         "scale=out_color_matrix=bt2020:out_range=tv,format=yuv420p10le",
     ];
-    a.extend(x265);
-    a.extend(tags("arib-std-b67"));
-    a.push(hlg.to_str().unwrap());
-    ffmpeg(&a);
-    let mut src = open(&hlg).unwrap();
-    assert_eq!(src.info().hdr, Some("HLG"));
-    let f = src.next_frame().unwrap().unwrap();
-    let px = at(&f, 24 * 64 + 32);
+    let px = at(
+        &first_hdr_frame(dir.path(), &inputs, "arib-std-b67", "HLG"),
+        24 * 64 + 32,
+    );
     assert!(
         px.iter().all(|&c| (236..=250).contains(&c)) && px[0] == px[2],
         "HLG white: {px:?}"

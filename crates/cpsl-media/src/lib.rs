@@ -233,8 +233,8 @@ pub struct VideoFile {
     stream: usize,
     decoder: ffmpeg::decoder::Video,
     /// To 8-bit RGB (RGB and grey sources) or to 8-bit 4:4:4 Y'CbCr in the source's range,
-    /// converted to RGB here with the frame's matrix; none for 8-bit 4:2:0 sources, whose
-    /// chroma is upsampled here.
+    /// converted to RGB here with the frame's matrix; to 16 bits (RGB or 4:4:4 Y'CbCr) for
+    /// HDR sources; none for 8-bit 4:2:0 SDR sources, whose chroma is upsampled here.
     scaler: Option<ffmpeg::software::scaling::Context>,
     ycc: Option<YccSource>,
     /// HDR video: the mapping of its BT.2020 R'G'B' to SDR BT.709.
@@ -315,12 +315,24 @@ impl VideoFile {
             planar420: name == "yuv420p" || name == "yuvj420p",
             tables: None,
         });
+        let (hdr, to_sdr) = match decoder.color_transfer_characteristic() {
+            ffmpeg::color::TransferCharacteristic::SMPTE2084 => {
+                (Some("PQ"), Some(ToSdr::new(Transfer::Pq)))
+            }
+            ffmpeg::color::TransferCharacteristic::ARIB_STD_B67 => {
+                (Some("HLG"), Some(ToSdr::new(Transfer::Hlg)))
+            }
+            _ => (None, None),
+        };
         use ffmpeg::format::Pixel;
-        let target = match &ycc {
-            None => Some(Pixel::RGB24),
-            Some(y) if y.planar420 => None,
-            Some(y) if y.full => Some(Pixel::YUVJ444P),
-            Some(_) => Some(Pixel::YUV444P),
+        let target = match (&ycc, to_sdr.is_some()) {
+            // HDR keeps 16 bits to the mapping: a PQ step of 8 bits is about three SDR steps.
+            (None, true) => Some(Pixel::RGB48LE),
+            (Some(_), true) => Some(Pixel::YUV444P16LE),
+            (None, false) => Some(Pixel::RGB24),
+            (Some(y), false) if y.planar420 => None,
+            (Some(y), false) if y.full => Some(Pixel::YUVJ444P),
+            (Some(_), false) => Some(Pixel::YUV444P),
         };
         let scaler = target
             .map(|t| {
@@ -337,15 +349,6 @@ impl VideoFile {
             .transpose()
             .map_err(|e| fail(e.to_string()))?;
         let (width, height) = if rotation % 180 == 90 { (h, w) } else { (w, h) };
-        let (hdr, to_sdr) = match decoder.color_transfer_characteristic() {
-            ffmpeg::color::TransferCharacteristic::SMPTE2084 => {
-                (Some("PQ"), Some(ToSdr::new(Transfer::Pq)))
-            }
-            ffmpeg::color::TransferCharacteristic::ARIB_STD_B67 => {
-                (Some("HLG"), Some(ToSdr::new(Transfer::Hlg)))
-            }
-            _ => (None, None),
-        };
         Ok(Self {
             path: path.to_path_buf(),
             input,
@@ -397,14 +400,39 @@ impl VideoFile {
             None => frame,
         };
         let mut rgb = vec![0u8; w * h * 3];
-        match &mut self.ycc {
-            None => {
-                let (stride, data) = (pic.stride(0), pic.data(0));
+        let plane = |i: usize| (pic.stride(i), pic.data(i));
+        match (&mut self.ycc, &self.to_sdr) {
+            (None, None) => {
+                let (stride, data) = plane(0);
                 for (y, out) in rgb.chunks_exact_mut(w * 3).enumerate() {
                     out.copy_from_slice(&data[y * stride..][..w * 3]);
                 }
             }
-            Some(src) => {
+            (None, Some(map)) => {
+                let (stride, data) = plane(0);
+                map.apply(&mut rgb, w, |y, [r, g, b]| {
+                    let mut v = samples16(&data[y * stride..][..6 * w]).map(|v| v / 65535.0);
+                    for x in 0..w {
+                        [r[x], g[x], b[x]] = [(); 3].map(|_| v.next().unwrap_or(0.0));
+                    }
+                });
+            }
+            (Some(src), Some(map)) => {
+                // The scaler gives yuvj (8-bit full range) sources limited range.
+                let full = !src.full && frame.color_range() == ffmpeg::color::Range::JPEG;
+                let signal = Signal::new(matrix_of(frame.color_space()), full);
+                let ((sy, py), (su, pu), (sv, pv)) = (plane(0), plane(1), plane(2));
+                map.apply(&mut rgb, w, |y, [r, g, b]| {
+                    let l = samples16(&py[y * sy..][..2 * w]);
+                    let cb = samples16(&pu[y * su..][..2 * w]);
+                    let cr = samples16(&pv[y * sv..][..2 * w]);
+                    let samples = l.zip(cb).zip(cr);
+                    for (x, ((l, cb), cr)) in samples.enumerate() {
+                        [r[x], g[x], b[x]] = signal.rgb(l, cb, cr);
+                    }
+                });
+            }
+            (Some(src), None) => {
                 let matrix = matrix_of(frame.color_space());
                 let full = src.full || frame.color_range() == ffmpeg::color::Range::JPEG;
                 if src
@@ -415,7 +443,6 @@ impl VideoFile {
                     src.tables = Some((matrix, full, ToRgb::new(matrix, full)));
                 }
                 let t = &src.tables.as_ref().expect("set above").2;
-                let plane = |i: usize| (pic.stride(i), pic.data(i));
                 let ((sy, py), (su, pu), (sv, pv)) = (plane(0), plane(1), plane(2));
                 if src.planar420 {
                     let (cw, ch) = (w.div_ceil(2), h.div_ceil(2));
@@ -438,9 +465,6 @@ impl VideoFile {
                     }
                 }
             }
-        }
-        if let Some(map) = &self.to_sdr {
-            map.apply(&mut rgb);
         }
         let motion = if self.mvs {
             frame
@@ -502,6 +526,13 @@ fn upsample_chroma(
     }
 }
 
+/// 16-bit little-endian samples.
+fn samples16(bytes: &[u8]) -> impl Iterator<Item = f32> + '_ {
+    bytes
+        .chunks_exact(2)
+        .map(|v| f32::from(u16::from_le_bytes([v[0], v[1]])))
+}
+
 /// Whether an FFmpeg pixel format holds RGB or grey samples (converted to RGB by FFmpeg's
 /// scaler) rather than Y'CbCr.
 fn is_rgb_format(name: &str) -> bool {
@@ -526,6 +557,57 @@ const HLG_PEAK_NITS: f32 = 1000.0;
 /// Highlights above this share of SDR white are rolled off towards white.
 const KNEE: f32 = 0.75;
 
+/// Entries of [`ToSdr`]'s table of the transfer function, over the signal's [0, 1]: finer
+/// than 10- and 12-bit video.
+const SIGNAL_STEPS: usize = 1 << 14;
+
+/// 16-bit Y'CbCr samples (the scaler's `yuv444p16le`: 8-bit values times 256 in limited range)
+/// to R'G'B' signal in [0, 1], in floating point.
+struct Signal {
+    y0: f32,
+    /// Reciprocals of the luma and chroma scales.
+    ys: f32,
+    cs: f32,
+    /// `R = Y + cr_r * Cr`, `G = Y + cb_g * Cb + cr_g * Cr`, `B = Y + cb_b * Cb`.
+    cr_r: f32,
+    cb_g: f32,
+    cr_g: f32,
+    cb_b: f32,
+}
+
+impl Signal {
+    fn new(matrix: Matrix, full: bool) -> Self {
+        let Matrix { kr, kb } = matrix;
+        let kg = 1.0 - kr - kb;
+        let (y0, ys, cs) = if full {
+            (0.0, 65535.0, 65535.0)
+        } else {
+            (16.0 * 256.0, 219.0 * 256.0, 224.0 * 256.0)
+        };
+        let (r, b) = (2.0 * (1.0 - kr), 2.0 * (1.0 - kb));
+        Self {
+            y0,
+            ys: 1.0 / ys,
+            cs: 1.0 / cs,
+            cr_r: r as f32,
+            cb_g: (-kb / kg * b) as f32,
+            cr_g: (-kr / kg * r) as f32,
+            cb_b: b as f32,
+        }
+    }
+
+    #[inline]
+    fn rgb(&self, y: f32, cb: f32, cr: f32) -> [f32; 3] {
+        let l = (y - self.y0) * self.ys;
+        let (cb, cr) = ((cb - 32768.0) * self.cs, (cr - 32768.0) * self.cs);
+        [
+            l + self.cr_r * cr,
+            l + self.cb_g * cb + self.cr_g * cr,
+            l + self.cb_b * cb,
+        ]
+    }
+}
+
 /// HDR (BT.2100: BT.2020 primaries, PQ or HLG) to SDR BT.709 R'G'B' for a display with
 /// gamma 2.4: linear display light relative to reference white (HLG through the reference
 /// display's system gamma, 1.2 at 1000 cd/m2), BT.2020 to BT.709 primaries, highlights above
@@ -533,9 +615,12 @@ const KNEE: f32 = 0.75;
 /// ratios), colours outside BT.709 clipped.
 struct ToSdr {
     transfer: Transfer,
-    /// 8-bit R'G'B' code to linear light (PQ: relative to reference white; HLG: scene light).
-    linear: [f32; 256],
-    /// Linear SDR light in [0, 1] (4096 steps) to 8-bit code.
+    /// R'G'B' signal (in [`SIGNAL_STEPS`]) to linear light (PQ: relative to reference white;
+    /// HLG: scene light).
+    linear: Vec<f32>,
+    /// Linear SDR light in [0, 1] to 8-bit code, over its square root (4096 steps: 8-bit
+    /// codes near black are as close as 1 / 4095 in linear light, a step of the square root
+    /// moves them by at most a quarter).
     encode: Vec<u8>,
     /// HLG: the reference display's gain `Lw / white * Ys^(gamma - 1)` over `sqrt(Ys)` in
     /// [0, 1] (4096 steps: fine near black, where `Ys^0.2` is steep).
@@ -544,29 +629,30 @@ struct ToSdr {
 
 impl ToSdr {
     fn new(transfer: Transfer) -> Self {
-        let mut linear = [0f32; 256];
-        for (i, l) in linear.iter_mut().enumerate() {
-            let e = i as f64 / 255.0;
-            *l = match transfer {
-                Transfer::Pq => {
-                    let (m1, m2) = (0.1593017578125, 78.84375);
-                    let (c1, c2, c3) = (0.8359375, 18.8515625, 18.6875);
-                    let n = e.powf(1.0 / m2);
-                    let nits = 10000.0 * ((n - c1).max(0.0) / (c2 - c3 * n)).powf(1.0 / m1);
-                    (nits / HDR_WHITE_NITS as f64) as f32
-                }
-                Transfer::Hlg => {
-                    let (a, b, c) = (0.17883277, 0.28466892, 0.55991073);
-                    (if e <= 0.5 {
-                        e * e / 3.0
-                    } else {
-                        (((e - c) / a).exp() + b) / 12.0
-                    }) as f32
-                }
-            };
-        }
+        let linear = (0..SIGNAL_STEPS)
+            .map(|i| {
+                let e = i as f64 / (SIGNAL_STEPS - 1) as f64;
+                (match transfer {
+                    Transfer::Pq => {
+                        let (m1, m2) = (0.1593017578125, 78.84375);
+                        let (c1, c2, c3) = (0.8359375, 18.8515625, 18.6875);
+                        let n = e.powf(1.0 / m2);
+                        let nits = 10000.0 * ((n - c1).max(0.0) / (c2 - c3 * n)).powf(1.0 / m1);
+                        nits / HDR_WHITE_NITS as f64
+                    }
+                    Transfer::Hlg => {
+                        let (a, b, c) = (0.17883277, 0.28466892, 0.55991073);
+                        if e <= 0.5 {
+                            e * e / 3.0
+                        } else {
+                            (((e - c) / a).exp() + b) / 12.0
+                        }
+                    }
+                }) as f32
+            })
+            .collect();
         let encode = (0..4096)
-            .map(|i| ((i as f64 / 4095.0).powf(1.0 / 2.4) * 255.0).round() as u8)
+            .map(|i| ((i as f64 / 4095.0).powf(2.0 / 2.4) * 255.0).round() as u8)
             .collect();
         let gain = HLG_PEAK_NITS / HDR_WHITE_NITS;
         let ootf = (0..4096)
@@ -580,37 +666,58 @@ impl ToSdr {
         }
     }
 
-    /// Maps 8-bit BT.2020 R'G'B' pixels in place, in parallel runs.
-    fn apply(&self, rgb: &mut [u8]) {
-        rgb.par_chunks_mut(3 * 4096)
-            .for_each(|run| self.apply_run(run));
+    /// Fills 8-bit RGB pictures `w` pixels wide, rows in parallel: `signal(y, row)` writes row
+    /// `y`'s BT.2020 R'G'B' signal as three planes.
+    fn apply(&self, rgb: &mut [u8], w: usize, signal: impl Fn(usize, &mut [Vec<f32>; 3]) + Sync) {
+        rgb.par_chunks_mut(w * 3).enumerate().for_each_init(
+            || [vec![0f32; w], vec![0f32; w], vec![0f32; w]],
+            |planes, (y, row)| {
+                signal(y, planes);
+                self.map_row(planes, row);
+            },
+        );
     }
 
-    fn apply_run(&self, rgb: &mut [u8]) {
-        const TO_709: [[f32; 3]; 3] = [
-            [1.6605, -0.5876, -0.0728],
-            [-0.1246, 1.1329, -0.0083],
-            [-0.0182, -0.1006, 1.1187],
-        ];
-        for px in rgb.chunks_exact_mut(3) {
-            let mut c = [0, 1, 2].map(|i| self.linear[px[i] as usize]);
-            if self.transfer == Transfer::Hlg {
-                // The reference display's OOTF: Fd = Lw * Ys^(gamma - 1) * E, gamma 1.2.
-                let ys = 0.2627 * c[0] + 0.6780 * c[1] + 0.0593 * c[2];
+    /// One row, in stages over the planes: the lookups stay scalar, the arithmetic between
+    /// them vectorises.
+    fn map_row(&self, planes: &mut [Vec<f32>; 3], out: &mut [u8]) {
+        let top = (SIGNAL_STEPS - 1) as f32;
+        for v in planes.iter_mut().flatten() {
+            *v = self.linear[(v.clamp(0.0, 1.0) * top + 0.5) as usize];
+        }
+        let [r, g, b] = planes;
+        if self.transfer == Transfer::Hlg {
+            // The reference display's OOTF: Fd = Lw * Ys^(gamma - 1) * E, gamma 1.2.
+            for ((r, g), b) in r.iter_mut().zip(g.iter_mut()).zip(b.iter_mut()) {
+                let ys = 0.2627 * *r + 0.6780 * *g + 0.0593 * *b;
                 let k = self.ootf[(ys.clamp(0.0, 1.0).sqrt() * 4095.0 + 0.5) as usize];
-                c = c.map(|v| v * k);
+                (*r, *g, *b) = (*r * k, *g * k, *b * k);
             }
-            let mut c = TO_709.map(|row| (row[0] * c[0] + row[1] * c[1] + row[2] * c[2]).max(0.0));
-            let m = c[0].max(c[1]).max(c[2]);
-            if m > KNEE {
-                // Slope 1 at the knee, approaching 1 (white) for ever brighter highlights.
-                let t = (m - KNEE) / (1.0 - KNEE);
-                let mapped = KNEE + (1.0 - KNEE) * t / (1.0 + t);
-                c = c.map(|v| v * mapped / m);
-            }
-            for (o, v) in px.iter_mut().zip(c) {
-                *o = self.encode[(v.min(1.0) * 4095.0 + 0.5) as usize];
-            }
+        }
+        for ((r, g), b) in r.iter_mut().zip(g.iter_mut()).zip(b.iter_mut()) {
+            // BT.2020 to BT.709 primaries.
+            let r709 = (1.6605 * *r - 0.5876 * *g - 0.0728 * *b).max(0.0);
+            let g709 = (-0.1246 * *r + 1.1329 * *g - 0.0083 * *b).max(0.0);
+            let b709 = (-0.0182 * *r - 0.1006 * *g + 1.1187 * *b).max(0.0);
+            // Slope 1 at the knee, approaching 1 (white) for ever brighter highlights.
+            let m = r709.max(g709).max(b709);
+            let t = (m - KNEE) / (1.0 - KNEE);
+            let scale = if m > KNEE {
+                (KNEE * (1.0 + t) + (1.0 - KNEE) * t) / ((1.0 + t) * m)
+            } else {
+                1.0
+            };
+            // Indices into `encode`, over the square root of linear light.
+            let index = |v: f32| (v * scale).min(1.0).sqrt() * 4095.0 + 0.5;
+            (*r, *g, *b) = (index(r709), index(g709), index(b709));
+        }
+        for (px, ((r, g), b)) in out
+            .chunks_exact_mut(3)
+            .zip(r.iter().zip(g.iter()).zip(b.iter()))
+        {
+            px[0] = self.encode[*r as usize];
+            px[1] = self.encode[*g as usize];
+            px[2] = self.encode[*b as usize];
         }
     }
 }

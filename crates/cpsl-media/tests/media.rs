@@ -288,10 +288,16 @@ fn pictures_and_motion_turn_with_the_display_matrix() {
     }
 }
 
-/// Codes two frames from `inputs` (ffmpeg arguments) as 10-bit H.265 tagged HDR with the
-/// transfer `trc` and BT.2020 primaries, and reads the first back, checking that it is
-/// reported as HDR (`name`).
-fn first_hdr_frame(dir: &Path, inputs: &[&str], trc: &str, name: &str) -> cpsl_media::Frame {
+/// Codes two frames from `inputs` (ffmpeg arguments) as 10-bit H.265 (losslessly where asked)
+/// tagged HDR with the transfer `trc` and BT.2020 primaries, and reads the first back,
+/// checking that it is reported as HDR (`name`).
+fn first_hdr_frame(
+    dir: &Path,
+    inputs: &[&str],
+    lossless: bool,
+    trc: &str,
+    name: &str,
+) -> cpsl_media::Frame {
     let path = dir.join(format!("{name}.mp4"));
     let mut a = inputs.to_vec();
     a.extend([
@@ -300,7 +306,11 @@ fn first_hdr_frame(dir: &Path, inputs: &[&str], trc: &str, name: &str) -> cpsl_m
         "-c:v",
         "libx265",
         "-x265-params",
-        "log-level=error",
+        if lossless {
+            "log-level=error:lossless=1"
+        } else {
+            "log-level=error"
+        },
     ]);
     a.extend([
         "-color_trc",
@@ -322,26 +332,32 @@ fn hdr_video_is_mapped_to_sdr() {
     let dir = tempfile::tempdir().unwrap();
     let at = |f: &cpsl_media::Frame, i: usize| <[u8; 3]>::try_from(&f.rgb[i * 3..][..3]).unwrap();
     // PQ: (200, 50, 20) beside grey 128, SDR BT.709 turned into HDR10 by zimg with SDR white
-    // at 203 cd/m2 (ITU-R BT.2408), coded 10-bit: they come back.
+    // at 203 cd/m2 (ITU-R BT.2408), coded 10-bit as Y'CbCr 4:2:0 and as R'G'B': they come back.
     let graph = "[0][1]hstack,format=gbrpf32le,zscale=tin=bt709:pin=bt709:min=gbr:rin=pc:\
-                 t=smpte2084:p=bt2020:m=bt2020nc:r=tv:npl=203,format=yuv420p10le";
-    let inputs = [
-        "-f",
-        "lavfi",
-        "-i",
-        "color=c=0xC83214:s=64x48:r=10",
-        "-f",
-        "lavfi",
-        "-i",
-        "color=c=0x808080:s=64x48:r=10",
-        "-filter_complex",
-        graph,
-    ];
-    let f = first_hdr_frame(dir.path(), &inputs, "smpte2084", "PQ");
-    for (i, want) in [(24 * 128 + 32, [200u8, 50, 20]), (24 * 128 + 96, [128; 3])] {
-        let px = at(&f, i);
-        for (g, w) in px.iter().zip(want) {
-            assert!(g.abs_diff(w) <= 4, "PQ: {px:?} for {want:?}");
+                 t=smpte2084:p=bt2020:npl=203:";
+    for coded in [
+        "m=bt2020nc:r=tv,format=yuv420p10le",
+        "m=gbr:r=pc,format=gbrp10le",
+    ] {
+        let graph = format!("{graph}{coded}");
+        let inputs = [
+            "-f",
+            "lavfi",
+            "-i",
+            "color=c=0xC83214:s=64x48:r=10",
+            "-f",
+            "lavfi",
+            "-i",
+            "color=c=0x808080:s=64x48:r=10",
+            "-filter_complex",
+            &graph,
+        ];
+        let f = first_hdr_frame(dir.path(), &inputs, false, "smpte2084", "PQ");
+        for (i, want) in [(24 * 128 + 32, [200u8, 50, 20]), (24 * 128 + 96, [128; 3])] {
+            let px = at(&f, i);
+            for (g, w) in px.iter().zip(want) {
+                assert!(g.abs_diff(w) <= 4, "PQ {coded}: {px:?} for {want:?}");
+            }
         }
     }
     // HLG: grey at 75 % of the signal is reference white (203 cd/m2 on the 1000 cd/m2
@@ -355,12 +371,43 @@ fn hdr_video_is_mapped_to_sdr() {
         "scale=out_color_matrix=bt2020:out_range=tv,format=yuv420p10le",
     ];
     let px = at(
-        &first_hdr_frame(dir.path(), &inputs, "arib-std-b67", "HLG"),
+        &first_hdr_frame(dir.path(), &inputs, false, "arib-std-b67", "HLG"),
         24 * 64 + 32,
     );
     assert!(
         px.iter().all(|&c| (236..=250).contains(&c)) && px[0] == px[2],
         "HLG white: {px:?}"
+    );
+}
+
+#[test]
+fn hdr_gradients_keep_their_steps() {
+    // A 10-bit PQ ramp from black to reference white (luma 64 to 572, 203 cd/m2), one code
+    // every 2 pixels, coded losslessly. Through 8 bits before the mapping it would come back
+    // with 113 of its 242 levels, in steps of up to 8 (bands); with 16 bits each step moves
+    // the SDR picture by at most a level or two, and never down.
+    let dir = tempfile::tempdir().unwrap();
+    let inputs = [
+        "-f",
+        "lavfi",
+        "-i",
+        "color=black:s=1024x16:r=10,format=yuv420p10le,geq=lum='64+X/2':cb=512:cr=512",
+    ];
+    let f = first_hdr_frame(dir.path(), &inputs, true, "smpte2084", "PQ");
+    let row: Vec<u8> = f.rgb[8 * 1024 * 3..][..1024 * 3]
+        .iter()
+        .step_by(3)
+        .copied()
+        .collect();
+    let steps: Vec<i32> = row.windows(2).map(|p| p[1] as i32 - p[0] as i32).collect();
+    let largest = *steps.iter().max().unwrap();
+    assert!(steps.iter().all(|&d| d >= 0), "{row:?}");
+    assert!(largest <= 2, "a step of {largest} levels: {row:?}");
+    assert!(
+        row[0] <= 1 && row[1023] >= 200,
+        "{} .. {}",
+        row[0],
+        row[1023]
     );
 }
 

@@ -411,9 +411,9 @@ impl VideoFile {
             (None, Some(map)) => {
                 let (stride, data) = plane(0);
                 map.apply(&mut rgb, w, |y, [r, g, b]| {
-                    let mut v = samples16(&data[y * stride..][..6 * w]).map(|v| v / 65535.0);
-                    for x in 0..w {
-                        [r[x], g[x], b[x]] = [(); 3].map(|_| v.next().unwrap_or(0.0));
+                    for (x, px) in data[y * stride..][..6 * w].chunks_exact(6).enumerate() {
+                        let v = |c: usize| f32::from(u16::from_le_bytes([px[c], px[c + 1]]));
+                        [r[x], g[x], b[x]] = [v(0), v(2), v(4)].map(|v| v / 65535.0);
                     }
                 });
             }

@@ -273,10 +273,11 @@ pub fn run(a: EncodeArgs) -> Result<()> {
             None => path,
         };
         println!(
-            "wrote {} ({} frames, {} segments, {} at {:.0} kbit/s{}) in {secs:.1} s ({:.1} frames/s; coding {coding:.1} s, {:.1} frames/s)",
+            "wrote {} ({} frames, {} segment{}, {} at {:.0} kbit/s{}) in {secs:.1} s ({:.1} frames/s; coding {coding:.1} s, {:.1} frames/s)",
             path.display(),
             m.frames,
             m.segments.len(),
+            if m.segments.len() == 1 { "" } else { "s" },
             codec.name(),
             m.bitrate() / 1e3,
             match m.budget {

@@ -26,6 +26,15 @@ impl Matrix {
     pub const fn new(kr: f64, kb: f64) -> Self {
         Self { kr, kb }
     }
+
+    /// The inverse matrix's chroma weights `[cr_r, cb_g, cr_g, cb_b]`, per unit of centred
+    /// chroma: `R = Y + cr_r Cr`, `G = Y + cb_g Cb + cr_g Cr`, `B = Y + cb_b Cb`.
+    pub fn chroma_weights(self) -> [f64; 4] {
+        let Self { kr, kb } = self;
+        let kg = 1.0 - kr - kb;
+        let (r, b) = (2.0 * (1.0 - kr), 2.0 * (1.0 - kb));
+        [r, -kb / kg * b, -kr / kg * r, b]
+    }
 }
 
 /// The conversion back to 8-bit RGB as tables, in 0..255 units with 16 fractional bits:
@@ -44,8 +53,7 @@ pub struct ToRgb {
 impl ToRgb {
     /// Tables for `matrix`; `full` range (0..255) or limited (luma 16..235, chroma 16..240).
     pub fn new(matrix: Matrix, full: bool) -> Self {
-        let Matrix { kr, kb } = matrix;
-        let kg = 1.0 - kr - kb;
+        let [cr_r, cb_g, cr_g, cb_b] = matrix.chroma_weights();
         let (y0, ys, cs) = if full {
             (0.0, 255.0, 255.0)
         } else {
@@ -61,12 +69,11 @@ impl ToRgb {
         };
         for v in 0..256 {
             let c = (v as f64 - 128.0) / cs;
-            let (r, b) = (2.0 * (1.0 - kr) * c, 2.0 * (1.0 - kb) * c);
             t.y[v] = fixed((v as f64 - y0) / ys);
-            t.cr_r[v] = fixed(r);
-            t.cb_b[v] = fixed(b);
-            t.cr_g[v] = fixed(-kr / kg * r);
-            t.cb_g[v] = fixed(-kb / kg * b);
+            t.cr_r[v] = fixed(cr_r * c);
+            t.cb_g[v] = fixed(cb_g * c);
+            t.cr_g[v] = fixed(cr_g * c);
+            t.cb_b[v] = fixed(cb_b * c);
         }
         t
     }

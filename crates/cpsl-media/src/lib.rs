@@ -568,31 +568,22 @@ struct Signal {
     /// Reciprocals of the luma and chroma scales.
     ys: f32,
     cs: f32,
-    /// `R = Y + cr_r * Cr`, `G = Y + cb_g * Cb + cr_g * Cr`, `B = Y + cb_b * Cb`.
-    cr_r: f32,
-    cb_g: f32,
-    cr_g: f32,
-    cb_b: f32,
+    /// The matrix's [`Matrix::chroma_weights`].
+    weights: [f32; 4],
 }
 
 impl Signal {
     fn new(matrix: Matrix, full: bool) -> Self {
-        let Matrix { kr, kb } = matrix;
-        let kg = 1.0 - kr - kb;
         let (y0, ys, cs) = if full {
             (0.0, 65535.0, 65535.0)
         } else {
             (16.0 * 256.0, 219.0 * 256.0, 224.0 * 256.0)
         };
-        let (r, b) = (2.0 * (1.0 - kr), 2.0 * (1.0 - kb));
         Self {
             y0,
             ys: 1.0 / ys,
             cs: 1.0 / cs,
-            cr_r: r as f32,
-            cb_g: (-kb / kg * b) as f32,
-            cr_g: (-kr / kg * r) as f32,
-            cb_b: b as f32,
+            weights: matrix.chroma_weights().map(|v| v as f32),
         }
     }
 
@@ -600,11 +591,8 @@ impl Signal {
     fn rgb(&self, y: f32, cb: f32, cr: f32) -> [f32; 3] {
         let l = (y - self.y0) * self.ys;
         let (cb, cr) = ((cb - 32768.0) * self.cs, (cr - 32768.0) * self.cs);
-        [
-            l + self.cr_r * cr,
-            l + self.cb_g * cb + self.cr_g * cr,
-            l + self.cb_b * cb,
-        ]
+        let [cr_r, cb_g, cr_g, cb_b] = self.weights;
+        [l + cr_r * cr, l + cb_g * cb + cr_g * cr, l + cb_b * cb]
     }
 }
 

@@ -34,17 +34,16 @@ fn drain(src: &mut dyn FrameSource) -> Result<Vec<cpsl_media::Frame>, MediaError
     Ok(v)
 }
 
+/// H.264 whose P-frames are predicted from the previous frame only (no B-frames, one
+/// reference): its decoder vectors describe the motion.
+const H264_WITH_MOTION: &[&str] = &[
+    "-c:v", "libx264", "-bf", "0", "-refs", "1", "-pix_fmt", "yuv420p",
+];
+
 #[test]
 fn decodes_h264_with_motion_vectors_and_vp9() {
     let dir = tempfile::tempdir().unwrap();
-    let h264 = encode(
-        dir.path(),
-        "clip.mp4",
-        12,
-        &[
-            "-c:v", "libx264", "-bf", "0", "-refs", "1", "-pix_fmt", "yuv420p",
-        ],
-    );
+    let h264 = encode(dir.path(), "clip.mp4", 12, H264_WITH_MOTION);
     let mut src = open(&h264).unwrap();
     assert_eq!((src.info().width, src.info().height), (160, 120));
     assert!((src.info().fps - 10.0).abs() < 1e-6);
@@ -217,14 +216,7 @@ fn ffmpeg_rgb(path: &Path) -> Vec<u8> {
 #[test]
 fn pictures_and_motion_turn_with_the_display_matrix() {
     let dir = tempfile::tempdir().unwrap();
-    let plain = encode(
-        dir.path(),
-        "plain.mp4",
-        6,
-        &[
-            "-c:v", "libx264", "-bf", "0", "-refs", "1", "-pix_fmt", "yuv420p",
-        ],
-    );
+    let plain = encode(dir.path(), "plain.mp4", 6, H264_WITH_MOTION);
     let upright = drain(open(&plain).unwrap().as_mut()).unwrap();
     let upright_rgb = |turn: u32| -> Vec<u8> {
         upright

@@ -3,7 +3,7 @@
 use anyhow::{Context, Result};
 use clap::{Args, Subcommand, ValueEnum};
 use cpsl_core::{Homography, LayerSet, Pose, PremulImage};
-use cpsl_render::PreparedLayers;
+use cpsl_render::{CpuRenderer, PreparedLayers, Renderer};
 use cpsl_synth::layers::{synthetic_layer_set, Coverage};
 use serde::Serialize;
 use std::path::PathBuf;
@@ -616,9 +616,8 @@ struct PlayReport {
 }
 
 fn bench_play(a: BenchPlayArgs) -> Result<()> {
-    let pkg = cpsl_package::Package::open(&a.package)
-        .with_context(|| format!("opening the package {}", a.package.display()))?;
-    let m = pkg.manifest().clone();
+    let mut player = cpsl_player::Player::open(&a.package)?;
+    let m = player.package().manifest().clone();
     let frames = a.frames.unwrap_or(m.frames);
     anyhow::ensure!(frames >= 1, "--frames must be at least 1");
     let cam = m.camera;
@@ -626,33 +625,18 @@ fn bench_play(a: BenchPlayArgs) -> Result<()> {
     let (mut decode, mut prepare, mut render) = (Vec::new(), Vec::new(), Vec::new());
     let mut layers = 0;
     let started = Instant::now();
-    let mut reader: Option<cpsl_codec::SegmentReader> = None;
-    let mut seg = 0;
-    for _ in 0..frames {
+    let dps = (!a.no_dps).then_some(&crate::render::DPS);
+    for i in 0..frames {
         let t = Instant::now();
-        let decoded = loop {
-            if let Some(d) = reader.as_mut().and_then(Iterator::next) {
-                break d.with_context(|| format!("decoding segment {seg}"))?;
-            }
-            // The segment is done (or none is open yet): the next one, looping at the end.
-            seg = if reader.is_none() {
-                0
-            } else {
-                (seg + 1) % m.segments.len()
-            };
-            reader = Some(
-                cpsl_codec::SegmentReader::open(&pkg, seg)
-                    .with_context(|| format!("opening segment {seg}"))?,
-            );
-        };
+        // Frame after frame, looping at the end.
+        let frame = player.decode(i % m.frames)?;
         decode.push(t.elapsed().as_secs_f64() * 1e3);
-        layers = layers.max(decoded.set.len());
+        layers = layers.max(frame.set.len());
         let t = Instant::now();
-        let frame = crate::render::Frame::new(decoded.set, Some(decoded.side.edc));
-        let prepared = frame.prepared();
+        frame.prepared();
         prepare.push(t.elapsed().as_secs_f64() * 1e3);
         let t = Instant::now();
-        crate::render::render_pose(prepared, !a.no_dps, &a.pose, &cam, &mut img);
+        CpuRenderer.render(&frame, &a.pose, &cam, dps, &mut img)?;
         render.push(t.elapsed().as_secs_f64() * 1e3);
     }
     let wall = started.elapsed().as_secs_f64();

@@ -5,7 +5,7 @@
 use crate::encode::{CodecArg, EncodeArgs};
 use crate::layer::{layer_image, write_output, InstanceMode};
 use crate::progress::Bars;
-use crate::render::{render_sweep, Backend, Frame, Source, Sweep};
+use crate::render::{render_sweep, Sweep, DPS};
 use crate::synth::{depth_list, estimate_depth, synthesise, SynthArgs};
 use crate::util::{self, Output};
 use anyhow::{Context, Result};
@@ -16,6 +16,8 @@ use cpsl_io::images::write_png;
 use cpsl_io::pfm::{write_pfm, FloatImage};
 use cpsl_layering::LayeringConfig;
 use cpsl_package::Package;
+use cpsl_player::Source;
+use cpsl_render::{CpuRenderer, FrameLayers, Renderer};
 use cpsl_synth::Scene;
 use serde::Serialize;
 use std::path::PathBuf;
@@ -141,7 +143,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
         layer_dir.display()
     );
 
-    let mut source = Source::Still(Box::new(Frame::new(
+    let mut source = Source::Still(Box::new(FrameLayers::new(
         set.clone(),
         Some(run.layered.edc.clone()),
     )));
@@ -149,7 +151,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
     let sweep = Sweep::parse("tx:-0.3:0.3:61").expect("valid sweep");
     render_sweep(
         &mut source,
-        &Backend::Cpu,
+        &CpuRenderer,
         true,
         &sweep.poses(),
         &sweep_dir,
@@ -172,7 +174,13 @@ pub fn run(a: DemoArgs) -> Result<()> {
     let mut scores = Vec::new();
     for (entry, truth) in &synth.views {
         let mut img = cpsl_core::PremulImage::new(set.camera().width, set.camera().height);
-        Backend::Cpu.render(prepared, true, &entry.pose_matrix, set.camera(), &mut img)?;
+        CpuRenderer.render(
+            prepared,
+            &entry.pose_matrix,
+            set.camera(),
+            Some(&DPS),
+            &mut img,
+        )?;
         scores.push(Score {
             view: entry.name.clone(),
             pose: entry.pose.clone(),
@@ -310,7 +318,7 @@ fn clip(a: &DemoArgs, scene: &Scene, bars: &Bars) -> Result<()> {
         .poses();
     render_sweep(
         &mut source,
-        &Backend::Cpu,
+        &CpuRenderer,
         true,
         &poses,
         &sweep_dir,
@@ -321,7 +329,7 @@ fn clip(a: &DemoArgs, scene: &Scene, bars: &Bars) -> Result<()> {
     let mut img = cpsl_core::PremulImage::new(cam.width, cam.height);
     let mut scores = Vec::new();
     for (i, t) in &truth {
-        Backend::Cpu.render(source.at(*i)?, true, &novel, &cam, &mut img)?;
+        CpuRenderer.render(source.at(*i)?, &novel, &cam, Some(&DPS), &mut img)?;
         scores.push(serde_json::json!({
             "frame": i,
             "psnr_db": psnr(&img.over_background([0, 0, 0]), t),

@@ -4,10 +4,9 @@
 use crate::video::{layer_video, VideoLayering};
 use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
-use cpsl_codec::{CodingOptions, PackageWriter, RateControl, SegmentFrame};
-use cpsl_package::{Codec, Package, RefreshReason};
-use cpsl_video::Refresh;
-use std::path::{Path, PathBuf};
+use cpsl_codec::{CodingOptions, PackageWriter, RateControl, SegmentReport};
+use cpsl_package::{Codec, Package};
+use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Instant;
@@ -105,12 +104,20 @@ pub struct EncodeArgs {
     pub layering: VideoLayering,
 }
 
-pub(crate) fn refresh_reason(r: Refresh) -> RefreshReason {
-    match r {
-        Refresh::First => RefreshReason::First,
-        Refresh::Gop => RefreshReason::Gop,
-        Refresh::Confidence => RefreshReason::Confidence,
-        Refresh::Crack => RefreshReason::Crack,
+/// Warns about a segment that missed its budget.
+fn warn_over_budget(r: &SegmentReport) {
+    if !r.feasible {
+        tracing::warn!(
+            "segment at frame {}: {:.0} bits spent of a budget of {:.0} ({})",
+            r.start,
+            r.bits,
+            r.budget_bits.unwrap_or(0.0),
+            if r.at_floor {
+                "the cheapest coding, lowest quality at the smallest size, needs more"
+            } else {
+                "the allocator's correction rounds did not reach it"
+            }
+        );
     }
 }
 
@@ -145,12 +152,12 @@ pub fn run(a: EncodeArgs) -> Result<()> {
         }
         vec![(unpacked.clone().unwrap_or_else(|| a.output.clone()), rate)]
     } else {
-        let set = a.output.join(cpsl_server::VARIANTS_FILE);
+        let set = a.output.join(cpsl_package::VARIANTS_FILE);
         if a.output.exists() && !set.is_file() {
             bail!(
                 "{} exists and is not a variant set (no {}); not replacing it",
                 a.output.display(),
-                cpsl_server::VARIANTS_FILE
+                cpsl_package::VARIANTS_FILE
             );
         }
         let mut budgets = a.variants.clone();
@@ -189,38 +196,7 @@ pub fn run(a: EncodeArgs) -> Result<()> {
             .context("installing the Ctrl-C handler")?;
     }
     let mut writers: Vec<PackageWriter> = Vec::new();
-    let mut pending: Vec<SegmentFrame> = Vec::new();
-    let mut reports = Vec::new();
     let mut coding = 0.0;
-    let mut flush = |writers: &mut Vec<PackageWriter>,
-                     pending: &mut Vec<SegmentFrame>|
-     -> Result<()> {
-        if !pending.is_empty() {
-            let t = Instant::now();
-            for writer in writers.iter_mut() {
-                let r = writer.push_segment(pending).with_context(|| {
-                    format!("coding the segment from frame {}", pending[0].index)
-                })?;
-                if !r.feasible {
-                    tracing::warn!(
-                        "segment at frame {}: {:.0} bits spent of a budget of {:.0} ({})",
-                        pending[0].index,
-                        r.bits,
-                        r.budget_bits.unwrap_or(0.0),
-                        if r.at_floor {
-                            "the cheapest coding, lowest quality at the smallest size, needs more"
-                        } else {
-                            "the allocator's correction rounds did not reach it"
-                        }
-                    );
-                }
-                reports.push(r);
-            }
-            pending.clear();
-            coding += t.elapsed().as_secs_f64();
-        }
-        Ok(())
-    };
     let t = Instant::now();
     layer_video(&a.input, &a.layering, &cfg, gop, &mut depth, |r| {
         if stop.load(Ordering::SeqCst) {
@@ -242,23 +218,26 @@ pub fn run(a: EncodeArgs) -> Result<()> {
                 )?);
             }
         }
-        if f.refresh.is_some() {
-            flush(&mut writers, &mut pending)?;
+        let t = Instant::now();
+        for writer in writers.iter_mut() {
+            let report = writer
+                .push(f.clone())
+                .with_context(|| format!("coding the segment before frame {}", f.index))?;
+            report.iter().for_each(warn_over_budget);
         }
-        pending.push(SegmentFrame {
-            index: f.index as u32,
-            refresh: f.refresh.map(refresh_reason),
-            set: f.set.clone(),
-            edc: f.edc.clone(),
-            confidence: f.confidence.clone(),
-        });
+        coding += t.elapsed().as_secs_f64();
         Ok(())
     })?;
     anyhow::ensure!(!writers.is_empty(), "no frames");
-    flush(&mut writers, &mut pending)?;
     if stop.load(Ordering::SeqCst) {
         bail!("interrupted; no package written");
     }
+    let t_last = Instant::now();
+    for writer in writers.iter_mut() {
+        let report = writer.flush().context("coding the last segment")?;
+        report.iter().for_each(warn_over_budget);
+    }
+    coding += t_last.elapsed().as_secs_f64();
     let secs = t.elapsed().as_secs_f64();
     for (w, (path, _)) in writers.into_iter().zip(&outputs) {
         let m = w.finish()?;
@@ -289,27 +268,15 @@ pub fn run(a: EncodeArgs) -> Result<()> {
         );
     }
     if !a.variants.is_empty() {
-        write_variant_set(&a.output, &outputs)?;
+        let names = outputs.iter().filter_map(|(p, _)| p.file_name()?.to_str());
+        let set = cpsl_package::VariantSet::new(names.map(String::from).collect());
+        set.write(&a.output)?;
+        println!(
+            "wrote {} ({} variants)",
+            a.output.join(cpsl_package::VARIANTS_FILE).display(),
+            set.variants.len()
+        );
     }
-    Ok(())
-}
-
-/// Writes `variants.json` naming the packages in `dir`, cheapest first (atomically: a
-/// sibling temporary file renamed into place).
-fn write_variant_set(dir: &Path, outputs: &[(PathBuf, RateControl)]) -> Result<()> {
-    let set = cpsl_server::VariantSet {
-        format: cpsl_server::VARIANTS_FORMAT.into(),
-        version: 1,
-        variants: outputs
-            .iter()
-            .filter_map(|(p, _)| p.file_name()?.to_str().map(String::from))
-            .collect(),
-    };
-    let path = dir.join(cpsl_server::VARIANTS_FILE);
-    let tmp = dir.join(format!(".{}.tmp", cpsl_server::VARIANTS_FILE));
-    std::fs::write(&tmp, serde_json::to_string_pretty(&set)? + "\n")?;
-    std::fs::rename(&tmp, &path)?;
-    println!("wrote {} ({} variants)", path.display(), set.variants.len());
     Ok(())
 }
 

@@ -4,18 +4,21 @@
 use crate::encode::CodecArg;
 use crate::layer::{layer_image, InstanceMode};
 use crate::progress::Bars;
+use crate::render::DPS;
 use crate::synth::estimate_depth;
 use anyhow::{Context, Result};
 use clap::{Args, ValueEnum};
-use cpsl_codec::{CodingOptions, PackageWriter, RateControl, SegmentFrame};
-use cpsl_core::{Edc, FixedDepth, LayerSet, NoProgress, PremulImage, Progress, ProgressEvent};
+use cpsl_codec::{CodingOptions, PackageWriter, RateControl};
+use cpsl_core::{
+    Edc, FixedDepth, LayerSet, LayeredFrame, NoProgress, Progress, ProgressEvent, RefreshReason,
+};
 use cpsl_eval::baselines::dibr;
 use cpsl_eval::coverage::{covisible, crack_ratio, edge_band, hole_ratio};
 use cpsl_eval::datasets::{self, align_median, Dataset, Target};
 use cpsl_eval::metrics::{psnr_masked, ssim};
 use cpsl_layering::{slice_by_depth, Bins, LayeringConfig, SliceConfig};
-use cpsl_package::{Codec, RefreshReason};
-use cpsl_render::PreparedLayers;
+use cpsl_package::Codec;
+use cpsl_render::{CpuRenderer, FrameLayers};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 
@@ -183,21 +186,18 @@ impl Coding {
         edc: Option<&Edc>,
     ) -> Result<(LayerSet, Edc, f64)> {
         let path = self.dir.join(format!("{}_{method}.cpsl", slug(dataset)));
-        let edc = edc.cloned().unwrap_or_else(|| Edc {
-            width: set.camera().width,
-            height: set.camera().height,
-            layers: set.len() as u16,
-            step: cpsl_layering::matte::MatteConfig::default().edc_step,
-            samples: Vec::new(),
+        let edc = edc.cloned().unwrap_or_else(|| {
+            let step = cpsl_layering::matte::MatteConfig::default().edc_step;
+            Edc::empty(
+                set.camera().width,
+                set.camera().height,
+                set.len() as u16,
+                step,
+            )
         });
         let mut writer = PackageWriter::create(&path, *set.camera(), set.len() as u32, self.opts)?;
-        writer.push_segment(&[SegmentFrame {
-            index: 0,
-            refresh: Some(RefreshReason::First),
-            set: set.clone(),
-            edc,
-            confidence: vec![1.0; set.len()],
-        }])?;
+        let frame = LayeredFrame::new(0, Some(RefreshReason::First), set.clone(), edc);
+        writer.push_segment(&[frame])?;
         let manifest = writer.finish()?;
         let pkg = cpsl_package::Package::open(&path)
             .with_context(|| format!("opening {}", path.display()))?;
@@ -334,17 +334,12 @@ fn farthest(ds: &Dataset) -> usize {
         .unwrap_or(0)
 }
 
-/// Renders a target view from prepared layers, with or without the Dynamic Pixel Strip.
-fn render_layers(prepared: &PreparedLayers, t: &Target, dps: bool) -> Synth {
-    let mut img = PremulImage::new(t.camera.width, t.camera.height);
-    crate::render::render_pose(prepared, dps, &t.pose, &t.camera, &mut img);
+/// Renders a target view of a frame's layers, with or without the Dynamic Pixel Strip.
+fn render_layers(frame: &FrameLayers, t: &Target, dps: bool) -> Synth {
+    let img = CpuRenderer.view(frame, &t.pose, &t.camera, dps.then_some(&DPS));
     Synth {
         rgb: img.over_background([0, 0, 0]),
-        covered: img
-            .as_bytes()
-            .chunks_exact(4)
-            .map(|p| p[3] >= 128)
-            .collect(),
+        covered: img.covered(128),
     }
 }
 
@@ -443,25 +438,16 @@ pub fn run(a: EvalArgs) -> Result<()> {
         for &method in &methods {
             // The layers as rendered: the set itself, or the set coded and decoded again.
             let prepare =
-                |set: &LayerSet, edc: Option<&Edc>| -> Result<(PreparedLayers, Option<f64>)> {
+                |set: &LayerSet, edc: Option<&Edc>| -> Result<(FrameLayers, Option<f64>)> {
                     Ok(match &coding {
-                        None => {
-                            let p = PreparedLayers::new(set);
-                            (
-                                match edc {
-                                    Some(e) => p.with_edc(e),
-                                    None => p,
-                                },
-                                None,
-                            )
-                        }
+                        None => (FrameLayers::new(set.clone(), edc.cloned()), None),
                         Some(c) => {
                             let (set, edc, bits) = c.round_trip(name, method.name(), set, edc)?;
-                            (PreparedLayers::new(&set).with_edc(&edc), Some(bits))
+                            (FrameLayers::new(set, Some(edc)), Some(bits))
                         }
                     })
                 };
-            let sliced = |k: usize, bins: Bins| -> Result<(PreparedLayers, usize, Option<f64>)> {
+            let sliced = |k: usize, bins: Bins| -> Result<(FrameLayers, usize, Option<f64>)> {
                 let config = SliceConfig {
                     layers: k,
                     bins,
@@ -752,7 +738,7 @@ fn write_html(dir: &Path, reports: &[MethodReport], crops: &[Crop], a: &EvalArgs
                     &centre_crop(rgb, first.width, first.height, cw, ch),
                 )
                 .map_err(anyhow::Error::msg)?;
-                cpsl_io::images::write_file_atomic(&dir.join(&file), &png)?;
+                cpsl_io::write_file_atomic(&dir.join(&file), &png)?;
                 Ok(format!(
                     "<figure><img src='{file}' width='{}'><figcaption>{}</figcaption></figure>",
                     cw * 2,
@@ -765,6 +751,6 @@ fn write_html(dir: &Path, reports: &[MethodReport], crops: &[Crop], a: &EvalArgs
             }
         }
     }
-    cpsl_io::images::write_file_atomic(&dir.join("index.html"), html.as_bytes())
+    cpsl_io::write_file_atomic(&dir.join("index.html"), html.as_bytes())
         .with_context(|| format!("writing {}", dir.join("index.html").display()))
 }

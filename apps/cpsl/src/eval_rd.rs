@@ -16,16 +16,20 @@
 
 use crate::encode::{parse_bitrate, CodecArg};
 use crate::progress::Bars;
+use crate::render::DPS;
 use anyhow::{Context, Result};
 use clap::{Args, ValueEnum};
 use cpsl_codec::yuv::Yuv420;
-use cpsl_codec::{CodingOptions, PackageWriter, RateControl, SegmentFrame};
-use cpsl_core::{Camera, Edc, Layer, LayerSet, Limits, Pose, PremulImage, Progress, ProgressEvent};
+use cpsl_codec::{CodingOptions, PackageWriter, RateControl};
+use cpsl_core::{
+    Camera, Edc, Layer, LayerSet, LayeredFrame, Limits, Pose, PremulImage, Progress, ProgressEvent,
+    RefreshReason,
+};
 use cpsl_eval::baselines::dibr;
 use cpsl_eval::metrics::{psnr, psnr_masked};
-use cpsl_package::{Codec, Package, RefreshReason};
-use cpsl_render::PreparedLayers;
-use cpsl_video::{GopConfig, VideoLayerer};
+use cpsl_package::Codec;
+use cpsl_render::{CpuRenderer, FrameLayers};
+use cpsl_temporal::{GopConfig, VideoLayerer};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 
@@ -338,18 +342,15 @@ fn score(
     Ok((p / n, lpips.as_ref().map(|_| l / n)))
 }
 
-fn render_layers(set: &LayerSet, edc: Option<&Edc>, pose: &Pose) -> Vec<u8> {
-    let mut prepared = PreparedLayers::new(set);
-    if let Some(e) = edc {
-        prepared = prepared.with_edc(e);
-    }
-    let mut img = PremulImage::new(set.camera().width, set.camera().height);
-    crate::render::render_pose(&prepared, edc.is_some(), pose, set.camera(), &mut img);
+/// The view of `frame` at `pose` over black, with or without the Dynamic Pixel Strip.
+fn render_layers(frame: &FrameLayers, dps: bool, pose: &Pose) -> Vec<u8> {
+    let cam = frame.set.camera();
+    let img = CpuRenderer.view(frame, pose, cam, dps.then_some(&DPS));
     img.over_background([0, 0, 0])
 }
 
 /// Frames grouped into segments at their I-frames.
-type Segments = Vec<Vec<SegmentFrame>>;
+type Segments = Vec<Vec<LayeredFrame>>;
 
 /// CPSL: I/P propagation with exact depth on I-frames.
 fn cpsl_layers(clip: &Clip, a: &EvalRdArgs, bars: &Bars) -> Result<Segments> {
@@ -374,13 +375,7 @@ fn cpsl_layers(clip: &Clip, a: &EvalRdArgs, bars: &Bars) -> Result<Segments> {
         segments
             .last_mut()
             .expect("first frame is an I-frame")
-            .push(SegmentFrame {
-                index: f.index as u32,
-                refresh: f.refresh.map(crate::encode::refresh_reason),
-                set: f.set,
-                edc: f.edc,
-                confidence: f.confidence,
-            });
+            .push(f);
         bars.event(ProgressEvent::Advance {
             stage,
             done: i as u64 + 1,
@@ -455,23 +450,16 @@ fn mpi_layers(clip: &Clip, planes: usize, gop: usize) -> Result<Segments> {
         segments
             .last_mut()
             .expect("frame 0 starts a segment")
-            .push(SegmentFrame {
-                index: i as u32,
-                refresh: intra.then_some(if i == 0 {
+            .push(LayeredFrame::new(
+                i as u32,
+                intra.then_some(if i == 0 {
                     RefreshReason::First
                 } else {
                     RefreshReason::Gop
                 }),
-                edc: Edc {
-                    width: cam.width,
-                    height: cam.height,
-                    layers: planes as u16,
-                    step: 1.0 / 64.0,
-                    samples: Vec::new(),
-                },
-                confidence: vec![1.0; planes],
                 set,
-            });
+                Edc::empty(cam.width, cam.height, planes as u16, 1.0 / 64.0),
+            ));
     }
     Ok(segments)
 }
@@ -480,7 +468,7 @@ fn mpi_layers(clip: &Clip, planes: usize, gop: usize) -> Result<Segments> {
 struct Coded {
     bitrate: f64,
     /// Per frame index: the decoded layers and their Edge-Depth Cache.
-    frames: std::collections::HashMap<usize, (LayerSet, Edc)>,
+    frames: std::collections::HashMap<usize, FrameLayers>,
 }
 
 /// Codes `segments` as a package in `dir` with `rate`, and decodes the scored frames.
@@ -504,22 +492,17 @@ fn code(
         writer.push_segment(s)?;
     }
     let m = writer.finish()?;
-    let pkg = Package::open(&path)?;
-    let mut frames = std::collections::HashMap::new();
-    for (i, seg) in m.segments.iter().enumerate() {
-        let range = seg.start as usize..(seg.start + seg.frames) as usize;
-        if !wanted.iter().any(|f| range.contains(f)) {
-            continue;
-        }
-        // Frame by frame: only the frames scored are kept (a 32-plane MPI segment at 1080p
-        // would otherwise be decoded whole into memory).
-        for d in cpsl_codec::SegmentReader::open(&pkg, i)? {
-            let d = d?;
-            if wanted.contains(&(d.side.index as usize)) {
-                frames.insert(d.side.index as usize, (d.set, d.side.edc));
-            }
-        }
-    }
+    // Only the frames scored are decoded and kept (a 32-plane MPI segment at 1080p would
+    // not fit in memory whole), in order, so that the player decodes each segment once.
+    let mut player = cpsl_player::Player::open(&path)?;
+    let mut scored: Vec<u32> = wanted.iter().map(|&f| f as u32).collect();
+    scored.sort_unstable();
+    scored.dedup();
+    let frames = scored
+        .into_iter()
+        .filter(|&f| f < m.frames)
+        .map(|f| Ok((f as usize, player.decode(f)?)))
+        .collect::<Result<_>>()?;
     std::fs::remove_dir_all(&path).with_context(|| format!("removing {}", path.display()))?;
     Ok(Coded {
         bitrate: m.bitrate(),
@@ -532,7 +515,7 @@ fn code(
 fn proxy(segments: &Segments, coded: &Coded) -> f64 {
     let (mut e, mut n) = (0.0, 0.0);
     for f in segments.iter().flatten() {
-        let Some((dec, _)) = coded.frames.get(&(f.index as usize)) else {
+        let Some(dec) = coded.frames.get(&(f.index as usize)).map(|d| &d.set) else {
             continue;
         };
         let cam = f.set.camera();
@@ -637,7 +620,7 @@ pub fn run(a: EvalRdArgs) -> Result<()> {
     };
     let (p, l) = score(&clip, &mut lpips, |f, pose| {
         let (set, edc) = layered(&segments, f);
-        Ok(render_layers(&set, Some(&edc), pose))
+        Ok(render_layers(&FrameLayers::new(set, Some(edc)), true, pose))
     })?;
     let mut cpsl = Curve {
         method: "cpsl",
@@ -654,8 +637,7 @@ pub fn run(a: EvalRdArgs) -> Result<()> {
             &wanted,
         )?;
         let (p, l) = score(&clip, &mut lpips, |f, pose| {
-            let (set, edc) = &coded.frames[&f];
-            Ok(render_layers(set, Some(edc), pose))
+            Ok(render_layers(&coded.frames[&f], true, pose))
         })?;
         cpsl.points.push(Point {
             setting: format!("{:.2}M", b / 1e6),
@@ -715,7 +697,7 @@ pub fn run(a: EvalRdArgs) -> Result<()> {
     let segments = mpi_layers(&clip, planes, GopConfig::default().gop)?;
     let (p, l) = score(&clip, &mut lpips, |f, pose| {
         let (set, _) = layered(&segments, f);
-        Ok(render_layers(&set, None, pose))
+        Ok(render_layers(&FrameLayers::new(set, None), false, pose))
     })?;
     let mut mpi = Curve {
         method: "mpi",
@@ -732,7 +714,7 @@ pub fn run(a: EvalRdArgs) -> Result<()> {
             &wanted,
         )?;
         let (p, l) = score(&clip, &mut lpips, |f, pose| {
-            Ok(render_layers(&coded.frames[&f].0, None, pose))
+            Ok(render_layers(&coded.frames[&f], false, pose))
         })?;
         mpi.points.push(Point {
             setting: format!("crf {q}"),

@@ -3,16 +3,19 @@
 //! and I/P with refinement and adaptive refresh with hysteresis.
 
 use crate::layer::open_depth_model;
+use crate::render::DPS;
 use anyhow::{Context, Result};
 use clap::{Args, ValueEnum};
-use cpsl_core::{Camera, DepthSource, LayerSet, Limits, Pose, PremulImage, Vec3};
+use cpsl_core::{Camera, DepthSource, LayerSet, Limits, Pose, Vec3};
 use cpsl_eval::datasets::Distortion;
 use cpsl_eval::metrics::psnr_masked;
-use cpsl_eval::temporal::{alpha_owner, boundary_variance, f_ssim, flicker, warping_error, Motion};
+use cpsl_eval::temporal::{
+    alpha_owner, boundary_variance, f_ssim, flicker, warping_error, ClipMotion,
+};
 use cpsl_flow::Flow;
 use cpsl_layering::{slice_by_depth, LayeringConfig, SliceConfig};
-use cpsl_render::PreparedLayers;
-use cpsl_video::{GopConfig, VideoLayerer};
+use cpsl_render::{CpuRenderer, FrameLayers};
+use cpsl_temporal::{GopConfig, VideoLayerer};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 
@@ -73,7 +76,7 @@ struct ClipData {
     /// Ground truth at the novel viewpoint, where known.
     truth: Option<Vec<Vec<u8>>>,
     /// The true motion of the input, where known.
-    motion: Option<Motion>,
+    motion: Option<ClipMotion>,
     /// The true object partition of every frame, where known.
     objects: Option<Vec<Vec<u8>>>,
 }
@@ -147,7 +150,7 @@ fn synthetic() -> ClipData {
         depth,
         depth_name: "exact".into(),
         truth: Some(truth),
-        motion: Some(Motion {
+        motion: Some(ClipMotion {
             width: w,
             height: h,
             back,
@@ -380,7 +383,7 @@ fn layer_clip(
     method: &str,
     cfg: &LayeringConfig,
     gop: usize,
-    true_motion: Option<&Motion>,
+    true_motion: Option<&ClipMotion>,
 ) -> Result<Vec<(LayerSet, Option<cpsl_core::Edc>, bool)>> {
     if method.starts_with("depth-slice") {
         let sc = SliceConfig {
@@ -422,26 +425,6 @@ fn layer_clip(
         .collect()
 }
 
-fn render(
-    set: &LayerSet,
-    edc: Option<&cpsl_core::Edc>,
-    pose: &Pose,
-    cam: &Camera,
-) -> (Vec<u8>, Vec<bool>) {
-    let mut prepared = PreparedLayers::new(set);
-    if let Some(e) = edc {
-        prepared = prepared.with_edc(e);
-    }
-    let mut img = PremulImage::new(cam.width, cam.height);
-    crate::render::render_pose(&prepared, edc.is_some(), pose, cam, &mut img);
-    let covered = img
-        .as_bytes()
-        .chunks_exact(4)
-        .map(|p| p[3] >= 128)
-        .collect();
-    (img.over_background([0, 0, 0]), covered)
-}
-
 /// Runs `cpsl eval-video`.
 pub fn run(a: EvalVideoArgs) -> Result<()> {
     let clips = match a.clip {
@@ -481,13 +464,13 @@ pub fn run(a: EvalVideoArgs) -> Result<()> {
         let (w, h) = (c.camera.width as usize, c.camera.height as usize);
         let input_motion = match &c.motion {
             Some(m) => m.clone(),
-            None => Motion::estimate(&c.frames, w, h),
+            None => ClipMotion::estimate(&c.frames, w, h),
         };
         let given = c.motion.as_ref().filter(|_| a.true_motion);
         // Output frames live at the novel viewpoint: their motion is the truth's where known.
         let (nw, nh) = (c.novel[0].1.width as usize, c.novel[0].1.height as usize);
         let reference = c.truth.clone().unwrap_or_else(|| c.frames.clone());
-        let out_motion = Motion::estimate(&reference, nw, nh);
+        let out_motion = ClipMotion::estimate(&reference, nw, nh);
         let first = rows.len();
         for method in METHODS {
             let sets = layer_clip(&c, method, &cfg, a.gop, given)?;
@@ -496,7 +479,11 @@ pub fn run(a: EvalVideoArgs) -> Result<()> {
             let renders: Vec<(Vec<u8>, Vec<bool>)> = sets
                 .iter()
                 .zip(&c.novel)
-                .map(|((set, edc, _), (pose, cam))| render(set, edc.as_ref(), pose, cam))
+                .map(|((set, edc, _), (pose, cam))| {
+                    let frame = FrameLayers::new(set.clone(), edc.clone());
+                    let img = CpuRenderer.view(&frame, pose, cam, edc.is_some().then_some(&DPS));
+                    (img.over_background([0, 0, 0]), img.covered(128))
+                })
                 .collect();
             let outs: Vec<Vec<u8>> = renders.iter().map(|r| r.0.clone()).collect();
             let psnr = c.truth.as_ref().map(|truth| {

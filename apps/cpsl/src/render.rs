@@ -4,10 +4,13 @@ use crate::progress::Bars;
 use crate::util::{self, Output};
 use anyhow::{bail, Context, Result};
 use clap::Args;
-use cpsl_core::{Camera, Edc, LayerSet, Pose, PremulImage, Progress, ProgressEvent, Vec3};
-use cpsl_render::PreparedLayers;
-use cpsl_render_gpu::GpuRenderer;
+use cpsl_core::{Pose, PremulImage, Progress, ProgressEvent, Vec3};
+use cpsl_player::Source;
+use cpsl_render::{DpsConfig, Renderer};
 use std::path::{Path, PathBuf};
+
+/// The Dynamic Pixel Strip as every command renders it.
+pub const DPS: DpsConfig = DpsConfig::DEFAULT;
 
 /// Arguments of `cpsl render`.
 #[derive(Args)]
@@ -46,87 +49,6 @@ pub struct RenderArgs {
     /// falls back to the CPU renderer, saying so, when no adapter exists.
     #[arg(long)]
     pub gpu: bool,
-}
-
-/// One frame's layers: the layer set and its cache, and their CPU preparation.
-pub struct Frame {
-    /// The layers.
-    pub set: LayerSet,
-    /// Their Edge-Depth Cache, when there is one.
-    pub edc: Option<Edc>,
-    /// Prepared for the CPU renderer, on its first use (the GPU renderer and the viewer
-    /// upload the layers themselves).
-    prepared: std::sync::OnceLock<PreparedLayers>,
-}
-
-impl Frame {
-    /// A frame of `set` (with `edc`) to render.
-    pub fn new(set: LayerSet, edc: Option<Edc>) -> Self {
-        Self {
-            set,
-            edc,
-            prepared: std::sync::OnceLock::new(),
-        }
-    }
-
-    /// The layers prepared for the CPU renderer.
-    pub fn prepared(&self) -> &PreparedLayers {
-        self.prepared.get_or_init(|| {
-            let prepared = PreparedLayers::new(&self.set);
-            match &self.edc {
-                Some(e) => prepared.with_edc(e),
-                None => prepared,
-            }
-        })
-    }
-}
-
-/// Which renderer draws.
-pub enum Backend {
-    /// The CPU reference.
-    Cpu,
-    /// wgpu.
-    Gpu(Box<GpuRenderer>),
-}
-
-impl Backend {
-    /// The GPU when asked for and present, else the CPU (with a message saying why).
-    pub fn choose(gpu: bool) -> Self {
-        if !gpu {
-            return Backend::Cpu;
-        }
-        match GpuRenderer::new() {
-            Ok(g) => {
-                eprintln!("rendering on {}", g.adapter());
-                Backend::Gpu(Box::new(g))
-            }
-            Err(e) => {
-                eprintln!("--gpu: {e}; rendering on the CPU instead");
-                Backend::Cpu
-            }
-        }
-    }
-
-    /// Renders `frame` at `pose` for camera `target` into `img`, with or without the Dynamic
-    /// Pixel Strip.
-    pub fn render(
-        &self,
-        frame: &Frame,
-        dps: bool,
-        pose: &Pose,
-        target: &Camera,
-        img: &mut PremulImage,
-    ) -> Result<()> {
-        match self {
-            Backend::Cpu => render_pose(frame.prepared(), dps, pose, target, img),
-            Backend::Gpu(g) => {
-                let cfg = cpsl_render::DpsConfig::default();
-                let layers = g.prepare(&frame.set, frame.edc.as_ref())?;
-                *img = g.render(&layers, pose, target, dps.then_some(&cfg))?;
-            }
-        }
-        Ok(())
-    }
 }
 
 /// A sweep of poses along one axis.
@@ -191,120 +113,13 @@ impl Sweep {
     }
 }
 
-/// What is rendered: one layer set, or the frames of a package.
-pub enum Source {
-    /// A layer set, prepared.
-    Still(Box<Frame>),
-    /// A package, decoded one segment at a time.
-    Package(Box<PackagePlayer>),
-}
-
-impl Source {
-    /// Opens a layer-set folder or a package.
-    pub fn open(path: &Path) -> Result<Self> {
-        if cpsl_package::is_package(path) {
-            return Ok(Source::Package(Box::new(PackagePlayer::open(path)?)));
-        }
-        anyhow::ensure!(
-            !path.is_file(),
-            "{} is a file, not a layer-set folder or a package (`cpsl layer` makes layers \
-             from an image, `cpsl encode` a package from a video)",
-            path.display()
-        );
-        let set = util::load_layer_set(path)?;
-        let edc = cpsl_io::read_edc(path, &set, &cpsl_core::Limits::default())?;
-        Ok(Source::Still(Box::new(Frame::new(set, edc))))
-    }
-
-    /// The layers to show at step `i` (a package's frame `i` modulo its length).
-    pub fn at(&mut self, i: usize) -> Result<&Frame> {
-        match self {
-            Source::Still(p) => Ok(p),
-            Source::Package(p) => {
-                let n = p.frames() as usize;
-                p.frame((i % n) as u32)
-            }
-        }
-    }
-}
-
-/// Plays a package: decodes frame after frame of the segment holding the requested one,
-/// keeping only the current frame (a seek backwards or into another segment reopens the
-/// segment at its key frame).
-pub struct PackagePlayer {
-    pkg: cpsl_package::Package,
-    /// The open segment and its reader.
-    reader: Option<(usize, cpsl_codec::SegmentReader)>,
-    current: Option<(u32, Frame)>,
-}
-
-impl PackagePlayer {
-    /// Opens a package (its manifest checked; files are checked as they are decoded).
-    pub fn open(path: &Path) -> Result<Self> {
-        let pkg = cpsl_package::Package::open(path)
-            .with_context(|| format!("opening the package {}", path.display()))?;
-        Ok(Self {
-            pkg,
-            reader: None,
-            current: None,
-        })
-    }
-
-    /// Number of frames.
-    pub fn frames(&self) -> u32 {
-        self.pkg.manifest().frames
-    }
-
-    /// Frame `f`, decoded and prepared for rendering with its Edge-Depth Cache.
-    pub fn frame(&mut self, f: u32) -> Result<&Frame> {
-        if self.current.as_ref().is_some_and(|c| c.0 == f) {
-            return Ok(&self.current.as_ref().unwrap().1);
-        }
-        let m = self.pkg.manifest();
-        let seg = m
-            .segment_of(f)
-            .with_context(|| format!("frame {f}: the package has {} frames", m.frames))?;
-        let start = m.segments[seg].start;
-        let ahead =
-            |(s, r): &(usize, cpsl_codec::SegmentReader)| *s == seg && start + r.given() <= f;
-        if !self.reader.as_ref().is_some_and(ahead) {
-            let r = cpsl_codec::SegmentReader::open(&self.pkg, seg).with_context(|| {
-                format!("opening segment {seg} of {}", self.pkg.opened().display())
-            })?;
-            self.reader = Some((seg, r));
-        }
-        let (_, reader) = self.reader.as_mut().expect("opened above");
-        loop {
-            let decoded = match reader.next() {
-                Some(Ok(d)) => d,
-                failed => {
-                    // A failed reader is not reused: the next request reopens the segment.
-                    self.reader = None;
-                    let e = match failed {
-                        Some(Err(e)) => anyhow::Error::new(e),
-                        _ => anyhow::anyhow!("segment {seg} ended before frame {f}"),
-                    };
-                    return Err(e.context(format!(
-                        "decoding segment {seg} of {}",
-                        self.pkg.opened().display()
-                    )));
-                }
-            };
-            if decoded.side.index == f {
-                self.current = Some((f, Frame::new(decoded.set, Some(decoded.side.edc))));
-                return Ok(&self.current.as_ref().unwrap().1);
-            }
-        }
-    }
-}
-
 /// Renders `poses` into `dir` as `frame_NNN.png`, plus `sheet.png` (five frames side by side)
 /// and, when FFmpeg is present, `sweep.mp4`. A package plays along the sweep, one frame per
 /// pose.
 #[allow(clippy::too_many_arguments)]
 pub fn render_sweep(
     source: &mut Source,
-    backend: &Backend,
+    renderer: &dyn Renderer,
     dps: bool,
     poses: &[Pose],
     dir: &Path,
@@ -328,7 +143,7 @@ pub fn render_sweep(
         total: Some(poses.len() as u64),
     });
     for (i, pose) in poses.iter().enumerate() {
-        backend.render(source.at(i)?, dps, pose, &cam, &mut img)?;
+        renderer.render(source.at(i)?, pose, &cam, dps.then_some(&DPS), &mut img)?;
         util::write_render(&dir.join(format!("frame_{i:03}.png")), &img, how)?;
         if picks.contains(&i) {
             let (small, w, h) = util::downscale_rgb(
@@ -361,26 +176,14 @@ pub fn render_sweep(
     Ok(())
 }
 
-/// Renders the view of camera `target` at `pose` into `img` on the CPU, with or without the
-/// Dynamic Pixel Strip.
-pub fn render_pose(
-    prepared: &PreparedLayers,
-    dps: bool,
-    pose: &Pose,
-    target: &Camera,
-    img: &mut PremulImage,
-) {
-    if dps {
-        prepared.render_dps_into(pose, target, img, &cpsl_render::DpsConfig::default());
-    } else {
-        prepared.render_into(pose, target, img);
-    }
-}
-
 /// Runs `cpsl render`.
 pub fn run(a: RenderArgs) -> Result<()> {
     let mut source = Source::open(&a.layerset)?;
-    let backend = Backend::choose(a.gpu);
+    let progress = Bars::default();
+    let renderer = cpsl_player::choose_renderer(a.gpu, &progress);
+    if a.gpu {
+        eprintln!("rendering on {}", renderer.name());
+    }
     let dps = !a.no_dps;
     let how = if a.alpha {
         Output::Alpha
@@ -389,26 +192,23 @@ pub fn run(a: RenderArgs) -> Result<()> {
     };
     match (a.pose, a.sweep) {
         (Some(pose), None) => {
-            let frame = match &mut source {
-                Source::Still(p) => &**p,
-                Source::Package(p) => p.frame(a.frame)?,
-            };
+            let frame = source.frame(a.frame)?;
             let cam = *frame.set.camera();
             let mut img = PremulImage::new(cam.width, cam.height);
-            backend.render(frame, dps, &pose, &cam, &mut img)?;
+            renderer.render(frame, &pose, &cam, dps.then_some(&DPS), &mut img)?;
             util::write_render(&a.output, &img, how)?;
             println!("wrote {}", a.output.display());
         }
         (None, Some(sweep)) => {
             render_sweep(
                 &mut source,
-                &backend,
+                &*renderer,
                 dps,
                 &sweep.poses(),
                 &a.output,
                 how,
                 a.fps,
-                &Bars::default(),
+                &progress,
             )?;
             println!("wrote {} frames to {}", sweep.steps, a.output.display());
         }

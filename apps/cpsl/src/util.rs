@@ -2,7 +2,8 @@
 
 use anyhow::{Context, Result};
 use cpsl_core::{Limits, PremulImage};
-use cpsl_io::images::{write_file_atomic, write_png};
+use cpsl_io::images::write_png;
+use cpsl_io::write_file_atomic;
 use std::path::Path;
 use std::process::Command;
 

@@ -5,9 +5,9 @@ use crate::layer::{open_depth_model, read_config, CameraArgs};
 use anyhow::{Context, Result};
 use clap::{Args, ValueEnum};
 use cpsl_core::DepthSource;
-use cpsl_flow::Flow;
+use cpsl_core::LayeredFrame;
 use cpsl_layering::LayeringConfig;
-use cpsl_video::{GopConfig, VideoFrame, VideoLayerer};
+use cpsl_temporal::{GopConfig, VideoLayerer};
 use indicatif::{ProgressBar, ProgressStyle};
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -164,7 +164,7 @@ impl VideoLayering {
 /// What `layer_video` produced, per frame.
 pub struct FrameRecord {
     /// The layered frame.
-    pub frame: VideoFrame,
+    pub frame: LayeredFrame,
     /// Whether the decoder's motion vectors were used.
     pub decoder_motion: bool,
     /// Milliseconds for this frame, depth included.
@@ -221,11 +221,7 @@ pub fn layer_video(
             None
         };
         let given = match how.motion {
-            MotionSource::Auto => frame.motion.map(|m| Flow {
-                width: m.width,
-                height: m.height,
-                data: m.data,
-            }),
+            MotionSource::Auto => frame.motion,
             MotionSource::Flow => None,
         };
         let decoder_motion = given.is_some() && !intra;
@@ -251,33 +247,23 @@ pub fn layer_video(
     Ok(info)
 }
 
-/// The staging folder beside `output`.
-fn staging(output: &Path) -> PathBuf {
-    let name = output
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "out".into());
-    output.with_file_name(format!(".{name}.partial"))
-}
-
 /// Runs `cpsl layer-video`.
 pub fn run(a: LayerVideoArgs) -> Result<()> {
-    if a.output.exists() && !a.output.join("video.json").is_file() {
+    let replaceable = |p: &Path| p.join("video.json").is_file();
+    if a.output.exists() && !replaceable(&a.output) {
         anyhow::bail!(
             "{} exists and is not the output of cpsl layer-video; not replacing it",
             a.output.display()
         );
     }
     let (cfg, gop, mut depth) = a.layering.setup()?;
-    let stage = staging(&a.output);
-    if stage.exists() {
-        std::fs::remove_dir_all(&stage)
-            .with_context(|| format!("removing the stale {}", stage.display()))?;
-    }
-    std::fs::create_dir_all(&stage).with_context(|| format!("creating {}", stage.display()))?;
+    // Written beside the output and moved into place when complete; on an error the staged
+    // folder is removed when `staged` is dropped.
+    let staged = cpsl_io::Staged::folder(&a.output, replaceable)?;
+    let stage = staged.path();
     let mut records = Vec::new();
     let t = Instant::now();
-    let info = match layer_video(&a.input, &a.layering, &cfg, gop, &mut depth, |r| {
+    let info = layer_video(&a.input, &a.layering, &cfg, gop, &mut depth, |r| {
         let f = &r.frame;
         let dir = format!("frame_{:06}", f.index);
         let edc = f.edc.encode();
@@ -300,14 +286,7 @@ pub fn run(a: LayerVideoArgs) -> Result<()> {
                 "timings_ms": f.timings.iter().map(|(s, t)| serde_json::json!({"stage": s, "ms": t})).collect::<Vec<_>>(),
             }));
         Ok(())
-    }) {
-        Ok(info) => info,
-        Err(e) => {
-            // Nothing half-written stays behind.
-            let _ = std::fs::remove_dir_all(&stage);
-            return Err(e);
-        }
-    };
+    })?;
     let seconds = t.elapsed().as_secs_f64();
     let n = records.len();
     let intra = records.iter().filter(|r| r["kind"] == "I").count();
@@ -326,16 +305,8 @@ pub fn run(a: LayerVideoArgs) -> Result<()> {
         "layering": cfg,
         "frames": records,
     });
-    std::fs::write(
-        stage.join("video.json"),
-        serde_json::to_vec_pretty(&manifest)?,
-    )?;
-    if a.output.exists() {
-        std::fs::remove_dir_all(&a.output)
-            .with_context(|| format!("replacing {}", a.output.display()))?;
-    }
-    std::fs::rename(&stage, &a.output)
-        .with_context(|| format!("moving {} into place", stage.display()))?;
+    staged.write_file("video.json", &serde_json::to_vec_pretty(&manifest)?)?;
+    staged.commit(replaceable)?;
     println!(
         "wrote {n} frames ({intra} I-frames) to {} in {seconds:.1} s ({:.1} frames/s)",
         a.output.display(),

@@ -8,11 +8,11 @@
 //! second, Home goes to the start, S toggles side-by-side stereo, [ and ] change the eye
 //! separation, D toggles the Dynamic Pixel Strip, H the on-screen readout, Esc/Q quit.
 
-use crate::render::Frame;
 use anyhow::{bail, Context, Result};
 use clap::Args;
 use cpsl_core::{Camera, Pose, Vec3};
-use cpsl_render::DpsConfig;
+use cpsl_player::{Player, Source};
+use cpsl_render::{DpsConfig, FrameLayers};
 use cpsl_render_gpu::{wgpu, Blit, GpuLayers, GpuRenderer};
 use std::path::PathBuf;
 use std::sync::mpsc::{sync_channel, Receiver, Sender, TryRecvError};
@@ -60,7 +60,7 @@ pub struct ViewArgs {
 struct Decoded {
     generation: u64,
     index: u32,
-    frame: Frame,
+    frame: FrameLayers,
 }
 
 /// The background decoder of a package: decodes frame after frame from the requested one
@@ -73,61 +73,30 @@ struct Decoder {
 }
 
 impl Decoder {
-    fn start(path: PathBuf, first: u32) -> Result<Self> {
-        let pkg = cpsl_package::Package::open(&path)
-            .with_context(|| format!("opening the package {}", path.display()))?;
+    fn start(mut player: Player, first: u32) -> Result<Self> {
         let (tx, rx) = sync_channel::<Result<Decoded, String>>(8);
         let (seek_tx, seek_rx) = std::sync::mpsc::channel::<(u64, u32)>();
         std::thread::Builder::new()
             .name("cpsl-decode".into())
             .spawn(move || {
-                let m = pkg.manifest().clone();
-                let (mut generation, mut at) = (0u64, first);
+                let n = player.frames();
+                let (mut generation, mut index) = (0u64, first);
                 loop {
-                    let Some(seg) = m.segment_of(at) else { return };
-                    let fail = |e: cpsl_codec::CodecError| {
-                        let _ = tx.send(Err(format!("decoding segment {seg}: {e}")));
-                    };
-                    let reader = match cpsl_codec::SegmentReader::open(&pkg, seg) {
-                        Ok(r) => r,
-                        Err(e) => return fail(e),
-                    };
-                    let start = m.segments[seg].start;
-                    let mut sought = None;
-                    for (i, d) in reader.enumerate() {
-                        let d = match d {
-                            Ok(d) => d,
-                            Err(e) => return fail(e),
-                        };
-                        let index = start + i as u32;
-                        if let Ok(s) = seek_rx.try_recv() {
-                            sought = Some(s);
-                            break;
-                        }
-                        if index < at {
-                            continue;
-                        }
-                        let frame = Frame::new(d.set, Some(d.side.edc));
-                        let item = Decoded {
-                            generation,
-                            index,
-                            frame,
-                        };
-                        if tx.send(Ok(item)).is_err() {
-                            return; // the window closed
-                        }
-                    }
                     // The latest seek wins.
                     while let Ok(s) = seek_rx.try_recv() {
-                        sought = Some(s);
+                        (generation, index) = s;
                     }
-                    match sought {
-                        Some((g, f)) => (generation, at) = (g, f),
-                        None => {
-                            let next = start + m.segments[seg].frames;
-                            at = if next >= m.frames { 0 } else { next };
-                        }
+                    let item = player.decode(index).map_err(|e| e.to_string());
+                    let failed = item.is_err();
+                    let item = item.map(|frame| Decoded {
+                        generation,
+                        index,
+                        frame,
+                    });
+                    if tx.send(item).is_err() || failed {
+                        return; // the window closed, or the package is damaged
                     }
+                    index = (index + 1) % n;
                 }
             })?;
         Ok(Self {
@@ -177,7 +146,7 @@ struct Viewer {
     frames: u32,
     fps: f64,
     decoder: Option<Decoder>,
-    current: Option<(u32, Frame)>,
+    current: Option<(u32, FrameLayers)>,
     uploaded: Option<GpuLayers>,
     playing: bool,
     stereo: bool,
@@ -592,18 +561,18 @@ impl ApplicationHandler for Viewer {
 /// Runs `cpsl view`.
 pub fn run(a: ViewArgs) -> Result<()> {
     let (camera, frames, fps, decoder, current) = if cpsl_package::is_package(&a.source) {
-        let pkg = cpsl_package::Package::open(&a.source)?;
-        let m = pkg.manifest();
+        let player = Player::open(&a.source)?;
+        let m = player.package().manifest().clone();
         if a.frame >= m.frames {
             bail!("--frame {}: the package has {} frames", a.frame, m.frames);
         }
-        let dec = Decoder::start(a.source.clone(), a.frame)?;
+        let dec = Decoder::start(player, a.frame)?;
         (m.camera, m.frames, m.frame_rate, Some(dec), None)
     } else {
-        let set = crate::util::load_layer_set(&a.source)?;
-        let edc = cpsl_io::read_edc(&a.source, &set, &cpsl_core::Limits::default())?;
-        let cam = *set.camera();
-        (cam, 1, 30.0, None, Some((0, Frame::new(set, edc))))
+        let Source::Still(frame) = Source::open(&a.source)? else {
+            unreachable!("not a package");
+        };
+        (*frame.set.camera(), 1, 30.0, None, Some((0, *frame)))
     };
     let event_loop = EventLoop::new().context(
         "cannot open a window (no display: set DISPLAY, or run under Xvfb for a virtual one)",

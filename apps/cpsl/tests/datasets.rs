@@ -4,27 +4,21 @@
 //! better than a single plane. Reads `../shared/data` beside the checkout; says so and
 //! returns when it is absent.
 
-use cpsl_core::{Camera, Pose, PremulImage, Vec3};
+use cpsl_core::{Camera, Pose, Vec3};
 use cpsl_eval::datasets::{load, Dataset, Target, NAMES};
 use cpsl_eval::metrics::psnr_masked;
 use cpsl_layering::{slice_by_depth, SliceConfig};
-use cpsl_render::PreparedLayers;
+use cpsl_render::{CpuRenderer, FrameLayers};
 use std::path::PathBuf;
 
-/// Renders `prepared` at `pose`: the image over black and the pixels it fully covers.
-fn render_covered(prepared: &PreparedLayers, pose: &Pose, cam: &Camera) -> (Vec<u8>, Vec<bool>) {
-    let mut img = PremulImage::new(cam.width, cam.height);
-    prepared.render_into(pose, cam, &mut img);
-    let covered = img
-        .as_bytes()
-        .chunks_exact(4)
-        .map(|p| p[3] == 255)
-        .collect();
-    (img.over_background([0, 0, 0]), covered)
+/// The view of `frame` at `pose`: the image over black and the pixels it fully covers.
+fn render_covered(frame: &FrameLayers, pose: &Pose, cam: &Camera) -> (Vec<u8>, Vec<bool>) {
+    let view = CpuRenderer.view(frame, pose, cam, None);
+    (view.over_background([0, 0, 0]), view.covered(255))
 }
 
-fn psnr(prepared: &PreparedLayers, t: &Target, pose: &Pose, cam: &Camera) -> f64 {
-    let (img, covered) = render_covered(prepared, pose, cam);
+fn psnr(frame: &FrameLayers, t: &Target, pose: &Pose, cam: &Camera) -> f64 {
+    let (img, covered) = render_covered(frame, pose, cam);
     assert!(
         covered.iter().filter(|&&c| c).count() as f64 > 0.85 * covered.len() as f64,
         "{}: render covers too little",
@@ -44,12 +38,15 @@ fn data_root() -> Option<PathBuf> {
     }
 }
 
-fn layers(ds: &Dataset, k: usize) -> PreparedLayers {
+fn layers(ds: &Dataset, k: usize) -> FrameLayers {
     let config = SliceConfig {
         layers: k,
         ..SliceConfig::default()
     };
-    PreparedLayers::new(&slice_by_depth(&ds.rgb, &ds.depth, ds.camera, &config).unwrap())
+    FrameLayers::new(
+        slice_by_depth(&ds.rgb, &ds.depth, ds.camera, &config).unwrap(),
+        None,
+    )
 }
 
 #[test]
@@ -172,7 +169,7 @@ fn fox_poses_carry_one_frame_onto_the_next() {
                 layers: 1,
                 ..SliceConfig::default()
             };
-            let plane = PreparedLayers::new(&slice_by_depth(src, &z, cam, &config).unwrap());
+            let plane = FrameLayers::new(slice_by_depth(src, &z, cam, &config).unwrap(), None);
             let (img, covered) = render_covered(&plane, pose, &cam);
             psnr_masked(&img, dst, &covered).unwrap()
         };

@@ -20,10 +20,10 @@ pub use stream::{
     PictureReader, Sample,
 };
 
-use cpsl_core::{Camera, Edc, Layer, LayerSet, Limits, PremulImage};
+use cpsl_core::{Camera, Layer, LayerSet, LayeredFrame, Limits, PremulImage, RefreshReason};
 use cpsl_package::{
-    file_entry, segment_dir, Codec, Package, PackageError, RefreshReason, Segment, SideFrame,
-    SideLayer, SideStream, StreamEntry,
+    file_entry, segment_dir, Codec, Package, PackageError, Segment, SideFrame, SideLayer,
+    SideStream, StreamEntry,
 };
 use rayon::prelude::*;
 use std::path::{Path, PathBuf};
@@ -77,6 +77,9 @@ pub enum CodecError {
     /// The package is damaged.
     #[error(transparent)]
     Package(#[from] PackageError),
+    /// Writing the package failed.
+    #[error(transparent)]
+    Write(#[from] cpsl_io::IoError),
     /// A segment index past the package's segments.
     #[error("no segment {index}: the package has {count}")]
     NoSegment {
@@ -93,21 +96,6 @@ pub enum CodecError {
         /// What is wrong.
         reason: String,
     },
-}
-
-/// One layered frame to code.
-#[derive(Debug, Clone)]
-pub struct SegmentFrame {
-    /// Frame index in the video.
-    pub index: u32,
-    /// Why it is an I-frame (`None` for P-frames; only a segment's first frame is one).
-    pub refresh: Option<RefreshReason>,
-    /// Its layers (tracks in their metadata).
-    pub set: LayerSet,
-    /// Its Edge-Depth Cache.
-    pub edc: Edc,
-    /// Temporal confidence per layer.
-    pub confidence: Vec<f32>,
 }
 
 /// How a segment's bits are spent.
@@ -133,6 +121,8 @@ pub struct CodingOptions {
 /// What coding one segment did.
 #[derive(Debug, Clone, PartialEq)]
 pub struct SegmentReport {
+    /// The index of the segment's first frame.
+    pub start: u32,
     /// The budget of the segment in bits (`None` at constant quality).
     pub budget_bits: Option<f64>,
     /// Bits written (layer streams and side stream).
@@ -153,7 +143,7 @@ pub struct SegmentReport {
 /// Assigns every layer of every frame to a stream: stream `k` carries the track of the first
 /// frame's layer `k`; later frames' layers follow their track (or their index where layers
 /// have no tracks).
-fn stream_map(frames: &[SegmentFrame]) -> Result<Vec<Vec<u8>>, CodecError> {
+fn stream_map(frames: &[LayeredFrame]) -> Result<Vec<Vec<u8>>, CodecError> {
     let first = &frames[0].set;
     let tracks: Vec<Option<u32>> = first.layers().iter().map(|l| l.meta.track).collect();
     frames
@@ -194,7 +184,7 @@ fn stream_map(frames: &[SegmentFrame]) -> Result<Vec<Vec<u8>>, CodecError> {
 pub fn encode_segment(
     root: &Path,
     number: usize,
-    frames: &[SegmentFrame],
+    frames: &[LayeredFrame],
     opts: &CodingOptions,
 ) -> Result<(Segment, SegmentReport), CodecError> {
     let first = frames.first().ok_or(CodecError::Empty)?;
@@ -406,6 +396,7 @@ pub fn encode_segment(
             side: file_entry(root, &side_rel)?,
         },
         SegmentReport {
+            start: first.index,
             budget_bits,
             bits,
             quality,
@@ -446,7 +437,7 @@ fn trial_models<'a>(
     pics: &(dyn Fn(usize, usize) -> Vec<&'a PremulImage> + Sync),
     rungs: &[u32],
     which: &[usize],
-    frames: &[SegmentFrame],
+    frames: &[LayeredFrame],
     map: &[Vec<u8>],
     opts: &CodingOptions,
 ) -> Result<Vec<Vec<alloc::RdModel>>, CodecError> {
@@ -701,8 +692,7 @@ pub fn segment_budget(bps: f64, fps: f64, done: u32, spent: f64, n: usize) -> f6
 /// half-written package; an existing package at the output is replaced only when the new
 /// one is complete, and anything else there is never replaced.
 pub struct PackageWriter {
-    out: PathBuf,
-    stage: PathBuf,
+    stage: cpsl_io::Staged,
     camera: cpsl_core::Camera,
     layers: u32,
     opts: CodingOptions,
@@ -710,7 +700,8 @@ pub struct PackageWriter {
     frames: u32,
     /// Bits written so far (layer and side streams).
     spent: f64,
-    done: bool,
+    /// Frames of the segment being gathered by [`PackageWriter::push`].
+    pending: Vec<LayeredFrame>,
 }
 
 impl PackageWriter {
@@ -721,30 +712,17 @@ impl PackageWriter {
         layers: u32,
         opts: CodingOptions,
     ) -> Result<Self, CodecError> {
-        let io = |path: &Path| {
-            let path = path.to_path_buf();
-            move |source| CodecError::Io { path, source }
-        };
-        if out.exists() && !(out.is_dir() && cpsl_package::is_package(out)) {
-            return Err(CodecError::Io {
-                path: out.to_path_buf(),
+        let stage = cpsl_io::Staged::folder(out, replaceable_package).map_err(|e| match e {
+            cpsl_io::IoError::TargetExists { path } => CodecError::Io {
+                path,
                 source: std::io::Error::new(
                     std::io::ErrorKind::AlreadyExists,
                     "exists and is not a CPSL package folder; not replacing it",
                 ),
-            });
-        }
-        let name = out
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned())
-            .unwrap_or_else(|| "package".into());
-        let stage = out.with_file_name(format!(".{name}.partial"));
-        if stage.exists() {
-            std::fs::remove_dir_all(&stage).map_err(io(&stage))?;
-        }
-        std::fs::create_dir_all(&stage).map_err(io(&stage))?;
+            },
+            e => CodecError::Write(e),
+        })?;
         Ok(Self {
-            out: out.to_path_buf(),
             stage,
             camera,
             layers,
@@ -752,12 +730,33 @@ impl PackageWriter {
             segments: Vec::new(),
             frames: 0,
             spent: 0.0,
-            done: false,
+            pending: Vec::new(),
         })
     }
 
+    /// Takes the next frame. An I-frame closes the segment gathered so far, which is coded
+    /// then and its report returned; [`PackageWriter::flush`] or [`PackageWriter::finish`]
+    /// codes the last one.
+    pub fn push(&mut self, frame: LayeredFrame) -> Result<Option<SegmentReport>, CodecError> {
+        let report = match frame.refresh {
+            Some(_) => self.flush()?,
+            None => None,
+        };
+        self.pending.push(frame);
+        Ok(report)
+    }
+
+    /// Codes the frames pushed since the last segment, if any, as a segment.
+    pub fn flush(&mut self) -> Result<Option<SegmentReport>, CodecError> {
+        if self.pending.is_empty() {
+            return Ok(None);
+        }
+        let frames = std::mem::take(&mut self.pending);
+        self.push_segment(&frames).map(Some)
+    }
+
     /// Codes the next segment (its first frame must follow the previous segment's last).
-    pub fn push_segment(&mut self, frames: &[SegmentFrame]) -> Result<SegmentReport, CodecError> {
+    pub fn push_segment(&mut self, frames: &[LayeredFrame]) -> Result<SegmentReport, CodecError> {
         if frames.first().map(|f| f.index) != Some(self.frames) {
             return Err(CodecError::Tracks {
                 frame: frames.first().map_or(0, |f| f.index),
@@ -778,15 +777,17 @@ impl PackageWriter {
             }
             RateControl::Quality(_) => self.opts,
         };
-        let (seg, report) = encode_segment(&self.stage, self.segments.len(), frames, &opts)?;
+        let (seg, report) = encode_segment(self.stage.path(), self.segments.len(), frames, &opts)?;
         self.frames += seg.frames;
         self.spent += report.bits;
         self.segments.push(seg);
         Ok(report)
     }
 
-    /// Writes the manifest and moves the package into place.
+    /// Codes the pending frames ([`PackageWriter::flush`]; their report is dropped: flush
+    /// first to see it), writes the manifest and moves the package into place.
     pub fn finish(mut self) -> Result<cpsl_package::PackageManifest, CodecError> {
+        self.flush()?;
         if self.segments.is_empty() {
             return Err(CodecError::Empty);
         }
@@ -818,29 +819,16 @@ impl PackageWriter {
             segments: std::mem::take(&mut self.segments),
             checksum: String::new(),
         };
-        let path = self.stage.join(cpsl_package::MANIFEST_FILE);
+        let path = self.stage.path().join(cpsl_package::MANIFEST_FILE);
         std::fs::write(&path, m.to_json()).map_err(|source| CodecError::Io { path, source })?;
-        if self.out.exists() {
-            std::fs::remove_dir_all(&self.out).map_err(|source| CodecError::Io {
-                path: self.out.clone(),
-                source,
-            })?;
-        }
-        std::fs::rename(&self.stage, &self.out).map_err(|source| CodecError::Io {
-            path: self.out.clone(),
-            source,
-        })?;
-        self.done = true;
+        self.stage.commit(replaceable_package)?;
         Ok(m)
     }
 }
 
-impl Drop for PackageWriter {
-    fn drop(&mut self) {
-        if !self.done {
-            let _ = std::fs::remove_dir_all(&self.stage);
-        }
-    }
+/// Whether a package writer may replace what is at `out`: only a package folder.
+fn replaceable_package(out: &Path) -> bool {
+    out.is_dir() && cpsl_package::is_package(out)
 }
 
 #[cfg(test)]

@@ -3,13 +3,13 @@
 
 use cpsl_codec::{
     decode_segment, decode_stream, encode_stream, has_encoder, CodingOptions, PackageWriter,
-    RateControl, SegmentFrame, SegmentReader,
+    RateControl, SegmentReader,
 };
-use cpsl_core::{LayerSet, Pose};
+use cpsl_core::{LayerSet, LayeredFrame, Pose};
 use cpsl_layering::LayeringConfig;
-use cpsl_package::{Codec, Package, RefreshReason};
+use cpsl_package::{Codec, Package};
 use cpsl_synth::Scene;
-use cpsl_video::{GopConfig, Refresh, VideoLayerer};
+use cpsl_temporal::{GopConfig, VideoLayerer};
 use std::path::Path;
 
 const W: u32 = 320;
@@ -17,38 +17,27 @@ const H: u32 = 240;
 const FPS: f64 = 10.0;
 
 /// Layered frames of the synthetic clip, grouped into segments (GOP 6).
-fn segments(frames: usize) -> Vec<Vec<SegmentFrame>> {
+fn segments(frames: usize) -> Vec<Vec<LayeredFrame>> {
     segments_at(W, H, frames)
 }
 
 /// [`segments`] at `w x h`.
-fn segments_at(w: u32, h: u32, frames: usize) -> Vec<Vec<SegmentFrame>> {
+fn segments_at(w: u32, h: u32, frames: usize) -> Vec<Vec<LayeredFrame>> {
     let scene = Scene::default_scene(w, h);
     let gop = GopConfig {
         gop: 6,
         ..GopConfig::default()
     };
     let mut lay = VideoLayerer::new(scene.camera, LayeringConfig::default(), gop).unwrap();
-    let mut out: Vec<Vec<SegmentFrame>> = Vec::new();
+    let mut out: Vec<Vec<LayeredFrame>> = Vec::new();
     for t in 0..frames {
         let v = scene.render(&scene.camera, &Pose::IDENTITY, t as f64 / FPS, 2);
         let f = lay.push(&v.rgb, Some(&v.depth)).unwrap();
-        let refresh = f.refresh.map(|r| match r {
-            Refresh::First => RefreshReason::First,
-            Refresh::Gop => RefreshReason::Gop,
-            Refresh::Confidence => RefreshReason::Confidence,
-            Refresh::Crack => RefreshReason::Crack,
-        });
-        if refresh.is_some() {
+        assert_eq!(f.index, t as u32);
+        if f.refresh.is_some() {
             out.push(Vec::new());
         }
-        out.last_mut().unwrap().push(SegmentFrame {
-            index: t as u32,
-            refresh,
-            set: f.set,
-            edc: f.edc,
-            confidence: f.confidence,
-        });
+        out.last_mut().unwrap().push(f);
     }
     out
 }
@@ -66,12 +55,24 @@ fn psnr(a: &LayerSet, b: &LayerSet) -> f64 {
 
 fn write(
     out: &Path,
-    segs: &[Vec<SegmentFrame>],
+    segs: &[Vec<LayeredFrame>],
     opts: CodingOptions,
 ) -> Vec<cpsl_codec::SegmentReport> {
     let cam = *segs[0][0].set.camera();
     let mut w = PackageWriter::create(out, cam, 6, opts).unwrap();
-    let reports = segs.iter().map(|s| w.push_segment(s).unwrap()).collect();
+    // Frame by frame: each I-frame closes the segment before it.
+    let mut reports: Vec<_> = segs
+        .iter()
+        .flatten()
+        .filter_map(|f| w.push(f.clone()).unwrap())
+        .collect();
+    reports.extend(w.flush().unwrap());
+    assert_eq!(
+        reports.len(),
+        segs.len(),
+        "one segment per group of pictures"
+    );
+    assert!(w.flush().unwrap().is_none(), "nothing left to code");
     w.finish().unwrap();
     reports
 }

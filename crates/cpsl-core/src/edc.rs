@@ -90,6 +90,18 @@ pub enum EdcError {
 }
 
 impl Edc {
+    /// A cache without samples for a layer set of `layers` layers on a `width x height`
+    /// camera, quantised in steps of `step`.
+    pub fn empty(width: u32, height: u32, layers: u16, step: f32) -> Self {
+        Self {
+            width,
+            height,
+            layers,
+            step,
+            samples: Vec::new(),
+        }
+    }
+
     /// Quantises a log-depth offset, saturating at the representable range.
     pub fn quantise(&self, offset: f64) -> i8 {
         (offset / self.step as f64).round().clamp(-127.0, 127.0) as i8

@@ -155,6 +155,14 @@ impl PremulImage {
         out
     }
 
+    /// The coverage of a rendered view: per pixel, whether its alpha reaches `min_alpha`.
+    pub fn covered(&self, min_alpha: u8) -> Vec<bool> {
+        self.data
+            .chunks_exact(4)
+            .map(|p| p[3] >= min_alpha)
+            .collect()
+    }
+
     /// RGB bytes of this image composited over an opaque background colour.
     pub fn over_background(&self, bg: [u8; 3]) -> Vec<u8> {
         let mut out = Vec::with_capacity(self.data.len() / 4 * 3);

@@ -1,6 +1,6 @@
 //! Temporal stability metrics of a layered or rendered video (paper Table 2).
 //!
-//! All of them compensate the motion of the input: [`Motion`] holds the dense flow from every
+//! All of them compensate the motion of the input: [`ClipMotion`] holds the dense flow from every
 //! frame `t + 1` back to frame `t` of the *input* video (estimated with [`cpsl_flow`] on a
 //! 320 px grid), with a forward-backward check marking the pixels visible in both frames.
 //!
@@ -24,7 +24,7 @@ use cpsl_layering::grid::distance;
 
 /// Input motion between consecutive frames.
 #[derive(Debug, Clone)]
-pub struct Motion {
+pub struct ClipMotion {
     /// Width.
     pub width: usize,
     /// Height.
@@ -35,7 +35,7 @@ pub struct Motion {
     pub valid: Vec<Vec<bool>>,
 }
 
-impl Motion {
+impl ClipMotion {
     /// Estimates the motion of RGB frames (3 bytes per pixel) of `width x height`.
     ///
     /// # Panics
@@ -45,7 +45,7 @@ impl Motion {
         let greys: Vec<Grey> = frames
             .iter()
             .map(|f| {
-                assert_eq!(f.len(), w * h * 3, "Motion::estimate: frame size");
+                assert_eq!(f.len(), w * h * 3, "ClipMotion::estimate: frame size");
                 Grey::from_rgb8_scaled(f, w, h, 320)
             })
             .collect();
@@ -142,7 +142,7 @@ fn boundary(owner: &[u8], w: usize, h: usize) -> Vec<bool> {
 ///
 /// # Panics
 /// If the counts or sizes disagree.
-pub fn boundary_variance(owners: &[Vec<u8>], motion: &Motion) -> f64 {
+pub fn boundary_variance(owners: &[Vec<u8>], motion: &ClipMotion) -> f64 {
     let (w, h) = (motion.width, motion.height);
     assert_eq!(
         owners.len(),
@@ -200,7 +200,7 @@ pub fn boundary_variance(owners: &[Vec<u8>], motion: &Motion) -> f64 {
 
 /// Mean over consecutive pairs of the SSIM between output frame `t` carried along the motion
 /// and frame `t + 1`, over the pixels visible in both.
-fn pair_ssim(frames: &[Vec<u8>], motion: &Motion) -> f64 {
+fn pair_ssim(frames: &[Vec<u8>], motion: &ClipMotion) -> f64 {
     let (w, h) = (motion.width, motion.height);
     let s: f64 = (0..motion.back.len())
         .map(|t| {
@@ -215,7 +215,7 @@ fn pair_ssim(frames: &[Vec<u8>], motion: &Motion) -> f64 {
 ///
 /// # Panics
 /// If the counts or sizes disagree.
-pub fn f_ssim(output: &[Vec<u8>], input: &[Vec<u8>], motion: &Motion) -> f64 {
+pub fn f_ssim(output: &[Vec<u8>], input: &[Vec<u8>], motion: &ClipMotion) -> f64 {
     assert_eq!(output.len(), input.len(), "f_ssim: frame counts");
     pair_ssim(output, motion) / pair_ssim(input, motion).max(1e-9)
 }
@@ -224,7 +224,7 @@ pub fn f_ssim(output: &[Vec<u8>], input: &[Vec<u8>], motion: &Motion) -> f64 {
 ///
 /// # Panics
 /// If the counts or sizes disagree.
-pub fn warping_error(output: &[Vec<u8>], motion: &Motion) -> f64 {
+pub fn warping_error(output: &[Vec<u8>], motion: &ClipMotion) -> f64 {
     let (mut sum, mut n) = (0f64, 0u64);
     for t in 0..motion.back.len() {
         let (a, b, m) = motion.align_next(t, &output[t], &output[t + 1]);
@@ -277,7 +277,7 @@ mod tests {
         let (w, h) = (96, 64);
         // The content moves right by 2 px per frame.
         let frames: Vec<Vec<u8>> = (0..4).map(|t| textured(w, h, 2.0 * t as f32)).collect();
-        let motion = Motion::estimate(&frames, w, h);
+        let motion = ClipMotion::estimate(&frames, w, h);
         // A boundary that moves with the content has no variance; one that jumps 5 px against
         // it has 3 px left beyond the one-pixel tolerance on either side, 9 px^2.
         let owner =
@@ -294,7 +294,7 @@ mod tests {
         // motion lands on the previous boundary there: measured in the current frame, this
         // scored the 10 px cap).
         let still: Vec<Vec<u8>> = (0..4).map(|_| textured(w, h, 0.0)).collect();
-        let mut occluding = Motion::estimate(&still, w, h);
+        let mut occluding = ClipMotion::estimate(&still, w, h);
         for (t, (f, v)) in occluding
             .back
             .iter_mut()

@@ -116,19 +116,5 @@ pub fn write_png(
         path: path.into(),
         message,
     })?;
-    write_file_atomic(path, &bytes)
-}
-
-/// Writes a file via a temporary sibling and a rename, so readers never see a partial file.
-pub fn write_file_atomic(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
-    if let Some(parent) = path.parent().filter(|p| !p.as_os_str().is_empty()) {
-        fs::create_dir_all(parent).map_err(|e| IoError::io(parent, e))?;
-    }
-    let name = path.file_name().unwrap_or_default().to_string_lossy();
-    let tmp = path.with_file_name(format!(".{name}.tmp-{}", std::process::id()));
-    fs::write(&tmp, bytes).map_err(|e| IoError::io(&tmp, e))?;
-    fs::rename(&tmp, path).map_err(|e| {
-        let _ = fs::remove_file(&tmp);
-        IoError::io(path, e)
-    })
+    crate::atomic::write_file_atomic(path, &bytes)
 }

@@ -6,7 +6,7 @@
 //! problem. Writing is atomic: files go to a temporary sibling directory that is renamed into
 //! place, so an interrupted write never leaves a half-written layer set.
 
-use crate::atomic::StagedDir;
+use crate::atomic::Staged;
 use crate::error::IoError;
 use crate::images;
 use cpsl_core::{
@@ -183,7 +183,7 @@ fn write_inner(
             });
         }
     }
-    let stage = StagedDir::new(dir, is_layer_set_dir)?;
+    let stage = Staged::folder(dir, is_layer_set_dir)?;
     let manifest = manifest_for(set);
     let (w, h) = (set.camera().width, set.camera().height);
     for (written, (entry, layer)) in manifest.layers.iter().zip(set.layers()).enumerate() {
@@ -206,7 +206,7 @@ fn write_inner(
     }
     // The manifest goes last: a folder with a manifest is complete.
     stage.write_file(MANIFEST_FILE, manifest.to_json().as_bytes())?;
-    stage.commit()
+    stage.commit(is_layer_set_dir)
 }
 
 #[cfg(test)]

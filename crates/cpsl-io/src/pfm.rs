@@ -108,7 +108,7 @@ pub fn encode_pfm(img: &FloatImage) -> Vec<u8> {
 
 /// Writes a greyscale little-endian PFM file atomically.
 pub fn write_pfm(path: &Path, img: &FloatImage) -> Result<(), IoError> {
-    crate::images::write_file_atomic(path, &encode_pfm(img))
+    crate::atomic::write_file_atomic(path, &encode_pfm(img))
 }
 
 #[cfg(test)]

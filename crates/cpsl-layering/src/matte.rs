@@ -406,13 +406,7 @@ pub fn edge_depth_cache_from(
     cfg: &MatteConfig,
 ) -> Edc {
     let k = set.len();
-    let mut edc = Edc {
-        width: w as u32,
-        height: h as u32,
-        layers: k as u16,
-        step: cfg.edc_step,
-        samples: Vec::new(),
-    };
+    let mut edc = Edc::empty(w as u32, h as u32, k as u16, cfg.edc_step);
     let cell = cfg.edc_cell.max(1) as usize;
     let cols = w.div_ceil(cell);
     let z = depth;
@@ -501,13 +495,7 @@ mod tests {
         cfg: &MatteConfig,
     ) -> Vec<EdcSample> {
         let k = set.len();
-        let edc = Edc {
-            width: w as u32,
-            height: h as u32,
-            layers: k as u16,
-            step: cfg.edc_step,
-            samples: Vec::new(),
-        };
+        let edc = Edc::empty(w as u32, h as u32, k as u16, cfg.edc_step);
         let cell = cfg.edc_cell.max(1) as usize;
         let cols = w.div_ceil(cell);
         let mut seen = HashSet::new();

@@ -9,11 +9,12 @@
 //! show them.
 //!
 //! H.264 streams are decoded with `flags2=+export_mvs`, and each frame carries the decoder's
-//! motion vectors as a dense backward motion field ([`Frame::motion`]) when they describe it
+//! motion vectors as a dense backward motion field ([`InputFrame::motion`]) when they describe it
 //! (P-frames predicted from the previous frame only); callers fall back to optical flow
 //! otherwise.
 
 use cpsl_core::ycbcr::{Matrix, ToRgb};
+use cpsl_flow::Flow;
 use ffmpeg_next as ffmpeg;
 use rayon::prelude::*;
 use std::path::{Path, PathBuf};
@@ -61,55 +62,42 @@ pub enum MediaError {
     Image(#[from] cpsl_io::IoError),
 }
 
-/// A dense motion field: per pixel `(dx, dy)` to the pixel of the previous frame it shows.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Motion {
-    /// Width.
-    pub width: usize,
-    /// Height.
-    pub height: usize,
-    /// `[dx0, dy0, dx1, dy1, ...]`.
-    pub data: Vec<f32>,
-}
-
-impl Motion {
-    /// The field of the picture turned clockwise by `degrees` (a quarter turn): positions
-    /// and vectors turn with it.
-    pub fn rotated(self, degrees: u32) -> Self {
-        if degrees == 0 {
-            return self;
-        }
-        let mut data = rotate(self.data, self.width, self.height, 2, degrees);
-        for v in data.chunks_exact_mut(2) {
-            let (dx, dy) = (v[0], v[1]);
-            [v[0], v[1]] = match degrees {
-                90 => [-dy, dx],
-                180 => [-dx, -dy],
-                _ => [dy, -dx],
-            };
-        }
-        let (width, height) = if degrees == 180 {
-            (self.width, self.height)
-        } else {
-            (self.height, self.width)
+/// A motion field of a picture turned clockwise by `degrees` (a quarter turn): positions and
+/// vectors turn with it.
+pub fn rotate_motion(motion: Flow, degrees: u32) -> Flow {
+    if degrees == 0 {
+        return motion;
+    }
+    let mut data = rotate(motion.data, motion.width, motion.height, 2, degrees);
+    for v in data.chunks_exact_mut(2) {
+        let (dx, dy) = (v[0], v[1]);
+        [v[0], v[1]] = match degrees {
+            90 => [-dy, dx],
+            180 => [-dx, -dy],
+            _ => [dy, -dx],
         };
-        Self {
-            width,
-            height,
-            data,
-        }
+    }
+    let (width, height) = if degrees == 180 {
+        (motion.width, motion.height)
+    } else {
+        (motion.height, motion.width)
+    };
+    Flow {
+        width,
+        height,
+        data,
     }
 }
 
 /// One decoded frame.
 #[derive(Debug, Clone)]
-pub struct Frame {
+pub struct InputFrame {
     /// Index in the input.
     pub index: usize,
     /// RGB, 3 bytes per pixel, row major.
     pub rgb: Vec<u8>,
     /// Backward motion from the decoder's motion vectors, where the stream has them.
-    pub motion: Option<Motion>,
+    pub motion: Option<Flow>,
 }
 
 /// What the input is.
@@ -140,7 +128,7 @@ pub trait FrameSource {
     /// What the input is.
     fn info(&self) -> &Info;
     /// The next frame, `Ok(None)` at the end.
-    fn next_frame(&mut self) -> Result<Option<Frame>, MediaError>;
+    fn next_frame(&mut self) -> Result<Option<InputFrame>, MediaError>;
 }
 
 /// Opens a video file or an image folder.
@@ -205,7 +193,7 @@ impl FrameSource for ImageSequence {
         &self.info
     }
 
-    fn next_frame(&mut self) -> Result<Option<Frame>, MediaError> {
+    fn next_frame(&mut self) -> Result<Option<InputFrame>, MediaError> {
         let Some(path) = self.files.get(self.next) else {
             return Ok(None);
         };
@@ -218,7 +206,7 @@ impl FrameSource for ImageSequence {
             });
         }
         self.next += 1;
-        Ok(Some(Frame {
+        Ok(Some(InputFrame {
             index: self.next - 1,
             rgb: img.data,
             motion: None,
@@ -374,7 +362,7 @@ impl VideoFile {
         })
     }
 
-    fn convert(&mut self, frame: &ffmpeg::frame::Video) -> Result<Frame, MediaError> {
+    fn convert(&mut self, frame: &ffmpeg::frame::Video) -> Result<InputFrame, MediaError> {
         let (w, h) = self.coded;
         let size = (frame.width() as usize, frame.height() as usize);
         if size != (w, h) || frame.format() != self.format {
@@ -474,10 +462,10 @@ impl VideoFile {
             None
         };
         self.decoded += 1;
-        Ok(Frame {
+        Ok(InputFrame {
             index: self.decoded - 1,
             rgb: rotate(rgb, w, h, 3, self.info.rotation),
-            motion: motion.map(|m| m.rotated(self.info.rotation)),
+            motion: motion.map(|m| rotate_motion(m, self.info.rotation)),
         })
     }
 
@@ -771,7 +759,7 @@ impl FrameSource for VideoFile {
         &self.info
     }
 
-    fn next_frame(&mut self) -> Result<Option<Frame>, MediaError> {
+    fn next_frame(&mut self) -> Result<Option<InputFrame>, MediaError> {
         let mut frame = ffmpeg::frame::Video::empty();
         loop {
             match self.decoder.receive_frame(&mut frame) {
@@ -822,7 +810,7 @@ const MV_SIZE: usize = 40;
 /// A dense backward motion field from `AVMotionVector` records, if they cover at least half of
 /// the frame with vectors into the previous frame (`source == -1`). Uncovered pixels (intra
 /// blocks) get the median vector.
-pub fn motion_from_vectors(raw: &[u8], w: usize, h: usize) -> Option<Motion> {
+pub fn motion_from_vectors(raw: &[u8], w: usize, h: usize) -> Option<Flow> {
     let i16_at = |b: &[u8], o: usize| i16::from_ne_bytes([b[o], b[o + 1]]) as i32;
     let i32_at = |b: &[u8], o: usize| i32::from_ne_bytes([b[o], b[o + 1], b[o + 2], b[o + 3]]);
     let mut data = vec![0f32; w * h * 2];
@@ -862,7 +850,7 @@ pub fn motion_from_vectors(raw: &[u8], w: usize, h: usize) -> Option<Motion> {
         data[p * 2] = mu;
         data[p * 2 + 1] = mv;
     }
-    Some(Motion {
+    Some(Flow {
         width: w,
         height: h,
         data,

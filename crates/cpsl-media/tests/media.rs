@@ -26,7 +26,7 @@ fn encode(dir: &Path, name: &str, frames: usize, args: &[&str]) -> std::path::Pa
     out
 }
 
-fn drain(src: &mut dyn FrameSource) -> Result<Vec<cpsl_media::Frame>, MediaError> {
+fn drain(src: &mut dyn FrameSource) -> Result<Vec<cpsl_media::InputFrame>, MediaError> {
     let mut v = Vec::new();
     while let Some(f) = src.next_frame()? {
         v.push(f);
@@ -274,7 +274,12 @@ fn pictures_and_motion_turn_with_the_display_matrix() {
         }
         // Motion turns with the picture: the field of the upright decode, rotated.
         for (f, u) in frames.iter().zip(&upright) {
-            assert_eq!(f.motion, u.motion.clone().map(|m| m.rotated(info.rotation)));
+            assert_eq!(
+                f.motion,
+                u.motion
+                    .clone()
+                    .map(|m| cpsl_media::rotate_motion(m, info.rotation))
+            );
         }
         assert!(frames.iter().any(|f| f.motion.is_some()));
     }
@@ -289,7 +294,7 @@ fn first_hdr_frame(
     lossless: bool,
     trc: &str,
     name: &str,
-) -> cpsl_media::Frame {
+) -> cpsl_media::InputFrame {
     let path = dir.join(format!("{name}.mp4"));
     let mut a = inputs.to_vec();
     a.extend([
@@ -322,7 +327,8 @@ fn first_hdr_frame(
 #[test]
 fn hdr_video_is_mapped_to_sdr() {
     let dir = tempfile::tempdir().unwrap();
-    let at = |f: &cpsl_media::Frame, i: usize| <[u8; 3]>::try_from(&f.rgb[i * 3..][..3]).unwrap();
+    let at =
+        |f: &cpsl_media::InputFrame, i: usize| <[u8; 3]>::try_from(&f.rgb[i * 3..][..3]).unwrap();
     // PQ: (200, 50, 20) beside grey 128, SDR BT.709 turned into HDR10 by zimg with SDR white
     // at 203 cd/m2 (ITU-R BT.2408), coded 10-bit as Y'CbCr 4:2:0 and as R'G'B': they come back.
     let graph = "[0][1]hstack,format=gbrpf32le,zscale=tin=bt709:pin=bt709:min=gbr:rin=pc:\

@@ -59,43 +59,34 @@ pub fn pack(root: &Path, out: &Path) -> Result<u64, PackageError> {
             "exists and is not a package archive; not replacing it",
         ));
     }
-    let name = out
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_else(|| "package".into());
-    let tmp = out.with_file_name(format!(".{name}.partial"));
-    let result = (|| {
-        let file = std::fs::File::create(&tmp).map_err(io(&tmp))?;
-        let mut tar = tar::Builder::new(std::io::BufWriter::new(file));
-        tar.mode(tar::HeaderMode::Deterministic);
-        let files = pkg.manifest().files().map(|f| f.path.as_str());
-        for rel in std::iter::once(MANIFEST_FILE).chain(files) {
-            let path = root.join(rel);
-            let bytes = std::fs::read(&path).map_err(io(&path))?;
-            let mut header = tar::Header::new_ustar();
-            header.set_size(bytes.len() as u64);
-            header.set_mode(0o644);
-            header.set_mtime(0);
-            header.set_entry_type(tar::EntryType::Regular);
-            tar.append_data(&mut header, rel, bytes.as_slice())
-                .map_err(io(&path))?;
-        }
-        let mut w = tar.into_inner().map_err(io(&tmp))?;
-        w.flush().map_err(io(&tmp))?;
-        w.into_inner()
-            .map_err(|e| PackageError::Io {
-                path: tmp.clone(),
-                source: e.into_error(),
-            })?
-            .sync_all()
-            .map_err(io(&tmp))?;
-        std::fs::rename(&tmp, out).map_err(io(out))?;
-        std::fs::metadata(out).map(|m| m.len()).map_err(io(out))
-    })();
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
+    let stage = cpsl_io::Staged::file(out, is_archive)?;
+    let tmp = stage.path();
+    let file = std::fs::File::create(tmp).map_err(io(tmp))?;
+    let mut tar = tar::Builder::new(std::io::BufWriter::new(file));
+    tar.mode(tar::HeaderMode::Deterministic);
+    let files = pkg.manifest().files().map(|f| f.path.as_str());
+    for rel in std::iter::once(MANIFEST_FILE).chain(files) {
+        let path = root.join(rel);
+        let bytes = std::fs::read(&path).map_err(io(&path))?;
+        let mut header = tar::Header::new_ustar();
+        header.set_size(bytes.len() as u64);
+        header.set_mode(0o644);
+        header.set_mtime(0);
+        header.set_entry_type(tar::EntryType::Regular);
+        tar.append_data(&mut header, rel, bytes.as_slice())
+            .map_err(io(&path))?;
     }
-    result
+    let mut w = tar.into_inner().map_err(io(tmp))?;
+    w.flush().map_err(io(tmp))?;
+    w.into_inner()
+        .map_err(|e| PackageError::Io {
+            path: tmp.to_path_buf(),
+            source: e.into_error(),
+        })?
+        .sync_all()
+        .map_err(io(tmp))?;
+    stage.commit(is_archive)?;
+    std::fs::metadata(out).map(|m| m.len()).map_err(io(out))
 }
 
 /// Extracts the archive at `archive` into the empty folder `dest` (see the module

@@ -22,6 +22,7 @@
 mod archive;
 mod manifest;
 mod side;
+mod variants;
 
 pub use archive::{is_archive, pack, unpack};
 pub use manifest::{
@@ -29,9 +30,10 @@ pub use manifest::{
     PackageManifest, Segment, StreamEntry, MANIFEST_FILE, PACKAGE_FORMAT, PACKAGE_VERSION,
 };
 pub use side::{
-    summarise_edc, RefreshReason, SideError, SideFrame, SideLayer, SideStream, MAX_SEGMENT_FRAMES,
-    MAX_STREAMS, SIDE_MAGIC, SIDE_VERSION,
+    summarise_edc, SideError, SideFrame, SideLayer, SideStream, MAX_SEGMENT_FRAMES, MAX_STREAMS,
+    SIDE_MAGIC, SIDE_VERSION,
 };
+pub use variants::{VariantSet, VARIANTS_FILE, VARIANTS_FORMAT};
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -72,6 +74,9 @@ pub enum PackageError {
         /// What is wrong.
         reason: String,
     },
+    /// Writing an output failed.
+    #[error(transparent)]
+    Write(#[from] cpsl_io::IoError),
 }
 
 /// An opened package: its root and checked manifest.

@@ -23,7 +23,7 @@
 //! `track` is `u32::MAX` where the layer has none. Every field is validated on reading, so a
 //! corrupt or truncated stream is an error, never a panic.
 
-use cpsl_core::{Edc, EdcError};
+use cpsl_core::{Edc, EdcError, RefreshReason};
 use thiserror::Error;
 
 /// Magic bytes at the start of a side stream.
@@ -62,50 +62,27 @@ pub enum SideError {
     },
 }
 
-/// Why a frame is an I-frame.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
-pub enum RefreshReason {
-    /// The first frame of the video.
-    First,
-    /// The GOP was full.
-    Gop,
-    /// Temporal confidence stayed low.
-    Confidence,
-    /// The crack rate stayed high.
-    Crack,
+/// The side stream's code of a frame's refresh flag.
+fn refresh_code(reason: Option<RefreshReason>) -> u8 {
+    match reason {
+        None => 0,
+        Some(RefreshReason::First) => 1,
+        Some(RefreshReason::Gop) => 2,
+        Some(RefreshReason::Confidence) => 3,
+        Some(RefreshReason::Crack) => 4,
+    }
 }
 
-impl RefreshReason {
-    fn code(reason: Option<Self>) -> u8 {
-        match reason {
-            None => 0,
-            Some(Self::First) => 1,
-            Some(Self::Gop) => 2,
-            Some(Self::Confidence) => 3,
-            Some(Self::Crack) => 4,
-        }
-    }
-
-    fn from_code(c: u8) -> Option<Option<Self>> {
-        Some(match c {
-            0 => None,
-            1 => Some(Self::First),
-            2 => Some(Self::Gop),
-            3 => Some(Self::Confidence),
-            4 => Some(Self::Crack),
-            _ => return None,
-        })
-    }
-
-    /// A short name (`first`, `gop`, `confidence`, `crack`).
-    pub fn name(self) -> &'static str {
-        match self {
-            Self::First => "first",
-            Self::Gop => "gop",
-            Self::Confidence => "confidence",
-            Self::Crack => "crack",
-        }
-    }
+/// The refresh flag a side-stream code stands for (`None` for an unknown code).
+fn refresh_from_code(c: u8) -> Option<Option<RefreshReason>> {
+    Some(match c {
+        0 => None,
+        1 => Some(RefreshReason::First),
+        2 => Some(RefreshReason::Gop),
+        3 => Some(RefreshReason::Confidence),
+        4 => Some(RefreshReason::Crack),
+        _ => return None,
+    })
 }
 
 /// One layer of one frame.
@@ -178,7 +155,7 @@ impl SideStream {
             p.extend_from_slice(&f.index.to_le_bytes());
             p.extend_from_slice(&[
                 f.intra as u8,
-                RefreshReason::code(f.refresh),
+                refresh_code(f.refresh),
                 f.layers.len() as u8,
                 0,
             ]);
@@ -309,7 +286,7 @@ impl SideStream {
             1 => true,
             f => return Err(bad(format!("unknown flags {f:#04x}"))),
         };
-        let refresh = RefreshReason::from_code(p[5])
+        let refresh = refresh_from_code(p[5])
             .ok_or_else(|| bad(format!("unknown refresh reason {}", p[5])))?;
         if refresh.is_some() != intra {
             return Err(bad("refresh reason and I-frame flag disagree".into()));
@@ -424,14 +401,7 @@ fn expand_edc(b: &[u8], width: u32, height: u32) -> Result<Edc, EdcError> {
     if planes.len() != n * 8 {
         return Err(bad("inflated samples have the wrong length"));
     }
-    let raw = Edc {
-        width,
-        height,
-        layers,
-        step,
-        samples: Vec::new(),
-    }
-    .encode();
+    let raw = Edc::empty(width, height, layers, step).encode();
     let mut bytes = raw[..raw.len() - 4].to_vec();
     bytes.extend_from_slice(&(n as u32).to_le_bytes());
     let (mut x, mut y) = (0u16, 0u16);

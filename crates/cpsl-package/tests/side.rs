@@ -1,7 +1,7 @@
 //! Side streams and manifests: round trips, and every damaged or truncated input is an error,
 //! never a panic.
 
-use cpsl_core::{Camera, Edc, EdcSample};
+use cpsl_core::{Camera, Edc, EdcSample, RefreshReason};
 use cpsl_package::*;
 
 fn side() -> SideStream {

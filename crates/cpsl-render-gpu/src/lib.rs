@@ -728,3 +728,30 @@ fn fullscreen_pipeline(
         cache: None,
     })
 }
+
+impl cpsl_render::Renderer for GpuRenderer {
+    fn name(&self) -> String {
+        self.adapter.clone()
+    }
+
+    /// Uploads the frame's layers and renders them (the layers are not kept: a player that
+    /// draws one frame many times holds [`GpuLayers`] from [`GpuRenderer::prepare`] instead).
+    fn render(
+        &self,
+        frame: &cpsl_render::FrameLayers,
+        pose: &Pose,
+        target: &Camera,
+        dps: Option<&DpsConfig>,
+        out: &mut PremulImage,
+    ) -> Result<(), cpsl_render::RenderError> {
+        let failed = |e: GpuError| cpsl_render::RenderError {
+            renderer: self.adapter.clone(),
+            source: Box::new(e),
+        };
+        let layers = self
+            .prepare(&frame.set, frame.edc.as_ref())
+            .map_err(failed)?;
+        *out = GpuRenderer::render(self, &layers, pose, target, dps).map_err(failed)?;
+        Ok(())
+    }
+}

@@ -34,9 +34,14 @@ pub struct DpsConfig {
     pub max_width: u32,
 }
 
+impl DpsConfig {
+    /// The default strip: at most 8 px wide.
+    pub const DEFAULT: Self = Self { max_width: 8 };
+}
+
 impl Default for DpsConfig {
     fn default() -> Self {
-        Self { max_width: 8 }
+        Self::DEFAULT
     }
 }
 

@@ -28,9 +28,11 @@
 mod dps;
 mod prepared;
 mod raster;
+mod renderer;
 #[cfg(target_arch = "x86_64")]
 mod simd;
 
 pub use dps::{strip_width, DpsConfig, DpsStats, EdgeOffsets};
 pub use prepared::PreparedLayers;
 pub use raster::RenderStats;
+pub use renderer::{CpuRenderer, FrameLayers, RenderError, Renderer};

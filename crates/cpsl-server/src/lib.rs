@@ -22,10 +22,7 @@ mod files;
 mod listing;
 mod load;
 
-pub use listing::{
-    list_packages, package_urls, Listing, PackageSummary, VariantSet, VARIANTS_FILE,
-    VARIANTS_FORMAT,
-};
+pub use listing::{list_packages, package_urls, Listing, PackageSummary};
 pub use load::{run_load, LoadConfig, LoadReport};
 
 use axum::body::Body;

@@ -1,14 +1,10 @@
 //! The package listing: every package under the root (a few folders deep, symbolic links
 //! not followed) and every variant set.
 
-use cpsl_package::{is_package, Package};
+use cpsl_package::{is_package, Package, VARIANTS_FILE};
 use serde::{Deserialize, Serialize};
 use std::path::Path;
 
-/// File naming the bitrate variants of one piece of content.
-pub const VARIANTS_FILE: &str = "variants.json";
-/// Format name of a variant set.
-pub const VARIANTS_FORMAT: &str = "cpsl-variants";
 /// Folders searched below the root.
 const DEPTH: usize = 3;
 
@@ -33,18 +29,6 @@ pub struct PackageSummary {
     pub segments: usize,
     /// Mean bits per second of all its files.
     pub bitrate: u64,
-}
-
-/// A variant set: packages of the same content at several bitrates (`variants.json`).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct VariantSet {
-    /// Always [`VARIANTS_FORMAT`].
-    pub format: String,
-    /// Format version (1).
-    pub version: u32,
-    /// Package folders relative to the set's file, cheapest first.
-    pub variants: Vec<String>,
 }
 
 /// The listing answered by `/api/packages`.

@@ -41,7 +41,7 @@
 //! layers they overlap most (IoU at least `min_iou`), so a layer's identity
 //! ([`cpsl_core::LayerMeta::track`]) survives refreshes even when depth order changes its index.
 
-use cpsl_core::{Camera, Edc, LayerSet, Limits, NoProgress, PremulImage};
+use cpsl_core::{Camera, LayerSet, LayeredFrame, Limits, NoProgress, PremulImage, RefreshReason};
 use cpsl_flow::{Flow, FlowConfig, Grey};
 use cpsl_layering::matte::edge_depth_cache_from;
 use cpsl_layering::{layer_frame, LayeringConfig, LayeringError};
@@ -196,43 +196,6 @@ impl GopConfig {
     }
 }
 
-/// Why a frame is an I-frame.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum Refresh {
-    /// The first frame.
-    First,
-    /// The GOP was full.
-    Gop,
-    /// Mean temporal confidence stayed low.
-    Confidence,
-    /// The crack rate stayed high.
-    Crack,
-}
-
-/// One layered frame of the video.
-#[derive(Debug, Clone)]
-pub struct VideoFrame {
-    /// Frame index.
-    pub index: usize,
-    /// `Some(reason)` for an I-frame, `None` for a P-frame.
-    pub refresh: Option<Refresh>,
-    /// The layers (tracks in their metadata).
-    pub set: LayerSet,
-    /// The Edge-Depth Cache.
-    pub edc: Edc,
-    /// Layer index per pixel.
-    pub owner: Vec<u8>,
-    /// Temporal confidence per layer (1 on I-frames).
-    pub confidence: Vec<f32>,
-    /// Crack rate above the last I-frame's.
-    pub crack: f32,
-    /// Whether the depth was carried along the flow instead of estimated.
-    pub depth_propagated: bool,
-    /// Wall time per stage in milliseconds.
-    pub timings: Vec<(&'static str, f64)>,
-}
-
 /// What the next frame needs from the previous ones.
 struct State {
     grey: Grey,
@@ -258,7 +221,7 @@ struct State {
     confidence: Vec<f32>,
     since_i: usize,
     run: usize,
-    pending: Option<Refresh>,
+    pending: Option<RefreshReason>,
 }
 
 /// Layers a video frame by frame (see the crate documentation).
@@ -305,12 +268,12 @@ impl VideoLayerer {
     }
 
     /// Why the next frame is an I-frame, or `None` for a P-frame.
-    fn refresh_due(&self) -> Option<Refresh> {
+    fn refresh_due(&self) -> Option<RefreshReason> {
         let Some(s) = &self.state else {
-            return Some(Refresh::First);
+            return Some(RefreshReason::First);
         };
         let due = if s.since_i + 1 >= self.gop.gop {
-            Some(Refresh::Gop)
+            Some(RefreshReason::Gop)
         } else {
             s.pending
         };
@@ -327,7 +290,7 @@ impl VideoLayerer {
     /// Layers the next frame: `rgb` 3 bytes per pixel, `depth` its z-depth (required on
     /// I-frames, see [`VideoLayerer::next_is_intra`]; on P-frames `None` carries the previous
     /// depth along the flow).
-    pub fn push(&mut self, rgb: &[u8], depth: Option<&[f32]>) -> Result<VideoFrame, VideoError> {
+    pub fn push(&mut self, rgb: &[u8], depth: Option<&[f32]>) -> Result<LayeredFrame, VideoError> {
         self.push_with_motion(rgb, depth, None)
     }
 
@@ -339,7 +302,7 @@ impl VideoLayerer {
         rgb: &[u8],
         depth: Option<&[f32]>,
         motion: Option<Flow>,
-    ) -> Result<VideoFrame, VideoError> {
+    ) -> Result<LayeredFrame, VideoError> {
         let (w, h) = (self.camera.width as usize, self.camera.height as usize);
         let index = self.frames;
         if rgb.len() != w * h * 3 || depth.is_some_and(|d| d.len() != w * h) {
@@ -365,7 +328,7 @@ impl VideoLayerer {
                 .as_ref()
                 .map(|s| cpsl_flow::flow(&grey, &s.grey, &self.flow).expect("same-size grids")),
         };
-        let motion = grid.map(|grid| Motion { grid, full: given });
+        let motion = grid.map(|grid| FrameMotion { grid, full: given });
         if motion.is_some() {
             timings.push(("motion", ms(t)));
         }
@@ -387,10 +350,10 @@ impl VideoLayerer {
         rgb: &[u8],
         depth: &[f32],
         grey: Grey,
-        motion: Option<Motion>,
-        reason: Refresh,
+        motion: Option<FrameMotion>,
+        reason: RefreshReason,
         mut timings: Vec<(&'static str, f64)>,
-    ) -> Result<VideoFrame, VideoError> {
+    ) -> Result<LayeredFrame, VideoError> {
         let (w, h) = (self.camera.width as usize, self.camera.height as usize);
         let (cues, layered) = layer_frame(rgb, depth, self.camera, &self.layering, &NoProgress)?;
         timings.extend(layered.timings.iter().copied());
@@ -470,8 +433,8 @@ impl VideoLayerer {
             run: 0,
             pending: None,
         });
-        Ok(VideoFrame {
-            index: self.frames,
+        Ok(LayeredFrame {
+            index: self.frames as u32,
             refresh: Some(reason),
             set,
             edc: layered.edc,
@@ -488,9 +451,9 @@ impl VideoLayerer {
         rgb: &[u8],
         depth: Option<&[f32]>,
         grey: Grey,
-        motion: Motion,
+        motion: FrameMotion,
         mut timings: Vec<(&'static str, f64)>,
-    ) -> Result<VideoFrame, VideoError> {
+    ) -> Result<LayeredFrame, VideoError> {
         let (w, h) = (self.camera.width as usize, self.camera.height as usize);
         let (gw, gh) = (grey.width, grey.height);
         let g = self.gop;
@@ -597,9 +560,9 @@ impl VideoLayerer {
         // Hysteresis: a condition must hold on `hysteresis` consecutive frames.
         s.since_i += 1;
         let cause = if mean_conf < g.refresh_confidence {
-            Some(Refresh::Confidence)
+            Some(RefreshReason::Confidence)
         } else if crack > g.refresh_crack {
-            Some(Refresh::Crack)
+            Some(RefreshReason::Crack)
         } else {
             None
         };
@@ -613,8 +576,8 @@ impl VideoLayerer {
         s.owner = owner.clone();
         s.maps = maps;
         s.depths = set.layers().iter().map(|l| l.depth).collect();
-        Ok(VideoFrame {
-            index: self.frames,
+        Ok(LayeredFrame {
+            index: self.frames as u32,
             refresh: None,
             set,
             edc,
@@ -688,12 +651,12 @@ fn layer_log_depths(set: &LayerSet) -> Vec<f32> {
 
 /// Motion from a frame to the previous one: on the flow grid, and at full resolution when
 /// given.
-struct Motion {
+struct FrameMotion {
     grid: Flow,
     full: Option<Flow>,
 }
 
-impl Motion {
+impl FrameMotion {
     fn at_full(&self, w: usize, h: usize) -> Cow<'_, Flow> {
         match &self.full {
             Some(f) => Cow::Borrowed(f),

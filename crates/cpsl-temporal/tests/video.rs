@@ -2,11 +2,12 @@
 //! partition are known.
 
 use cpsl_core::Pose;
-use cpsl_eval::temporal::{alpha_owner, boundary_variance, Motion};
+use cpsl_core::{LayeredFrame, RefreshReason};
+use cpsl_eval::temporal::{alpha_owner, boundary_variance, ClipMotion};
 use cpsl_flow::Flow;
 use cpsl_layering::LayeringConfig;
 use cpsl_synth::{Scene, View};
-use cpsl_video::{GopConfig, Refresh, VideoError, VideoFrame, VideoLayerer};
+use cpsl_temporal::{GopConfig, VideoError, VideoLayerer};
 
 const W: u32 = 320;
 const H: u32 = 240;
@@ -36,7 +37,7 @@ fn clip(frames: usize) -> Clip {
 }
 
 /// The true motion of the clip (see `Scene::backward_motion`).
-fn true_motion(c: &Clip) -> Motion {
+fn true_motion(c: &Clip) -> ClipMotion {
     let (w, h) = (W as usize, H as usize);
     let (back, valid) = c
         .views
@@ -53,7 +54,7 @@ fn true_motion(c: &Clip) -> Motion {
             )
         })
         .unzip();
-    Motion {
+    ClipMotion {
         width: w,
         height: h,
         back,
@@ -79,7 +80,7 @@ fn composite(set: &cpsl_core::LayerSet) -> Vec<u8> {
         .collect()
 }
 
-fn run(c: &Clip, gop: GopConfig) -> Vec<VideoFrame> {
+fn run(c: &Clip, gop: GopConfig) -> Vec<LayeredFrame> {
     let mut v = VideoLayerer::new(c.scene.camera, LayeringConfig::default(), gop).unwrap();
     (0..c.rgb.len())
         .map(|t| v.push(&c.rgb[t], Some(&c.depth[t])).unwrap())
@@ -90,7 +91,7 @@ fn run(c: &Clip, gop: GopConfig) -> Vec<VideoFrame> {
 fn propagation_steadies_boundaries_and_keeps_tracks() {
     let c = clip(10);
     let motion = true_motion(&c);
-    let estimated = Motion::estimate(&c.rgb, W as usize, H as usize);
+    let estimated = ClipMotion::estimate(&c.rgb, W as usize, H as usize);
     let mut scores = Vec::new();
     for (name, gop) in [
         ("frame-wise", GopConfig::frame_wise()),
@@ -181,9 +182,14 @@ fn a_scene_cut_triggers_a_refresh_once_with_hysteresis() {
         kinds.push(v.push(&cut_rgb, Some(&cut_depth)).unwrap().refresh);
     }
     eprintln!("{kinds:?}");
-    assert_eq!(kinds[0], Some(Refresh::First));
+    assert_eq!(kinds[0], Some(RefreshReason::First));
     let adaptive: Vec<usize> = (1..kinds.len())
-        .filter(|&i| matches!(kinds[i], Some(Refresh::Confidence | Refresh::Crack)))
+        .filter(|&i| {
+            matches!(
+                kinds[i],
+                Some(RefreshReason::Confidence | RefreshReason::Crack)
+            )
+        })
         .collect();
     // Two low-confidence frames after the cut (hysteresis 2), then one refresh.
     assert_eq!(adaptive.len(), 1, "{kinds:?}");

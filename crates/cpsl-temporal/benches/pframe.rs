@@ -7,7 +7,7 @@ use cpsl_core::Pose;
 use cpsl_flow::Flow;
 use cpsl_layering::LayeringConfig;
 use cpsl_synth::Scene;
-use cpsl_video::{GopConfig, VideoLayerer};
+use cpsl_temporal::{GopConfig, VideoLayerer};
 use criterion::{criterion_group, criterion_main, Criterion};
 
 fn bench(c: &mut Criterion) {

@@ -4,7 +4,7 @@
 //! installs lavapipe) makes a missing adapter a failure.
 
 use cpsl_core::{Camera, Layer, LayerSet, Limits, Pose, PremulImage, Vec3};
-use cpsl_render::{DpsConfig, PreparedLayers};
+use cpsl_render::{CpuRenderer, DpsConfig, FrameLayers, PreparedLayers, Renderer};
 use cpsl_render_gpu::{GpuRenderer, BLIT_WGSL, COMMON_WGSL, COMPOSITE_WGSL, DPS_WGSL};
 use cpsl_synth::layers::{synthetic_layer_set, Coverage};
 
@@ -174,4 +174,27 @@ fn shaders_validate() {
         .validate(&module)
         .unwrap_or_else(|e| panic!("{name}: {e:?}"));
     }
+}
+
+#[test]
+fn both_renderers_agree_through_the_renderer_interface() {
+    let Some(gpu) = gpu() else { return };
+    let frame = FrameLayers::new(synthetic_layer_set(160, 120, 4, Coverage::Typical, 11), None);
+    let cam = *frame.set.camera();
+    let pose = Pose::from_euler_deg(Vec3::new(0.04, -0.02, 0.05), 1.0, 2.0, 0.0);
+    let dps = DpsConfig::default();
+    let renderers: [&dyn Renderer; 2] = [&CpuRenderer, &gpu];
+    let views: Vec<PremulImage> = renderers
+        .iter()
+        .map(|r| {
+            // A buffer of another size is replaced by one of the target's.
+            let mut out = PremulImage::new(1, 1);
+            r.render(&frame, &pose, &cam, Some(&dps), &mut out).unwrap();
+            assert_eq!((out.width(), out.height()), (cam.width, cam.height));
+            out
+        })
+        .collect();
+    assert_eq!(renderers[1].name(), gpu.adapter());
+    let (psnr, max) = compare(&views[1], &views[0]);
+    assert!(psnr >= MIN_PSNR, "{psnr:.2} dB (max difference {max})");
 }

@@ -25,6 +25,7 @@ pub mod manifest;
 pub mod math;
 pub mod pose;
 pub mod progress;
+pub mod resample;
 pub mod ycbcr;
 
 pub use camera::Camera;

@@ -11,6 +11,7 @@
 //! position in `b` of what `a` shows at `x`: sampling anything attached to `b` at `x + u(x)`
 //! carries it to `a` (backward warping).
 
+use cpsl_core::resample::resize_bilinear;
 use rayon::prelude::*;
 use thiserror::Error;
 
@@ -165,30 +166,18 @@ impl Flow {
         (self.data[p], self.data[p + 1])
     }
 
-    /// Bilinear resampling to `width x height`, vectors scaled with the size.
+    /// Bilinear resampling to `width x height` ([`cpsl_core::resample::resize_bilinear`]),
+    /// vectors scaled with the size.
     pub fn resize(&self, width: usize, height: usize) -> Flow {
         let (sx, sy) = (
             width as f32 / self.width as f32,
             height as f32 / self.height as f32,
         );
-        let comps: Vec<Grey> = (0..2)
-            .map(|c| Grey {
-                width: self.width,
-                height: self.height,
-                data: self.data.iter().skip(c).step_by(2).copied().collect(),
-            })
-            .collect();
-        let mut data = vec![0f32; width * height * 2];
-        data.par_chunks_mut(width * 2)
-            .enumerate()
-            .for_each(|(y, row)| {
-                let fy = (y as f32 + 0.5) / sy - 0.5;
-                for x in 0..width {
-                    let fx = (x as f32 + 0.5) / sx - 0.5;
-                    row[x * 2] = comps[0].sample(fx, fy) * sx;
-                    row[x * 2 + 1] = comps[1].sample(fx, fy) * sy;
-                }
-            });
+        let mut data = resize_bilinear(&self.data, self.width, self.height, 2, width, height);
+        for v in data.chunks_exact_mut(2) {
+            v[0] *= sx;
+            v[1] *= sy;
+        }
         Flow {
             width,
             height,

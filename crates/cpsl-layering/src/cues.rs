@@ -4,7 +4,8 @@
 
 use crate::error::LayeringError;
 use crate::fill::push_pull;
-use crate::grid::{box_blur, components, distance, downsample, resize};
+use crate::grid::{box_blur, components, distance, downsample};
+use cpsl_core::resample::resize_bilinear;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
@@ -411,10 +412,11 @@ impl Cues {
 
     /// Saliency at full resolution (bilinear from the working resolution).
     pub fn saliency_full(&self) -> Vec<f32> {
-        resize(
+        resize_bilinear(
             &self.work.saliency,
             self.work.width,
             self.work.height,
+            1,
             self.width,
             self.height,
         )

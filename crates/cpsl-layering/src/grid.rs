@@ -59,30 +59,6 @@ pub fn downsample(
     out
 }
 
-/// Maps a pixel centre of a `to`-sized grid into a `from`-sized grid (pixel-centre aligned).
-pub fn source_coord(i: usize, to: usize, from: usize) -> f32 {
-    ((i as f32 + 0.5) * from as f32 / to as f32 - 0.5).clamp(0.0, (from - 1) as f32)
-}
-
-/// Bilinear resize of a single-channel map.
-pub fn resize(src: &[f32], w: usize, h: usize, nw: usize, nh: usize) -> Vec<f32> {
-    let mut out = vec![0f32; nw * nh];
-    for y in 0..nh {
-        let sy = source_coord(y, nh, h);
-        let (y0, fy) = (sy.floor() as usize, sy.fract());
-        let y1 = (y0 + 1).min(h - 1);
-        for x in 0..nw {
-            let sx = source_coord(x, nw, w);
-            let (x0, fx) = (sx.floor() as usize, sx.fract());
-            let x1 = (x0 + 1).min(w - 1);
-            let s = |yy: usize, xx: usize| src[yy * w + xx];
-            out[y * nw + x] = (s(y0, x0) * (1.0 - fx) + s(y0, x1) * fx) * (1.0 - fy)
-                + (s(y1, x0) * (1.0 - fx) + s(y1, x1) * fx) * fy;
-        }
-    }
-    out
-}
-
 /// Euclidean distance from every pixel to the nearest pixel where `inside` is true (0 on
 /// those pixels, infinite when none is), by the exact separable transform of Felzenszwalb
 /// and Huttenlocher.
@@ -245,8 +221,6 @@ mod tests {
         );
         let d = downsample(&[1.0, 3.0, 5.0, 7.0], 2, 2, 1, 1, 1);
         assert_eq!(d, vec![4.0]);
-        let up = resize(&[0.0, 1.0], 2, 1, 4, 1);
-        assert_eq!(up, vec![0.0, 0.25, 0.75, 1.0]);
         let key = [0, 0, 1, 1, 0, 1];
         let (ids, n) = components(3, 2, |p, q| key[p] == key[q]);
         assert_eq!(n, 3);

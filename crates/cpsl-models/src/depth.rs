@@ -20,6 +20,7 @@
 
 use crate::error::ModelError;
 use crate::runtime;
+use cpsl_core::resample::resize_bilinear;
 use ort::session::Session;
 use ort::value::Tensor;
 use serde::{Deserialize, Serialize};
@@ -352,37 +353,6 @@ impl cpsl_core::DepthSource for OnnxDepth {
                 cause: Box::new(e),
             })
     }
-}
-
-/// Bilinear resize of an interleaved `f32` image with pixel-centre alignment (edges clamped).
-pub fn resize_bilinear(
-    src: &[f32],
-    sw: usize,
-    sh: usize,
-    ch: usize,
-    dw: usize,
-    dh: usize,
-) -> Vec<f32> {
-    assert_eq!(src.len(), sw * sh * ch);
-    let mut out = vec![0f32; dw * dh * ch];
-    let axis = |d: usize, dn: usize, sn: usize| {
-        let s = ((d as f64 + 0.5) * sn as f64 / dn as f64 - 0.5).clamp(0.0, (sn - 1) as f64);
-        let i0 = s.floor() as usize;
-        (i0, (i0 + 1).min(sn - 1), (s - i0 as f64) as f32)
-    };
-    let xs: Vec<_> = (0..dw).map(|x| axis(x, dw, sw)).collect();
-    for y in 0..dh {
-        let (y0, y1, fy) = axis(y, dh, sh);
-        for (x, &(x0, x1, fx)) in xs.iter().enumerate() {
-            for c in 0..ch {
-                let p = |yy: usize, xx: usize| src[(yy * sw + xx) * ch + c];
-                let top = p(y0, x0) * (1.0 - fx) + p(y0, x1) * fx;
-                let bot = p(y1, x0) * (1.0 - fx) + p(y1, x1) * fx;
-                out[(y * dw + x) * ch + c] = top * (1.0 - fy) + bot * fy;
-            }
-        }
-    }
-    out
 }
 
 #[cfg(test)]

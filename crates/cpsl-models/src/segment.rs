@@ -92,7 +92,7 @@ impl MiniSam {
             ((h as f32 * scale).round() as usize).clamp(1, SIDE),
         );
         let src: Vec<f32> = rgb.iter().map(|&v| v as f32).collect();
-        let resized = crate::depth::resize_bilinear(&src, w, h, 3, nw, nh);
+        let resized = cpsl_core::resample::resize_bilinear(&src, w, h, 3, nw, nh);
         let plane = SIDE * SIDE;
         let mut input = vec![0f32; 3 * plane];
         for y in 0..nh {

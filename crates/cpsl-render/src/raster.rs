@@ -1,6 +1,7 @@
 //! Tiled warp-and-composite kernel.
 
 use crate::prepared::{PreparedLayer, PreparedLayers};
+use cpsl_core::resample::bilerp;
 use cpsl_core::{Camera, Homography, Pose, PremulImage};
 use rayon::prelude::*;
 
@@ -127,24 +128,6 @@ impl Warp {
             opaque: inside && translucent == 0,
         }
     }
-}
-
-const LANES: u64 = 0x00FF_00FF_00FF_00FF;
-const ROUND: u64 = 0x0080_0080_0080_0080;
-
-/// Spreads RGBA8 (R in the low byte) into four 16-bit lanes ordered R, B, G, A.
-#[inline(always)]
-fn spread(p: u32) -> u64 {
-    let p = p as u64;
-    (p | (p << 24)) & LANES
-}
-
-/// Bilinear filter of four premultiplied texels with 8-bit weights, all channels at once.
-#[inline(always)]
-fn bilerp(p00: u32, p01: u32, p10: u32, p11: u32, fx: u64, fy: u64) -> u64 {
-    let top = ((spread(p00) * (256 - fx) + spread(p01) * fx + ROUND) >> 8) & LANES;
-    let bot = ((spread(p10) * (256 - fx) + spread(p11) * fx + ROUND) >> 8) & LANES;
-    ((top * (256 - fy) + bot * fy + ROUND) >> 8) & LANES
 }
 
 /// Adds a filtered sample `v` (lanes R, B, G, A) under transmittance `tv`. Accumulators
@@ -598,23 +581,3 @@ impl PreparedLayers {
     }
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn bilerp_exact_at_integer_positions_and_midpoint() {
-        let p = u32::from_le_bytes([10, 20, 30, 40]);
-        let q = u32::from_le_bytes([30, 40, 50, 60]);
-        let v = bilerp(p, q, q, q, 0, 0);
-        assert_eq!(
-            [v & 0xFFFF, (v >> 32) & 0xFFFF, (v >> 16) & 0xFFFF, v >> 48],
-            [10, 20, 30, 40]
-        );
-        let m = bilerp(p, q, p, q, 128, 0);
-        assert_eq!([m & 0xFFFF, m >> 48], [20, 50]);
-        let full = u32::MAX;
-        let f = bilerp(full, full, full, full, 77, 200);
-        assert_eq!(f >> 48, 255, "no lane overflow at maximum values");
-    }
-}

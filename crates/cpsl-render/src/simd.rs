@@ -6,12 +6,9 @@
 //! it; a test checks that.
 #![allow(unsafe_code)]
 
+use cpsl_core::resample::avx2::{bilerp8, gather_taps};
+pub(crate) use cpsl_core::resample::avx2::available;
 use std::arch::x86_64::*;
-
-/// Whether the running CPU has AVX2.
-pub(crate) fn available() -> bool {
-    std::arch::is_x86_feature_detected!("avx2")
-}
 
 /// Composites `n = trans.len()` pixels of a linear span whose positions (16.16 fixed point,
 /// with half a 1/256 step pre-added) start at `x`, `y` and advance by `dx`, `dy`. Processes
@@ -73,15 +70,11 @@ unsafe fn draw_linear_avx2(
     let sh1 = _mm256_set1_epi32(sh as i32 + 1);
     let pitch_v = _mm256_set1_epi32(pitch as i32);
     let byte = _mm256_set1_epi32(255);
-    let lanes16 = _mm256_set1_epi32(0x00FF_00FF);
-    let w256 = _mm256_set1_epi32(0x0100_0100);
-    let round = _mm256_set1_epi32(0x0080_0080);
     let low16 = _mm256_set1_epi32(0xFFFF);
     let zero_f = _mm256_setzero_ps();
     let one_f = _mm256_set1_ps(1.0);
     let f255 = _mm256_set1_ps(255.0);
     let opaque_a = _mm256_set1_epi32(255);
-    let base = texels.as_ptr() as *const i32;
     let mut count = 0u32;
     for g in 0..groups {
         // 1/256 px positions, integer texel and 8-bit fractions.
@@ -105,36 +98,10 @@ unsafe fn draw_linear_avx2(
             ),
         );
         let idx = _mm256_add_epi32(_mm256_mullo_epi32(y1, pitch_v), x1);
-        // Each row's two taps are adjacent: load them as one 64-bit value per pixel. Invalid
-        // lanes load from index 0 (always in bounds) and are masked to zero afterwards.
-        let mut lane_idx = [0i32; 8];
-        _mm256_storeu_si256(
-            lane_idx.as_mut_ptr() as *mut __m256i,
-            _mm256_and_si256(idx, valid),
-        );
-        let row = |off: usize| {
-            // SAFETY: every index is 0 or a valid lane's index; both rows of taps are in
-            // bounds for those (see above).
-            let q =
-                |k: usize| (base.add(lane_idx[k] as usize + off) as *const i64).read_unaligned();
-            let lo = _mm256_setr_epi64x(q(0), q(1), q(2), q(3));
-            let hi = _mm256_setr_epi64x(q(4), q(5), q(6), q(7));
-            (lo, hi)
-        };
-        let (t_lo, t_hi) = row(0);
-        let (u_lo, u_hi) = row(pitch);
-        // Even dwords are left taps, odd dwords right taps; restore pixel order 0..7.
-        let split = |lo: __m256i, hi: __m256i| {
-            let (a, b) = (_mm256_castsi256_ps(lo), _mm256_castsi256_ps(hi));
-            let even = _mm256_castps_si256(_mm256_shuffle_ps::<0x88>(a, b));
-            let odd = _mm256_castps_si256(_mm256_shuffle_ps::<0xDD>(a, b));
-            (
-                _mm256_and_si256(_mm256_permute4x64_epi64::<0xD8>(even), valid),
-                _mm256_and_si256(_mm256_permute4x64_epi64::<0xD8>(odd), valid),
-            )
-        };
-        let (p00, p01) = split(t_lo, t_hi);
-        let (p10, p11) = split(u_lo, u_hi);
+        // SAFETY: valid lanes' taps are inside the padded texture (above), and so are texel
+        // 0's (the texture has at least two rows of `pitch` texels).
+        let taps = gather_taps(texels, pitch, idx, valid);
+        let [p00, p01, p10, p11] = taps;
         if _mm256_testz_si256(
             _mm256_or_si256(_mm256_or_si256(p00, p01), _mm256_or_si256(p10, p11)),
             minus_one,
@@ -144,29 +111,7 @@ unsafe fn draw_linear_avx2(
             ys = _mm256_add_epi32(ys, step_y);
             continue;
         }
-        // Weights replicated into both 16-bit halves: (256 - f, f).
-        let wx1 = _mm256_or_si256(fx, _mm256_slli_epi32(fx, 16));
-        let wx0 = _mm256_sub_epi16(w256, wx1);
-        let wy1 = _mm256_or_si256(fy, _mm256_slli_epi32(fy, 16));
-        let wy0 = _mm256_sub_epi16(w256, wy1);
-        let lerp = |a: __m256i, b: __m256i, w0: __m256i, w1: __m256i| {
-            _mm256_srli_epi16(
-                _mm256_add_epi16(
-                    _mm256_add_epi16(_mm256_mullo_epi16(a, w0), _mm256_mullo_epi16(b, w1)),
-                    round,
-                ),
-                8,
-            )
-        };
-        // Even bytes (R, B) and odd bytes (G, A) in 16-bit lanes.
-        let rb = |p: __m256i| _mm256_and_si256(p, lanes16);
-        let ga = |p: __m256i| _mm256_srli_epi16(p, 8);
-        let top_rb = lerp(rb(p00), rb(p01), wx0, wx1);
-        let bot_rb = lerp(rb(p10), rb(p11), wx0, wx1);
-        let top_ga = lerp(ga(p00), ga(p01), wx0, wx1);
-        let bot_ga = lerp(ga(p10), ga(p11), wx0, wx1);
-        let v_rb = lerp(top_rb, bot_rb, wy0, wy1);
-        let v_ga = lerp(top_ga, bot_ga, wy0, wy1);
+        let (v_rb, v_ga) = bilerp8(taps, fx, fy);
         let a_i = _mm256_srli_epi32(v_ga, 16);
         let r = _mm256_cvtepi32_ps(_mm256_and_si256(v_rb, low16));
         let b = _mm256_cvtepi32_ps(_mm256_srli_epi32(v_rb, 16));

@@ -3,7 +3,7 @@
 //! 8-bit fixed point (as the renderer does), one fused pass for everything that looks at all
 //! layers of a pixel.
 
-use cpsl_core::PremulImage;
+use cpsl_core::{resample, PremulImage};
 use rayon::prelude::*;
 
 /// Side of the blocks in which [`Occupancy`] records content.
@@ -95,22 +95,10 @@ impl KeyLayer {
 }
 
 /// The bilinear blend of four RGBA pixels (top left, top right, bottom left, bottom right)
-/// with 8-bit weights `ax`, `ay`: horizontally, then vertically, each step rounded, all four
-/// channels at once in the 16-bit lanes of a `u64` (lanes R, B, G, A; each stays below 2^16).
-/// Every channel goes through the same operations, so colour never exceeds alpha.
+/// with 8-bit weights `ax`, `ay` ([`cpsl_core::resample::bilerp`]), packed back into RGBA8.
 #[inline(always)]
 fn bilinear(taps: [u32; 4], ax: u64, ay: u64) -> u32 {
-    const MASK: u64 = 0x00FF_00FF_00FF_00FF;
-    const HALF: u64 = 0x0080_0080_0080_0080;
-    let spread = |p: u32| {
-        let x = p as u64;
-        (x | (x << 24)) & MASK
-    };
-    let lerp = |a: u64, b: u64, t: u64| ((a * (256 - t) + b * t + HALF) >> 8) & MASK;
-    let top = lerp(spread(taps[0]), spread(taps[1]), ax);
-    let bottom = lerp(spread(taps[2]), spread(taps[3]), ax);
-    let v = lerp(top, bottom, ay);
-    (v | (v >> 24)) as u32
+    resample::pack(resample::bilerp(taps[0], taps[1], taps[2], taps[3], ax, ay))
 }
 
 /// Pixels `[x0, x1)` of a row whose grid weights are linear in x: grid nodes `c0` and `c1`,
@@ -577,42 +565,6 @@ pub(crate) fn crack_rate(owner: &[u8], depth: &[f32], w: usize, h: usize) -> f32
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn bilinear_is_within_one_level_of_exact_and_stays_premultiplied() {
-        let mut seed = 7u64;
-        let mut next = || {
-            seed = seed
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (seed >> 33) as u32
-        };
-        for _ in 0..20000 {
-            let taps: [[u8; 4]; 4] = std::array::from_fn(|_| {
-                let a = (next() % 256) as u8;
-                [0, 1, 2]
-                    .map(|_| (next() % (a as u32 + 1)) as u8)
-                    .into_iter()
-                    .chain([a])
-                    .collect::<Vec<_>>()
-                    .try_into()
-                    .unwrap()
-            });
-            let (ax, ay) = (next() % 256, next() % 256);
-            let got = bilinear(taps.map(u32::from_le_bytes), ax as u64, ay as u64).to_le_bytes();
-            let (fx, fy) = (ax as f32 / 256.0, ay as f32 / 256.0);
-            for c in 0..4 {
-                let v = |t: usize| taps[t][c] as f32;
-                let want = (v(0) * (1.0 - fx) + v(1) * fx) * (1.0 - fy)
-                    + (v(2) * (1.0 - fx) + v(3) * fx) * fy;
-                assert!(
-                    (got[c] as f32 - want).abs() <= 1.0,
-                    "{taps:?} {ax} {ay}: {got:?}"
-                );
-            }
-            assert!(got[..3].iter().all(|&c| c <= got[3]), "{got:?}");
-        }
-    }
 
     #[test]
     fn medians_match_sorting_within_a_bin() {

@@ -5,12 +5,9 @@
 //! filter in 16-bit lanes. A test checks bit-identity on random layers and positions.
 #![allow(unsafe_code)]
 
+use cpsl_core::resample::avx2::{bilerp8, gather_taps};
+pub(crate) use cpsl_core::resample::avx2::available;
 use std::arch::x86_64::*;
-
-/// Whether the running CPU has AVX2.
-pub(crate) fn available() -> bool {
-    std::arch::is_x86_feature_detected!("avx2")
-}
 
 /// Samples whole groups of eight of the positions `xs`, `ys` (1/256 px) from `texels` (a
 /// `w x h` layer with a one-pixel edge-repeating border, pitch `w + 2`) into `out` (RGBA,
@@ -63,9 +60,6 @@ unsafe fn sample_avx2(
     let lim_y = _mm256_set1_epi32((h * 256) as i32 - 127);
     let pitch_v = _mm256_set1_epi32(pitch as i32);
     let byte = _mm256_set1_epi32(255);
-    let lanes16 = _mm256_set1_epi32(0x00FF_00FF);
-    let w256 = _mm256_set1_epi32(0x0100_0100);
-    let round = _mm256_set1_epi32(0x0080_0080);
     let zero = _mm256_setzero_si256();
     let seven = _mm256_set1_epi32(7);
     let eight = _mm256_set1_epi32(8);
@@ -116,34 +110,8 @@ unsafe fn sample_avx2(
                 pick(b0, b1, d1),
             )
         } else {
-            let mut lane_idx = [0i32; 8];
-            _mm256_storeu_si256(lane_idx.as_mut_ptr() as *mut __m256i, idx);
-            // Each row's two taps are adjacent: one 64-bit load per pixel and row.
-            let row = |off: usize| {
-                // SAFETY: every index is 0 or a valid lane's, whose taps (idx, idx + 1,
-                // idx + pitch, idx + pitch + 1) lie inside the padded texture.
-                let q = |k: usize| {
-                    (base.add(lane_idx[k] as usize + off) as *const i64).read_unaligned()
-                };
-                (
-                    _mm256_setr_epi64x(q(0), q(1), q(2), q(3)),
-                    _mm256_setr_epi64x(q(4), q(5), q(6), q(7)),
-                )
-            };
-            let (t_lo, t_hi) = row(0);
-            let (u_lo, u_hi) = row(pitch);
-            // Even dwords are left taps, odd dwords right taps; restore pixel order 0..7.
-            let split = |lo: __m256i, hi: __m256i| {
-                let (a, b) = (_mm256_castsi256_ps(lo), _mm256_castsi256_ps(hi));
-                let even = _mm256_castps_si256(_mm256_shuffle_ps::<0x88>(a, b));
-                let odd = _mm256_castps_si256(_mm256_shuffle_ps::<0xDD>(a, b));
-                (
-                    _mm256_and_si256(_mm256_permute4x64_epi64::<0xD8>(even), valid),
-                    _mm256_and_si256(_mm256_permute4x64_epi64::<0xD8>(odd), valid),
-                )
-            };
-            let (p00, p01) = split(t_lo, t_hi);
-            let (p10, p11) = split(u_lo, u_hi);
+            // SAFETY: valid lanes' taps lie inside the padded texture, and so do texel 0's.
+            let [p00, p01, p10, p11] = gather_taps(texels, pitch, idx, valid);
             (p00, p01, p10, p11)
         };
         let any = _mm256_or_si256(_mm256_or_si256(p00, p01), _mm256_or_si256(p10, p11));
@@ -154,35 +122,7 @@ unsafe fn sample_avx2(
         }
         let fx = _mm256_and_si256(xi, byte);
         let fy = _mm256_and_si256(yi, byte);
-        // Weights replicated into both 16-bit halves: (256 - f, f).
-        let wx1 = _mm256_or_si256(fx, _mm256_slli_epi32(fx, 16));
-        let wx0 = _mm256_sub_epi16(w256, wx1);
-        let wy1 = _mm256_or_si256(fy, _mm256_slli_epi32(fy, 16));
-        let wy0 = _mm256_sub_epi16(w256, wy1);
-        let lerp = |a: __m256i, b: __m256i, w0: __m256i, w1: __m256i| {
-            _mm256_srli_epi16(
-                _mm256_add_epi16(
-                    _mm256_add_epi16(_mm256_mullo_epi16(a, w0), _mm256_mullo_epi16(b, w1)),
-                    round,
-                ),
-                8,
-            )
-        };
-        // Even bytes (R, B) and odd bytes (G, A) in 16-bit lanes.
-        let rb = |p: __m256i| _mm256_and_si256(p, lanes16);
-        let ga = |p: __m256i| _mm256_srli_epi16(p, 8);
-        let v_rb = lerp(
-            lerp(rb(p00), rb(p01), wx0, wx1),
-            lerp(rb(p10), rb(p11), wx0, wx1),
-            wy0,
-            wy1,
-        );
-        let v_ga = lerp(
-            lerp(ga(p00), ga(p01), wx0, wx1),
-            lerp(ga(p10), ga(p11), wx0, wx1),
-            wy0,
-            wy1,
-        );
+        let (v_rb, v_ga) = bilerp8([p00, p01, p10, p11], fx, fy);
         let v = _mm256_or_si256(v_rb, _mm256_slli_epi32(v_ga, 8));
         // Lanes without content are zero, as the output already is.
         _mm256_storeu_si256(out.as_mut_ptr().add(o * 4) as *mut __m256i, v);

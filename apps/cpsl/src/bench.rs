@@ -71,7 +71,8 @@ struct LayerReport {
 }
 
 fn bench_layer(a: BenchLayerArgs) -> Result<()> {
-    use crate::layer::{layer_image, open_depth_model, InstanceMode};
+    use cpsl_pipeline::image::{layer_image, InstanceMode};
+    use cpsl_pipeline::sources::open_depth_model;
     anyhow::ensure!(a.frames >= 1, "--frames must be at least 1");
     let scene = cpsl_synth::Scene::default_scene(a.width, a.height);
     let view = scene.render(&scene.camera, &Pose::IDENTITY, 0.0, 1);

@@ -2,25 +2,31 @@
 //! rendered along a sweep, then a moving clip of the scene encoded into a package and played
 //! back along a sweep.
 
-use crate::encode::{CodecArg, EncodeArgs};
-use crate::layer::{layer_image, write_output, InstanceMode};
+use crate::encode::CodecArg;
+use crate::layer::InstanceArg;
 use crate::progress::Bars;
 use crate::render::{render_sweep, Sweep, DPS};
 use crate::synth::{depth_list, estimate_depth, synthesise, SynthArgs};
 use crate::util::{self, Output};
 use anyhow::{Context, Result};
-use clap::{Args, Parser, ValueEnum};
+use clap::Args;
+use cpsl_codec::RateControl;
 use cpsl_core::{FixedDepth, Pose, Progress, ProgressEvent, Vec3};
 use cpsl_eval::metrics::psnr;
 use cpsl_io::images::write_png;
 use cpsl_io::pfm::{write_pfm, FloatImage};
-use cpsl_layering::LayeringConfig;
 use cpsl_package::Package;
+use cpsl_pipeline::encode::{encode, EncodeJob, Target};
+use cpsl_pipeline::image::{layer_image, write_image_layers};
+use cpsl_pipeline::sources::{layering_config, CameraChoice, VideoDepth};
+use cpsl_pipeline::video::{MotionSource, VideoJob};
 use cpsl_player::Source;
 use cpsl_render::{CpuRenderer, FrameLayers, Renderer};
 use cpsl_synth::Scene;
+use cpsl_temporal::GopConfig;
 use serde::Serialize;
 use std::path::PathBuf;
+use std::sync::atomic::AtomicBool;
 
 /// Arguments of `cpsl demo`.
 #[derive(Args)]
@@ -41,8 +47,8 @@ pub struct DemoArgs {
     #[arg(long)]
     pub config: Option<PathBuf>,
     /// Instance masks for layering.
-    #[arg(long, value_enum, default_value_t = InstanceMode::Components)]
-    pub instances: InstanceMode,
+    #[arg(long, value_enum, default_value_t = InstanceArg::Components)]
+    pub instances: InstanceArg,
     /// Layer from a monocular depth model (`fastdepth` or an .onnx path) instead of the
     /// ground-truth depth. Monocular depth has no absolute scale, so it is scaled to match
     /// the median of the ground truth before slicing.
@@ -94,13 +100,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
     );
 
     let layer_dir = a.output.join("layers");
-    let config = LayeringConfig {
-        layers: a.layers as usize,
-        ..match &a.config {
-            Some(p) => crate::layer::read_config(p)?,
-            None => LayeringConfig::default(),
-        }
-    };
+    let config = layering_config(a.config.as_deref(), a.layers)?;
     let (depth, source) = match &a.depth_model {
         None => (synth.depth.clone(), "ray-cast ground truth".to_string()),
         Some(model) => {
@@ -127,10 +127,10 @@ pub fn run(a: DemoArgs) -> Result<()> {
         &mut fixed,
         true,
         &config,
-        a.instances,
+        a.instances.into(),
         &bars,
     )?;
-    write_output(&layer_dir, &run, &config, &source, true)?;
+    write_image_layers(&layer_dir, &run, &config, &source, true)?;
     let set = run.layered.set;
     println!(
         "2/5 layered into {} layers at depths [{}] ({} promoted) in {} (depth: {source})",
@@ -263,44 +263,26 @@ fn clip(a: &DemoArgs, scene: &Scene, bars: &Bars) -> Result<()> {
 
     let package = a.output.join("clip.cpsl");
     let exact = a.depth_model.is_none();
-    // Through the command line parser, so that every default is the one `cpsl encode` has.
-    let mut args: Vec<std::ffi::OsString> = vec![
-        "encode".into(),
-        frames_dir.clone().into(),
-        "-o".into(),
-        package.clone().into(),
-        "--codec".into(),
-        a.codec
-            .to_possible_value()
-            .expect("codec name")
-            .get_name()
-            .into(),
-        "--bitrate".into(),
-        format!("{}", a.bitrate).into(),
-        "--fps".into(),
-        format!("{CLIP_FPS}").into(),
-        "--layers".into(),
-        a.layers.to_string().into(),
-        "--camera".into(),
-        camera_json.into(),
-    ];
-    match &a.depth_model {
-        None => args.extend(["--depth-frames".into(), depth_dir.into_os_string()]),
-        Some(m) => args.extend(["--depth-model".into(), m.into()]),
-    }
-    if let Some(c) = &a.config {
-        args.extend(["--config".into(), c.clone().into_os_string()]);
-    }
-    #[derive(clap::Parser)]
-    struct Encode {
-        #[command(flatten)]
-        args: EncodeArgs,
-    }
-    crate::encode::run(
-        Encode::try_parse_from(args)
-            .context("encode arguments")?
-            .args,
-    )?;
+    // The defaults of `cpsl encode`: GOP 30, full temporal layering, decoder motion.
+    let mut depth = match &a.depth_model {
+        None => VideoDepth::frames(&depth_dir, 0.001)?,
+        Some(m) => VideoDepth::model(m, None)?,
+    };
+    let job = EncodeJob {
+        video: VideoJob {
+            input: frames_dir.clone(),
+            camera: CameraChoice::File(camera_json),
+            layering: layering_config(a.config.as_deref(), a.layers)?,
+            gop: GopConfig::default(),
+            motion: MotionSource::Auto,
+            depth_every_frame: false,
+            max_frames: None,
+        },
+        codec: a.codec.into(),
+        fps: Some(CLIP_FPS),
+        target: Target::Package(package.clone(), RateControl::Budget(a.bitrate)),
+    };
+    encode(&job, &mut depth, bars, &AtomicBool::new(false))?;
     println!(
         "4/5 encoded a moving clip of the scene ({n} frames, {}) into {}",
         if exact {

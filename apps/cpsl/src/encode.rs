@@ -1,15 +1,16 @@
 //! `cpsl encode`, `cpsl info` and `cpsl verify`: the whole pipeline from a video to a package
 //! (depth, layering, propagation, coding), and the package's summary and integrity check.
 
-use crate::video::{layer_video, VideoLayering};
+use crate::progress::Bars;
+use crate::video::VideoLayeringArgs;
 use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
-use cpsl_codec::{CodingOptions, PackageWriter, RateControl, SegmentReport};
+use cpsl_codec::RateControl;
 use cpsl_package::{Codec, Package};
+use cpsl_pipeline::encode::{encode, EncodeJob, Target};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
-use std::time::Instant;
 
 /// Codec of the layer streams.
 #[derive(ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
@@ -33,17 +34,6 @@ impl From<CodecArg> for Codec {
             CodecArg::Vp9 => Codec::Vp9,
         }
     }
-}
-
-/// Fails clearly when this FFmpeg cannot encode `codec`.
-pub fn require_encoder(codec: Codec) -> Result<()> {
-    if !cpsl_codec::has_encoder(codec) {
-        bail!(
-            "this FFmpeg has no {} encoder (scripts/setup-system.sh installs Debian's, which has all four)",
-            codec.name()
-        );
-    }
-    Ok(())
 }
 
 /// Parses a bitrate: `3M`, `800k`, `2.5M`, `1500000` (bits per second).
@@ -101,30 +91,13 @@ pub struct EncodeArgs {
     #[arg(long)]
     pub fps: Option<f64>,
     #[command(flatten)]
-    pub layering: VideoLayering,
-}
-
-/// Warns about a segment that missed its budget.
-fn warn_over_budget(r: &SegmentReport) {
-    if !r.feasible {
-        tracing::warn!(
-            "segment at frame {}: {:.0} bits spent of a budget of {:.0} ({})",
-            r.start,
-            r.bits,
-            r.budget_bits.unwrap_or(0.0),
-            if r.at_floor {
-                "the cheapest coding, lowest quality at the smallest size, needs more"
-            } else {
-                "the allocator's correction rounds did not reach it"
-            }
-        );
-    }
+    pub layering: VideoLayeringArgs,
 }
 
 /// Runs `cpsl encode`.
 pub fn run(a: EncodeArgs) -> Result<()> {
     let codec = Codec::from(a.codec);
-    require_encoder(codec)?;
+    cpsl_pipeline::encode::require_encoder(codec)?;
     let (q_min, q_max, q_default) = cpsl_codec::quality_range(codec);
     let rate = match (a.bitrate, a.quality) {
         (Some(b), _) => RateControl::Budget(b),
@@ -132,62 +105,19 @@ pub fn run(a: EncodeArgs) -> Result<()> {
         (None, Some(q)) => bail!("--quality {q}: {} takes {q_min} to {q_max}", codec.name()),
         (None, None) => RateControl::Quality(q_default),
     };
-    // One (package, rate) per output: the package itself, or one per variant.
-    // With --archive the folder is written to a hidden sibling and packed into --output.
-    let unpacked = a.archive.then(|| {
-        let name = a.output.file_name().unwrap_or_default().to_string_lossy();
-        a.output.with_file_name(format!(".{name}.folder"))
-    });
-    let outputs: Vec<(PathBuf, RateControl)> = if a.variants.is_empty() {
-        let replaceable = match a.archive {
-            true => cpsl_package::is_archive(&a.output),
-            false => cpsl_package::is_package(&a.output) && a.output.is_dir(),
-        };
-        if a.output.exists() && !replaceable {
-            bail!(
-                "{} exists and is not a CPSL package{}; not replacing it",
-                a.output.display(),
-                if a.archive { " archive" } else { "" }
-            );
-        }
-        vec![(unpacked.clone().unwrap_or_else(|| a.output.clone()), rate)]
-    } else {
-        let set = a.output.join(cpsl_package::VARIANTS_FILE);
-        if a.output.exists() && !set.is_file() {
-            bail!(
-                "{} exists and is not a variant set (no {}); not replacing it",
-                a.output.display(),
-                cpsl_package::VARIANTS_FILE
-            );
-        }
-        let mut budgets = a.variants.clone();
-        budgets.sort_by(f64::total_cmp);
-        budgets.dedup();
-        std::fs::create_dir_all(&a.output)
-            .with_context(|| format!("creating {}", a.output.display()))?;
-        budgets
-            .into_iter()
-            .map(|b| {
-                let p = a.output.join(format!("{:.0}k.cpsl", b / 1e3));
-                if p.exists() && !cpsl_package::is_package(&p) {
-                    bail!("{} exists and is not a CPSL package", p.display());
-                }
-                Ok((p, RateControl::Budget(b)))
-            })
-            .collect::<Result<_>>()?
+    let target = match (a.archive, a.variants.is_empty()) {
+        (_, false) => Target::Variants(a.output.clone(), a.variants.clone()),
+        (true, true) => Target::Archive(a.output.clone(), rate),
+        (false, true) => Target::Package(a.output.clone(), rate),
     };
-    let fps = match a.fps {
-        Some(f) if f.is_finite() && (0.1..=1000.0).contains(&f) => f,
-        Some(f) => bail!("--fps {f}: give 0.1 to 1000 frames per second"),
-        None => {
-            cpsl_media::open(&a.input)
-                .with_context(|| format!("opening {}", a.input.display()))?
-                .info()
-                .fps
-        }
+    let (video, mut depth) = a.layering.job(&a.input)?;
+    let job = EncodeJob {
+        video,
+        codec,
+        fps: a.fps,
+        target,
     };
-    let (cfg, gop, mut depth) = a.layering.setup()?;
-    // Ctrl-C stops after the current frame; the staging folder is removed, nothing is left
+    // Ctrl-C stops after the current frame; the staging folders are removed, nothing is left
     // half-written.
     let stop = Arc::new(AtomicBool::new(false));
     {
@@ -195,62 +125,9 @@ pub fn run(a: EncodeArgs) -> Result<()> {
         ctrlc::set_handler(move || stop.store(true, Ordering::SeqCst))
             .context("installing the Ctrl-C handler")?;
     }
-    let mut writers: Vec<PackageWriter> = Vec::new();
-    let mut coding = 0.0;
-    let t = Instant::now();
-    layer_video(&a.input, &a.layering, &cfg, gop, &mut depth, |r| {
-        if stop.load(Ordering::SeqCst) {
-            bail!("interrupted; no package written");
-        }
-        let f = &r.frame;
-        if writers.is_empty() {
-            for (path, rate) in &outputs {
-                let opts = CodingOptions {
-                    codec,
-                    rate: *rate,
-                    fps,
-                };
-                writers.push(PackageWriter::create(
-                    path,
-                    *f.set.camera(),
-                    a.layering.layers,
-                    opts,
-                )?);
-            }
-        }
-        let t = Instant::now();
-        for writer in writers.iter_mut() {
-            let report = writer
-                .push(f.clone())
-                .with_context(|| format!("coding the segment before frame {}", f.index))?;
-            report.iter().for_each(warn_over_budget);
-        }
-        coding += t.elapsed().as_secs_f64();
-        Ok(())
-    })?;
-    anyhow::ensure!(!writers.is_empty(), "no frames");
-    if stop.load(Ordering::SeqCst) {
-        bail!("interrupted; no package written");
-    }
-    let t_last = Instant::now();
-    for writer in writers.iter_mut() {
-        let report = writer.flush().context("coding the last segment")?;
-        report.iter().for_each(warn_over_budget);
-    }
-    coding += t_last.elapsed().as_secs_f64();
-    let secs = t.elapsed().as_secs_f64();
-    for (w, (path, _)) in writers.into_iter().zip(&outputs) {
-        let m = w.finish()?;
-        let path = match &unpacked {
-            Some(folder) => {
-                let packed = cpsl_package::pack(folder, &a.output);
-                std::fs::remove_dir_all(folder)
-                    .with_context(|| format!("removing {}", folder.display()))?;
-                packed.with_context(|| format!("packing {}", a.output.display()))?;
-                &a.output
-            }
-            None => path,
-        };
+    let done = encode(&job, &mut depth, &Bars::default(), &stop)?;
+    let (secs, coding) = (done.seconds, done.coding_seconds);
+    for (path, m) in &done.packages {
         println!(
             "wrote {} ({} frames, {} segment{}, {} at {:.0} kbit/s{}) in {secs:.1} s ({:.1} frames/s; coding {coding:.1} s, {:.1} frames/s)",
             path.display(),
@@ -267,15 +144,8 @@ pub fn run(a: EncodeArgs) -> Result<()> {
             m.frames as f64 / coding.max(1e-9)
         );
     }
-    if !a.variants.is_empty() {
-        let names = outputs.iter().filter_map(|(p, _)| p.file_name()?.to_str());
-        let set = cpsl_package::VariantSet::new(names.map(String::from).collect());
-        set.write(&a.output)?;
-        println!(
-            "wrote {} ({} variants)",
-            a.output.join(cpsl_package::VARIANTS_FILE).display(),
-            set.variants.len()
-        );
+    if let Some(set) = &done.variant_set {
+        println!("wrote {} ({} variants)", set.display(), done.packages.len());
     }
     Ok(())
 }

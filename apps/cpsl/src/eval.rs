@@ -2,7 +2,7 @@
 //! real images (PSNR, SSIM, LPIPS, crack and hole ratios) and report as a table, JSON and HTML.
 
 use crate::encode::CodecArg;
-use crate::layer::{layer_image, InstanceMode};
+use crate::layer::InstanceArg;
 use crate::progress::Bars;
 use crate::render::DPS;
 use crate::synth::estimate_depth;
@@ -18,6 +18,7 @@ use cpsl_eval::datasets::{self, align_median, Dataset, Target};
 use cpsl_eval::metrics::{psnr_masked, ssim};
 use cpsl_layering::{slice_by_depth, Bins, LayeringConfig, SliceConfig};
 use cpsl_package::Codec;
+use cpsl_pipeline::image::layer_image;
 use cpsl_render::{CpuRenderer, FrameLayers};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
@@ -101,8 +102,8 @@ pub struct EvalArgs {
     #[arg(long)]
     pub config: Option<PathBuf>,
     /// Instance masks for CPSL.
-    #[arg(long, value_enum, default_value_t = InstanceMode::Components)]
-    pub instances: InstanceMode,
+    #[arg(long, value_enum, default_value_t = InstanceArg::Components)]
+    pub instances: InstanceArg,
     /// Depth: `gt` (the dataset's ground truth) or a model, `model:<name>` (`model:fastdepth`,
     /// `model:path.onnx`; `fastdepth` alone also works), median-scaled to the ground truth (or,
     /// for the temple ring, which has none, to the depth of the scene centre given by the
@@ -138,18 +139,18 @@ pub struct EvalArgs {
 const CODED_FPS: f64 = 30.0;
 
 /// Where `cpsl eval --codec` writes its packages, and how it codes them.
-struct Coding {
+struct RoundTrip {
     opts: CodingOptions,
     dir: PathBuf,
     _temp: Option<tempfile::TempDir>,
 }
 
-impl Coding {
+impl RoundTrip {
     fn new(a: &EvalArgs) -> Result<Option<Self>> {
         let Some(codec) = a.codec.map(Codec::from) else {
             return Ok(None);
         };
-        crate::encode::require_encoder(codec)?;
+        cpsl_pipeline::encode::require_encoder(codec)?;
         let rate = match a.bitrate {
             Some(b) => RateControl::Budget(b),
             None => RateControl::Quality(cpsl_codec::quality_range(codec).2),
@@ -384,7 +385,7 @@ pub fn run(a: EvalArgs) -> Result<()> {
         Method::All => Method::EVERY.to_vec(),
         m => vec![m],
     };
-    let coding = Coding::new(&a)?;
+    let coding = RoundTrip::new(&a)?;
     let bars = Bars::default();
     let lpips = if a.no_lpips {
         None
@@ -463,7 +464,7 @@ pub fn run(a: EvalArgs) -> Result<()> {
                     let mut cfg = LayeringConfig {
                         layers: a.layers as usize,
                         ..match &a.config {
-                            Some(p) => crate::layer::read_config(p)?,
+                            Some(p) => cpsl_pipeline::sources::read_config(p)?,
                             None => LayeringConfig::default(),
                         }
                     };
@@ -482,7 +483,7 @@ pub fn run(a: EvalArgs) -> Result<()> {
                         &mut source,
                         true,
                         &cfg,
-                        a.instances,
+                        a.instances.into(),
                         &NoProgress,
                     )
                     .with_context(|| format!("layering {name}"))?;

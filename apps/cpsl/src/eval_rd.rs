@@ -577,7 +577,7 @@ fn spearman(x: &[f64], y: &[f64]) -> Option<f64> {
 /// Runs `cpsl eval-rd`.
 pub fn run(a: EvalRdArgs) -> Result<()> {
     let codec = Codec::from(a.codec);
-    crate::encode::require_encoder(codec)?;
+    cpsl_pipeline::encode::require_encoder(codec)?;
     let (q_min, q_max, _) = cpsl_codec::quality_range(codec);
     let qualities = match &a.qualities {
         Some(q) => q.clone(),
@@ -762,18 +762,18 @@ fn uncompressed(psnr: f64, lpips: Option<f64>) -> Point {
 }
 
 /// A grey sample of DIBR's depth: 8-bit in an 8-bit stream, 16-bit in a 10-bit one.
-trait Grey: cpsl_codec::Sample + Into<f64> {
+trait DepthSample: cpsl_codec::Sample + Into<f64> {
     /// The largest value.
     const TOP: f64;
     /// The sample nearest `v * TOP`.
     fn from_unit(v: f64) -> Self;
     /// Colour over grey in one picture.
     fn stack(rgb: &[u8], grey: &[Self], width: u32, height: u32) -> Yuv420<Self>;
-    /// The colour and grey of a picture made by [`Grey::stack`].
+    /// The colour and grey of a picture made by [`DepthSample::stack`].
     fn unstack(p: &Yuv420<Self>, width: u32, height: u32) -> (Vec<u8>, Vec<Self>);
 }
 
-impl Grey for u8 {
+impl DepthSample for u8 {
     const TOP: f64 = 255.0;
     fn from_unit(v: f64) -> Self {
         (v * Self::TOP).round() as u8
@@ -786,7 +786,7 @@ impl Grey for u8 {
     }
 }
 
-impl Grey for u16 {
+impl DepthSample for u16 {
     const TOP: f64 = 65535.0;
     fn from_unit(v: f64) -> Self {
         (v * Self::TOP).round() as u16
@@ -805,7 +805,7 @@ type ColourDepth = Vec<(Vec<u8>, Vec<f32>)>;
 /// DIBR's stream at quality `q`: the clip's colour over its depth coded (`to_unit`: depth to
 /// `[0, 1]`) in grey samples `T`, written to `path` and decoded (`from_unit`: back to depth).
 /// Returns the file size and the decoded frames.
-fn dibr_stream<T: Grey>(
+fn dibr_stream<T: DepthSample>(
     path: &Path,
     clip: &Clip,
     codec: Codec,

@@ -2,7 +2,6 @@
 //! frame-wise depth slicing (the normalising baseline), frame-wise CPSL, I/P propagation,
 //! and I/P with refinement and adaptive refresh with hysteresis.
 
-use crate::layer::open_depth_model;
 use crate::render::DPS;
 use anyhow::{Context, Result};
 use clap::{Args, ValueEnum};
@@ -14,6 +13,7 @@ use cpsl_eval::temporal::{
 };
 use cpsl_flow::Flow;
 use cpsl_layering::{slice_by_depth, LayeringConfig, SliceConfig};
+use cpsl_pipeline::sources::open_depth_model;
 use cpsl_render::{CpuRenderer, FrameLayers};
 use cpsl_temporal::{GopConfig, VideoLayerer};
 use serde::Serialize;

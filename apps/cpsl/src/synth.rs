@@ -1,6 +1,6 @@
 //! `cpsl synth` (synthetic ground truth) and `cpsl slice` (depth slicing).
 
-use crate::layer::{open_depth_model, CameraArgs, DepthArgs};
+use crate::layer::{CameraArgs, DepthArgs};
 use crate::progress::Bars;
 use crate::util;
 use anyhow::{Context, Result};
@@ -9,6 +9,7 @@ use cpsl_core::{Camera, DepthSource, Limits, Pose, Progress, ProgressEvent};
 use cpsl_io::images::write_png;
 use cpsl_io::pfm::{write_pfm, FloatImage};
 use cpsl_layering::{slice_by_depth, SliceConfig};
+use cpsl_pipeline::sources::open_depth_model;
 use cpsl_synth::Scene;
 use serde::Serialize;
 use std::path::{Path, PathBuf};

@@ -1,14 +1,13 @@
 //! `cpsl layer-video`: a video (or an image sequence) to a sequence of layer sets, organised
 //! in groups of pictures with motion-guided propagation.
 
-use crate::layer::{open_depth_model, read_config, CameraArgs};
-use anyhow::{Context, Result};
+use crate::layer::CameraArgs;
+use crate::progress::Bars;
+use anyhow::Result;
 use clap::{Args, ValueEnum};
-use cpsl_core::DepthSource;
-use cpsl_core::LayeredFrame;
-use cpsl_layering::LayeringConfig;
-use cpsl_temporal::{GopConfig, VideoLayerer};
-use indicatif::{ProgressBar, ProgressStyle};
+use cpsl_pipeline::sources::{layering_config, VideoDepth};
+use cpsl_pipeline::video::{write_layered_video, MotionSource, VideoJob};
+use cpsl_temporal::GopConfig;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
@@ -37,12 +36,21 @@ impl Temporal {
 
 /// Where P-frame motion comes from.
 #[derive(ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
-pub enum MotionSource {
+pub enum MotionArg {
     /// The decoder's motion vectors where the input is H.264 and they cover the frame,
     /// optical flow otherwise.
     Auto,
     /// Always optical flow.
     Flow,
+}
+
+impl From<MotionArg> for MotionSource {
+    fn from(a: MotionArg) -> Self {
+        match a {
+            MotionArg::Auto => MotionSource::Auto,
+            MotionArg::Flow => MotionSource::Flow,
+        }
+    }
 }
 
 /// Arguments of `cpsl layer-video`.
@@ -57,12 +65,12 @@ pub struct LayerVideoArgs {
     #[arg(short, long)]
     pub output: PathBuf,
     #[command(flatten)]
-    pub layering: VideoLayering,
+    pub layering: VideoLayeringArgs,
 }
 
 /// How a video is layered (shared by `cpsl layer-video` and `cpsl encode`).
 #[derive(Args)]
-pub struct VideoLayering {
+pub struct VideoLayeringArgs {
     /// Most frames per group of pictures (an I-frame at least this often).
     #[arg(long, default_value_t = 30, value_parser = clap::value_parser!(u32).range(1..=600))]
     pub gop: u32,
@@ -91,8 +99,8 @@ pub struct VideoLayering {
     #[arg(long, value_enum, default_value_t = Temporal::Full)]
     pub temporal: Temporal,
     /// Motion source for P-frames.
-    #[arg(long, value_enum, default_value_t = MotionSource::Auto)]
-    pub motion: MotionSource,
+    #[arg(long, value_enum, default_value_t = MotionArg::Auto)]
+    pub motion: MotionArg,
     /// Stop after this many frames.
     #[arg(long)]
     pub max_frames: Option<usize>,
@@ -101,212 +109,34 @@ pub struct VideoLayering {
     pub config: Option<PathBuf>,
 }
 
-/// Where a video's depth comes from.
-pub enum VideoDepth {
-    /// A monocular depth model run on the frames.
-    Model(Box<dyn DepthSource>),
-    /// One depth map per frame.
-    Frames(cpsl_io::depth::DepthSequence),
-}
-
-impl VideoDepth {
-    /// Depth of frame `index`.
-    fn depth(&mut self, index: usize, rgb: &[u8], width: u32, height: u32) -> Result<Vec<f32>> {
-        Ok(match self {
-            VideoDepth::Model(m) => m.depth(rgb, width, height)?,
-            VideoDepth::Frames(s) => s.depth_at(index, width, height)?,
-        })
-    }
-
-    /// A short description, saved with the output.
-    pub fn name(&self) -> String {
-        match self {
-            VideoDepth::Model(m) => m.name(),
-            VideoDepth::Frames(s) => format!("depth maps in {}", s.dir.display()),
-        }
-    }
-}
-
-impl VideoLayering {
-    /// The layering configuration, GOP configuration and depth source these arguments name.
-    pub fn setup(&self) -> Result<(LayeringConfig, GopConfig, VideoDepth)> {
-        let mut cfg = match &self.config {
-            Some(p) => read_config(p)?,
-            None => LayeringConfig::default(),
-        };
-        cfg.layers = self.layers as usize;
-        let gop = self.temporal.config(self.gop as usize);
+impl VideoLayeringArgs {
+    /// The job these arguments describe for `input`, and its depth source.
+    pub fn job(&self, input: &Path) -> Result<(VideoJob, VideoDepth)> {
         let depth = match &self.depth_frames {
-            Some(dir) => {
-                anyhow::ensure!(
-                    self.depth_scale.is_finite() && self.depth_scale > 0.0,
-                    "--depth-scale must be finite and > 0, found {}",
-                    self.depth_scale
-                );
-                let units = cpsl_io::depth::DepthUnits {
-                    scale: self.depth_scale,
-                };
-                VideoDepth::Frames(cpsl_io::depth::DepthSequence::open(
-                    dir,
-                    units,
-                    cpsl_core::Limits::default(),
-                )?)
-            }
-            None => VideoDepth::Model(Box::new(open_depth_model(
-                &self.depth_model,
-                self.model_desc.as_deref(),
-            )?)),
+            Some(dir) => VideoDepth::frames(dir, self.depth_scale)?,
+            None => VideoDepth::model(&self.depth_model, self.model_desc.as_deref())?,
         };
-        Ok((cfg, gop, depth))
+        let job = VideoJob {
+            input: input.to_path_buf(),
+            camera: self.camera.choice(),
+            layering: layering_config(self.config.as_deref(), self.layers)?,
+            gop: self.temporal.config(self.gop as usize),
+            motion: self.motion.into(),
+            depth_every_frame: self.depth_every_frame,
+            max_frames: self.max_frames,
+        };
+        Ok((job, depth))
     }
-}
-
-/// What `layer_video` produced, per frame.
-pub struct FrameRecord {
-    /// The layered frame.
-    pub frame: LayeredFrame,
-    /// Whether the decoder's motion vectors were used.
-    pub decoder_motion: bool,
-    /// Milliseconds for this frame, depth included.
-    pub ms: f64,
-}
-
-/// Layers every frame of `input` as `how` says, with the configurations and depth model of
-/// [`VideoLayering::setup`], and hands each result to `sink`.
-pub fn layer_video(
-    input: &Path,
-    how: &VideoLayering,
-    cfg: &LayeringConfig,
-    gop: GopConfig,
-    depth: &mut VideoDepth,
-    mut sink: impl FnMut(&FrameRecord) -> Result<()>,
-) -> Result<cpsl_media::Info> {
-    let mut src =
-        cpsl_media::open(input).with_context(|| format!("opening {}", input.display()))?;
-    let info = src.info().clone();
-    let cam = how.camera.camera(info.width, info.height)?;
-    let mut cfg = *cfg;
-    cfg.cues.allow_missing_depth = true;
-    let mut layerer = VideoLayerer::new(cam, cfg, gop)?;
-    let max_frames = how.max_frames;
-    let total = match (info.frames, max_frames) {
-        (Some(n), Some(m)) => Some(n.min(m)),
-        (n, m) => n.or(m),
-    };
-    let bar = match total {
-        Some(n) => ProgressBar::new(n as u64).with_style(
-            ProgressStyle::with_template(
-                "{msg:>12} [{bar:30}] {pos}/{len} frames {per_sec} elapsed {elapsed} eta {eta}",
-            )
-            .expect("template")
-            .progress_chars("=> "),
-        ),
-        None => ProgressBar::new_spinner(),
-    };
-    bar.set_message("layering");
-    let mut count = 0;
-    while max_frames.is_none_or(|m| count < m) {
-        let Some(frame) = src
-            .next_frame()
-            .with_context(|| format!("decoding {}", input.display()))?
-        else {
-            break;
-        };
-        let t = Instant::now();
-        layerer.set_frames_left(total.map(|n| n.saturating_sub(count)));
-        let intra = layerer.next_is_intra();
-        let z = if intra || how.depth_every_frame {
-            Some(depth.depth(frame.index, &frame.rgb, info.width, info.height)?)
-        } else {
-            None
-        };
-        let given = match how.motion {
-            MotionSource::Auto => frame.motion,
-            MotionSource::Flow => None,
-        };
-        let decoder_motion = given.is_some() && !intra;
-        let out = layerer
-            .push_with_motion(&frame.rgb, z.as_deref(), given)
-            .with_context(|| format!("frame {}", frame.index))?;
-        let rec = FrameRecord {
-            frame: out,
-            decoder_motion,
-            ms: t.elapsed().as_secs_f64() * 1e3,
-        };
-        sink(&rec)?;
-        count += 1;
-        bar.set_message(if rec.frame.refresh.is_some() {
-            "I-frame"
-        } else {
-            "P-frame"
-        });
-        bar.inc(1);
-    }
-    bar.finish_and_clear();
-    anyhow::ensure!(count > 0, "{}: no frames", input.display());
-    Ok(info)
 }
 
 /// Runs `cpsl layer-video`.
 pub fn run(a: LayerVideoArgs) -> Result<()> {
-    let replaceable = |p: &Path| p.join("video.json").is_file();
-    if a.output.exists() && !replaceable(&a.output) {
-        anyhow::bail!(
-            "{} exists and is not the output of cpsl layer-video; not replacing it",
-            a.output.display()
-        );
-    }
-    let (cfg, gop, mut depth) = a.layering.setup()?;
-    // Written beside the output and moved into place when complete; on an error the staged
-    // folder is removed when `staged` is dropped.
-    let staged = cpsl_io::Staged::folder(&a.output, replaceable)?;
-    let stage = staged.path();
-    let mut records = Vec::new();
+    let (job, mut depth) = a.layering.job(&a.input)?;
     let t = Instant::now();
-    let info = layer_video(&a.input, &a.layering, &cfg, gop, &mut depth, |r| {
-        let f = &r.frame;
-        let dir = format!("frame_{:06}", f.index);
-        let edc = f.edc.encode();
-        cpsl_io::write_layer_set(
-            &stage.join(&dir),
-            &f.set,
-            &[(cpsl_io::EDC_FILE, edc.as_slice())],
-        )?;
-        records.push(serde_json::json!({
-                "index": f.index,
-                "dir": dir,
-                "kind": if f.refresh.is_some() { "I" } else { "P" },
-                "refresh": f.refresh,
-                "tracks": f.set.layers().iter().map(|l| l.meta.track).collect::<Vec<_>>(),
-                "confidence": f.confidence,
-                "crack": f.crack,
-                "depth": if f.depth_propagated { "propagated" } else { "estimated" },
-                "motion": if f.refresh.is_some() { "none" } else if r.decoder_motion { "decoder" } else { "flow" },
-                "ms": r.ms,
-                "timings_ms": f.timings.iter().map(|(s, t)| serde_json::json!({"stage": s, "ms": t})).collect::<Vec<_>>(),
-            }));
-        Ok(())
-    })?;
+    let m = write_layered_video(&job, &mut depth, &a.output, &Bars::default())?;
     let seconds = t.elapsed().as_secs_f64();
-    let n = records.len();
-    let intra = records.iter().filter(|r| r["kind"] == "I").count();
-    let manifest = serde_json::json!({
-        "format": "cpsl-video-layers",
-        "version": 1,
-        "input": a.input.display().to_string(),
-        "codec": info.codec,
-        "fps": info.fps,
-        "width": info.width,
-        "height": info.height,
-        "rotation": info.rotation,
-        "hdr": info.hdr,
-        "depth": depth.name(),
-        "gop": gop,
-        "layering": cfg,
-        "frames": records,
-    });
-    staged.write_file("video.json", &serde_json::to_vec_pretty(&manifest)?)?;
-    staged.commit(replaceable)?;
+    let n = m.frames.len();
+    let intra = m.frames.iter().filter(|f| f.kind == "I").count();
     println!(
         "wrote {n} frames ({intra} I-frames) to {} in {seconds:.1} s ({:.1} frames/s)",
         a.output.display(),

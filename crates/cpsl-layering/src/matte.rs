@@ -24,8 +24,8 @@ use crate::cues::Cues;
 use crate::error::LayeringError;
 use crate::fill::push_pull;
 use crate::grid::distance;
-use cpsl_core::resample::source_coord;
 use crate::promote::{Kind, Plan};
+use cpsl_core::resample::source_coord;
 use cpsl_core::{
     Camera, Edc, EdcSample, Layer, LayerMeta, LayerRole, LayerSet, Limits, PremulImage,
 };

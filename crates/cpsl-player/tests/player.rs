@@ -59,11 +59,17 @@ fn seeks_anywhere_and_opens_every_source() {
         assert!(decoded.edc.is_some(), "frame {f} comes with its cache");
         let own = diff(&decoded.set, &sets[f as usize]);
         let other = diff(&decoded.set, &sets[((f + 1) % FRAMES) as usize]);
-        assert!(own < 4.0 && own * 3.0 < other, "frame {f}: {own} vs {other}");
+        assert!(
+            own < 4.0 && own * 3.0 < other,
+            "frame {f}: {own} vs {other}"
+        );
     }
     assert!(matches!(
         player.decode(FRAMES),
-        Err(PlayerError::NoFrame { frame: 7, frames: 7 })
+        Err(PlayerError::NoFrame {
+            frame: 7,
+            frames: 7
+        })
     ));
     // The frame asked for is kept until another is.
     let kept = player.frame(3).unwrap() as *const _;

@@ -179,7 +179,10 @@ fn shaders_validate() {
 #[test]
 fn both_renderers_agree_through_the_renderer_interface() {
     let Some(gpu) = gpu() else { return };
-    let frame = FrameLayers::new(synthetic_layer_set(160, 120, 4, Coverage::Typical, 11), None);
+    let frame = FrameLayers::new(
+        synthetic_layer_set(160, 120, 4, Coverage::Typical, 11),
+        None,
+    );
     let cam = *frame.set.camera();
     let pose = Pose::from_euler_deg(Vec3::new(0.04, -0.02, 0.05), 1.0, 2.0, 0.0);
     let dps = DpsConfig::default();

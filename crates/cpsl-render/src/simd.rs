@@ -6,8 +6,8 @@
 //! it; a test checks that.
 #![allow(unsafe_code)]
 
-use cpsl_core::resample::avx2::{bilerp8, gather_taps};
 pub(crate) use cpsl_core::resample::avx2::available;
+use cpsl_core::resample::avx2::{bilerp8, gather_taps};
 use std::arch::x86_64::*;
 
 /// Composites `n = trans.len()` pixels of a linear span whose positions (16.16 fixed point,

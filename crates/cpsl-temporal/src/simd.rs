@@ -5,8 +5,8 @@
 //! filter in 16-bit lanes. A test checks bit-identity on random layers and positions.
 #![allow(unsafe_code)]
 
-use cpsl_core::resample::avx2::{bilerp8, gather_taps};
 pub(crate) use cpsl_core::resample::avx2::available;
+use cpsl_core::resample::avx2::{bilerp8, gather_taps};
 use std::arch::x86_64::*;
 
 /// Samples whole groups of eight of the positions `xs`, `ys` (1/256 px) from `texels` (a

@@ -118,7 +118,9 @@ mod tests {
         let (w, h) = (13usize, 7usize);
         let mut state = 7u64;
         let mut next = || {
-            state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
             (state >> 33) as u32
         };
         let texels: Vec<u32> = (0..w * h).map(|_| next()).collect();
@@ -154,7 +156,14 @@ mod tests {
                 let (x, y, fx, fy) = pos[k];
                 let t = |dx: usize, dy: usize| texels[(y + dy) * w + x + dx];
                 let want = match (valid_bits >> k) & 1 {
-                    1 => super::super::bilerp(t(0, 0), t(1, 0), t(0, 1), t(1, 1), fx as u64, fy as u64),
+                    1 => super::super::bilerp(
+                        t(0, 0),
+                        t(1, 0),
+                        t(0, 1),
+                        t(1, 1),
+                        fx as u64,
+                        fy as u64,
+                    ),
                     _ => 0,
                 };
                 let got = (a[k] & 0xFFFF) as u64

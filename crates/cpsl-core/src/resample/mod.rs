@@ -62,7 +62,10 @@ pub fn resize_bilinear(
     dh: usize,
 ) -> Vec<f32> {
     assert_eq!(src.len(), sw * sh * ch, "resize_bilinear: source size");
-    assert!(sw > 0 && sh > 0 && dw > 0 && dh > 0, "resize_bilinear: empty image");
+    assert!(
+        sw > 0 && sh > 0 && dw > 0 && dh > 0,
+        "resize_bilinear: empty image"
+    );
     let mut out = vec![0f32; dw * dh * ch];
     let axis = |d: usize, dn: usize, sn: usize| {
         let s = source_coord(d, dn, sn);
@@ -70,17 +73,19 @@ pub fn resize_bilinear(
         (i0, (i0 + 1).min(sn - 1), (s - i0 as f64) as f32)
     };
     let xs: Vec<_> = (0..dw).map(|x| axis(x, dw, sw)).collect();
-    out.par_chunks_mut(dw * ch).enumerate().for_each(|(y, row)| {
-        let (y0, y1, fy) = axis(y, dh, sh);
-        for (o, &(x0, x1, fx)) in row.chunks_exact_mut(ch).zip(&xs) {
-            for (c, o) in o.iter_mut().enumerate() {
-                let p = |yy: usize, xx: usize| src[(yy * sw + xx) * ch + c];
-                let top = p(y0, x0) * (1.0 - fx) + p(y0, x1) * fx;
-                let bot = p(y1, x0) * (1.0 - fx) + p(y1, x1) * fx;
-                *o = top * (1.0 - fy) + bot * fy;
+    out.par_chunks_mut(dw * ch)
+        .enumerate()
+        .for_each(|(y, row)| {
+            let (y0, y1, fy) = axis(y, dh, sh);
+            for (o, &(x0, x1, fx)) in row.chunks_exact_mut(ch).zip(&xs) {
+                for (c, o) in o.iter_mut().enumerate() {
+                    let p = |yy: usize, xx: usize| src[(yy * sw + xx) * ch + c];
+                    let top = p(y0, x0) * (1.0 - fx) + p(y0, x1) * fx;
+                    let bot = p(y1, x0) * (1.0 - fx) + p(y1, x1) * fx;
+                    *o = top * (1.0 - fy) + bot * fy;
+                }
             }
-        }
-    });
+        });
     out
 }
 
@@ -105,7 +110,9 @@ mod tests {
     fn bilerp_is_within_one_level_of_exact_and_keeps_colour_below_alpha() {
         let mut state = 1u64;
         let mut next = || {
-            state = state.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            state = state
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
             (state >> 33) as u32
         };
         for _ in 0..20000 {
@@ -122,7 +129,10 @@ mod tests {
                 let v = |t: usize| taps[t][c] as f32;
                 let want = (v(0) * (1.0 - wx) + v(1) * wx) * (1.0 - wy)
                     + (v(2) * (1.0 - wx) + v(3) * wx) * wy;
-                assert!((got[c] as f32 - want).abs() <= 1.0, "{taps:?} {fx} {fy}: {got:?}");
+                assert!(
+                    (got[c] as f32 - want).abs() <= 1.0,
+                    "{taps:?} {fx} {fy}: {got:?}"
+                );
             }
             assert!(got[..3].iter().all(|&c| c <= got[3]), "{got:?}");
         }

@@ -1,0 +1,245 @@
+//! A video to a package: frames decoded, layered and pushed into the package writers as they
+//! arrive (each writer codes a segment when its group of pictures closes), written as a
+//! package folder, a single archive file, or one package per budget with a `variants.json`.
+
+use crate::error::{Context, PipelineError};
+use crate::sources::VideoDepth;
+use crate::video::{layer_video, VideoJob};
+use cpsl_codec::{CodingOptions, PackageWriter, RateControl, SegmentReport};
+use cpsl_core::{Progress, ProgressEvent};
+use cpsl_package::{Codec, PackageManifest, VariantSet, VARIANTS_FILE};
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
+/// What an encode writes.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Target {
+    /// One package folder at this rate.
+    Package(PathBuf, RateControl),
+    /// One package as a single archive file at this rate.
+    Archive(PathBuf, RateControl),
+    /// One package per budget (bits per second) in this folder, with `variants.json`.
+    Variants(PathBuf, Vec<f64>),
+}
+
+/// How a video is encoded.
+#[derive(Debug, Clone)]
+pub struct EncodeJob {
+    /// How the frames are layered (its `layering.layers` is the package's K).
+    pub video: VideoJob,
+    /// Codec of the layer streams.
+    pub codec: Codec,
+    /// Frames per second of the package; the input's when `None`.
+    pub fps: Option<f64>,
+    /// What to write.
+    pub target: Target,
+}
+
+/// What an encode wrote.
+#[derive(Debug, Clone)]
+pub struct Encoded {
+    /// Each package written (for variants, cheapest first) and its manifest.
+    pub packages: Vec<(PathBuf, PackageManifest)>,
+    /// The variant set, if one was written.
+    pub variant_set: Option<PathBuf>,
+    /// Seconds end to end.
+    pub seconds: f64,
+    /// Seconds spent coding.
+    pub coding_seconds: f64,
+}
+
+/// Fails clearly when this FFmpeg cannot encode `codec`.
+pub fn require_encoder(codec: Codec) -> Result<(), PipelineError> {
+    if cpsl_codec::has_encoder(codec) {
+        Ok(())
+    } else {
+        Err(PipelineError::Invalid(format!(
+            "this FFmpeg has no {} encoder (scripts/setup-system.sh installs Debian's, which has all four)",
+            codec.name()
+        )))
+    }
+}
+
+/// The packages to write, each with its rate: one, or one per budget.
+fn plan(target: &Target) -> Result<Vec<(PathBuf, RateControl)>, PipelineError> {
+    let refuse = |what: String| Err(PipelineError::Invalid(what));
+    match target {
+        Target::Package(out, rate) => {
+            if out.exists() && !(out.is_dir() && cpsl_package::is_package(out)) {
+                return refuse(format!(
+                    "{} exists and is not a CPSL package; not replacing it",
+                    out.display()
+                ));
+            }
+            Ok(vec![(out.clone(), *rate)])
+        }
+        Target::Archive(out, rate) => {
+            if out.exists() && !cpsl_package::is_archive(out) {
+                return refuse(format!(
+                    "{} exists and is not a CPSL package archive; not replacing it",
+                    out.display()
+                ));
+            }
+            Ok(vec![(archive_folder(out), *rate)])
+        }
+        Target::Variants(dir, budgets) => {
+            if dir.exists() && !dir.join(VARIANTS_FILE).is_file() {
+                return refuse(format!(
+                    "{} exists and is not a variant set (no {VARIANTS_FILE}); not replacing it",
+                    dir.display()
+                ));
+            }
+            let mut budgets = budgets.clone();
+            budgets.sort_by(f64::total_cmp);
+            budgets.dedup();
+            std::fs::create_dir_all(dir).map_err(|source| PipelineError::File {
+                path: dir.clone(),
+                source,
+            })?;
+            budgets
+                .into_iter()
+                .map(|b| {
+                    let p = dir.join(format!("{:.0}k.cpsl", b / 1e3));
+                    if p.exists() && !cpsl_package::is_package(&p) {
+                        return Err(PipelineError::Invalid(format!(
+                            "{} exists and is not a CPSL package",
+                            p.display()
+                        )));
+                    }
+                    Ok((p, RateControl::Budget(b)))
+                })
+                .collect()
+        }
+    }
+}
+
+/// Says when a segment missed its budget.
+fn warn_over_budget(r: &SegmentReport, progress: &dyn Progress) {
+    if !r.feasible {
+        progress.event(ProgressEvent::Warning {
+            message: format!(
+                "segment at frame {}: {:.0} bits spent of a budget of {:.0} ({})",
+                r.start,
+                r.bits,
+                r.budget_bits.unwrap_or(0.0),
+                if r.at_floor {
+                    "the cheapest coding, lowest quality at the smallest size, needs more"
+                } else {
+                    "the allocator's correction rounds did not reach it"
+                }
+            ),
+        });
+    }
+}
+
+/// Encodes the job's video: one layering pass feeds every package of the target. `stop`,
+/// when set (e.g. by Ctrl-C), ends the run after the current frame with nothing written.
+pub fn encode(
+    job: &EncodeJob,
+    depth: &mut VideoDepth,
+    progress: &dyn Progress,
+    stop: &AtomicBool,
+) -> Result<Encoded, PipelineError> {
+    require_encoder(job.codec)?;
+    let outputs = plan(&job.target)?;
+    let fps = match job.fps {
+        Some(f) if f.is_finite() && (0.1..=1000.0).contains(&f) => f,
+        Some(f) => {
+            return Err(PipelineError::Invalid(format!(
+                "--fps {f}: give 0.1 to 1000 frames per second"
+            )))
+        }
+        None => {
+            let input = &job.video.input;
+            cpsl_media::open(input)
+                .context_with(|| format!("opening {}", input.display()))?
+                .info()
+                .fps
+        }
+    };
+    let interrupted = || PipelineError::Interrupted("package");
+    let layers = job.video.layering.layers as u32;
+    let mut writers: Vec<PackageWriter> = Vec::new();
+    let mut coding = 0.0;
+    let t = Instant::now();
+    layer_video(&job.video, depth, progress, |r| {
+        if stop.load(Ordering::SeqCst) {
+            return Err(interrupted());
+        }
+        let f = r.frame;
+        if writers.is_empty() {
+            for (path, rate) in &outputs {
+                let opts = CodingOptions {
+                    codec: job.codec,
+                    rate: *rate,
+                    fps,
+                };
+                writers.push(PackageWriter::create(path, *f.set.camera(), layers, opts)?);
+            }
+        }
+        let t = Instant::now();
+        let index = f.index;
+        // Every writer but the last gets a copy; the last takes the frame.
+        let n = writers.len();
+        let mut frame = Some(f);
+        for (i, writer) in writers.iter_mut().enumerate() {
+            let f = match i + 1 == n {
+                true => frame.take().expect("the last writer takes the frame"),
+                false => frame.clone().expect("kept for the last writer"),
+            };
+            let report = writer
+                .push(f)
+                .context_with(|| format!("coding the segment before frame {index}"))?;
+            report.iter().for_each(|r| warn_over_budget(r, progress));
+        }
+        coding += t.elapsed().as_secs_f64();
+        Ok(())
+    })?;
+    if stop.load(Ordering::SeqCst) {
+        return Err(interrupted());
+    }
+    let mut packages = Vec::new();
+    for (writer, (path, _)) in writers.into_iter().zip(&outputs) {
+        let t = Instant::now();
+        let mut writer = writer;
+        let report = writer
+            .flush()
+            .context_with(|| "coding the last segment".into())?;
+        report.iter().for_each(|r| warn_over_budget(r, progress));
+        let manifest = writer.finish()?;
+        coding += t.elapsed().as_secs_f64();
+        packages.push((path.clone(), manifest));
+    }
+    let mut variant_set = None;
+    match &job.target {
+        Target::Archive(out, _) => {
+            let folder = &packages[0].0;
+            let packed = cpsl_package::pack(folder, out);
+            std::fs::remove_dir_all(folder).map_err(|source| PipelineError::File {
+                path: folder.clone(),
+                source,
+            })?;
+            packed.context_with(|| format!("packing {}", out.display()))?;
+            packages[0].0 = out.clone();
+        }
+        Target::Variants(dir, _) => {
+            let names = packages.iter().filter_map(|(p, _)| p.file_name()?.to_str());
+            VariantSet::new(names.map(String::from).collect()).write(dir)?;
+            variant_set = Some(dir.join(VARIANTS_FILE));
+        }
+        Target::Package(..) => {}
+    }
+    Ok(Encoded {
+        packages,
+        variant_set,
+        seconds: t.elapsed().as_secs_f64(),
+        coding_seconds: coding,
+    })
+}
+
+/// The hidden sibling folder that an archive is written to and packed from.
+fn archive_folder(out: &Path) -> PathBuf {
+    let name = out.file_name().unwrap_or_default().to_string_lossy();
+    out.with_file_name(format!(".{name}.folder"))
+}

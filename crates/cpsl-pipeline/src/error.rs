@@ -1,0 +1,83 @@
+//! The pipelines' error: every library's error, bad options, and context saying what was
+//! being done.
+
+use std::path::PathBuf;
+use thiserror::Error;
+
+/// Why a pipeline failed.
+#[derive(Debug, Error)]
+pub enum PipelineError {
+    /// An option or input is unusable.
+    #[error("{0}")]
+    Invalid(String),
+    /// Reading or writing files.
+    #[error(transparent)]
+    Io(#[from] cpsl_io::IoError),
+    /// A file operation outside `cpsl-io`.
+    #[error("{path}: {source}")]
+    File {
+        /// The file.
+        path: PathBuf,
+        /// The cause.
+        source: std::io::Error,
+    },
+    /// A JSON file does not parse.
+    #[error("{path}: {source}")]
+    Json {
+        /// The file.
+        path: PathBuf,
+        /// The cause.
+        source: serde_json::Error,
+    },
+    /// Neural inference.
+    #[error(transparent)]
+    Model(#[from] cpsl_models::ModelError),
+    /// A depth source.
+    #[error(transparent)]
+    Depth(#[from] cpsl_core::DepthSourceError),
+    /// Layering one frame.
+    #[error(transparent)]
+    Layering(#[from] cpsl_layering::LayeringError),
+    /// Layering a video.
+    #[error(transparent)]
+    Temporal(#[from] cpsl_temporal::VideoError),
+    /// Reading video.
+    #[error(transparent)]
+    Media(#[from] cpsl_media::MediaError),
+    /// Coding layer streams.
+    #[error(transparent)]
+    Codec(#[from] cpsl_codec::CodecError),
+    /// Writing or reading a package.
+    #[error(transparent)]
+    Package(#[from] cpsl_package::PackageError),
+    /// A camera is invalid.
+    #[error(transparent)]
+    Core(#[from] cpsl_core::CoreError),
+    /// The caller asked to stop.
+    #[error("interrupted; no {0} written")]
+    Interrupted(&'static str),
+    /// What was being done when `source` happened.
+    #[error("{context}")]
+    Context {
+        /// What was being done.
+        context: String,
+        /// What went wrong.
+        #[source]
+        source: Box<PipelineError>,
+    },
+}
+
+/// Adds what was being done to an error.
+pub trait Context<T> {
+    /// Wraps the error with `f()`.
+    fn context_with(self, f: impl FnOnce() -> String) -> Result<T, PipelineError>;
+}
+
+impl<T, E: Into<PipelineError>> Context<T> for Result<T, E> {
+    fn context_with(self, f: impl FnOnce() -> String) -> Result<T, PipelineError> {
+        self.map_err(|e| PipelineError::Context {
+            context: f(),
+            source: Box::new(e.into()),
+        })
+    }
+}

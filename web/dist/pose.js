@@ -1,5 +1,5 @@
 // Camera, pose and the plane-induced homography, exactly as cpsl-core computes them
-// (crates/cpsl-core/src/{camera,pose,homography}.rs), in f64.
+// (crates/1-base/cpsl-core/src/{camera,pose,homography}.rs), in f64.
 export function mul(a, b) {
     const m = [
         [0, 0, 0],

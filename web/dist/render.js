@@ -1,4 +1,4 @@
-// The WebGL2 renderer, with the semantics of the CPU reference (crates/cpsl-render):
+// The WebGL2 renderer, with the semantics of the CPU reference (crates/7-output/cpsl-render):
 // per layer the inverse plane-induced homography, bilinear premultiplied sampling with a
 // transparent border, front-to-back compositing (paper eq. 2), then the Dynamic Pixel Strip
 // (paper eq. 4) guided by the Edge-Depth Cache. The layer pictures are converted from

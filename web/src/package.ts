@@ -1,4 +1,4 @@
-// The package format (crates/cpsl-package): the manifest and the per-segment side stream.
+// The package format (crates/6-coding/cpsl-package): the manifest and the per-segment side stream.
 
 import type { Camera } from "./pose.js";
 
@@ -86,7 +86,7 @@ async function inflateRaw(bytes: Uint8Array, expected: number): Promise<Uint8Arr
   return out;
 }
 
-/** Parses a side stream (`side.bin`, version 1; see crates/cpsl-package/src/side.rs). */
+/** Parses a side stream (`side.bin`, version 1; see crates/6-coding/cpsl-package/src/side.rs). */
 export async function parseSide(buf: ArrayBuffer): Promise<SideFrame[]> {
   const b = new Uint8Array(buf);
   const v = new DataView(buf);

@@ -6,16 +6,19 @@ use axum::extract::Path;
 use axum::http::{header, HeaderMap, Response, StatusCode};
 
 /// The page.
-pub(crate) const INDEX: &str = include_str!("../../../web/index.html");
+pub(crate) const INDEX: &str = include_str!("../../../../web/index.html");
 
 /// The player's modules, by file name (`web/dist/`).
 pub(crate) const SCRIPTS: &[(&str, &str)] = &[
-    ("main.js", include_str!("../../../web/dist/main.js")),
-    ("decode.js", include_str!("../../../web/dist/decode.js")),
-    ("mp4.js", include_str!("../../../web/dist/mp4.js")),
-    ("package.js", include_str!("../../../web/dist/package.js")),
-    ("pose.js", include_str!("../../../web/dist/pose.js")),
-    ("render.js", include_str!("../../../web/dist/render.js")),
+    ("main.js", include_str!("../../../../web/dist/main.js")),
+    ("decode.js", include_str!("../../../../web/dist/decode.js")),
+    ("mp4.js", include_str!("../../../../web/dist/mp4.js")),
+    (
+        "package.js",
+        include_str!("../../../../web/dist/package.js"),
+    ),
+    ("pose.js", include_str!("../../../../web/dist/pose.js")),
+    ("render.js", include_str!("../../../../web/dist/render.js")),
 ];
 
 fn text(body: &'static str, ctype: &'static str, headers: &HeaderMap) -> Response<Body> {
@@ -63,7 +66,7 @@ mod tests {
     /// Every built module is embedded, and the embedded copies are the files on disk.
     #[test]
     fn every_built_module_is_embedded() {
-        let dist = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../web/dist");
+        let dist = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../../../web/dist");
         let mut on_disk: Vec<String> = std::fs::read_dir(&dist)
             .unwrap()
             .map(|e| e.unwrap().file_name().into_string().unwrap())

@@ -187,7 +187,7 @@ pub struct PackageManifest {
 
 /// Why a manifest was rejected.
 #[derive(Debug, Error, Clone, PartialEq)]
-pub enum ManifestError {
+pub enum PackageManifestError {
     /// Not valid JSON, or not the expected shape.
     #[error("invalid JSON: {0}")]
     Json(String),
@@ -210,8 +210,8 @@ pub enum ManifestError {
     },
 }
 
-fn field(field: impl Into<String>, reason: impl Into<String>) -> ManifestError {
-    ManifestError::Field {
+fn field(field: impl Into<String>, reason: impl Into<String>) -> PackageManifestError {
+    PackageManifestError::Field {
         field: field.into(),
         reason: reason.into(),
     }
@@ -271,24 +271,24 @@ impl PackageManifest {
     /// Parses and checks a manifest: its checksum, shape, format, version, paths and the
     /// consistency of its numbers (segments contiguous from frame 0 and adding up to `frames`,
     /// at least one stream per segment, a positive frame rate, a valid camera).
-    pub fn parse(bytes: &[u8]) -> Result<Self, ManifestError> {
+    pub fn parse(bytes: &[u8]) -> Result<Self, PackageManifestError> {
         cpsl_core::check_head(bytes, PACKAGE_FORMAT, PACKAGE_VERSION).map_err(|e| match e {
-            HeadError::Json(m) => ManifestError::Json(m),
-            HeadError::Format(f) => ManifestError::Format(f),
-            HeadError::Version(v) => ManifestError::Version(v),
+            HeadError::Json(m) => PackageManifestError::Json(m),
+            HeadError::Format(f) => PackageManifestError::Format(f),
+            HeadError::Version(v) => PackageManifestError::Version(v),
         })?;
         let (zeroed, found) = split_checksum(bytes)
             .ok_or_else(|| field("checksum", "missing, repeated or not 64 characters"))?;
         if sha256_hex(&zeroed) != found {
-            return Err(ManifestError::Checksum);
+            return Err(PackageManifestError::Checksum);
         }
         let m: PackageManifest =
-            serde_json::from_slice(bytes).map_err(|e| ManifestError::Json(e.to_string()))?;
+            serde_json::from_slice(bytes).map_err(|e| PackageManifestError::Json(e.to_string()))?;
         m.check()?;
         Ok(m)
     }
 
-    fn check(&self) -> Result<(), ManifestError> {
+    fn check(&self) -> Result<(), PackageManifestError> {
         self.camera
             .validate()
             .map_err(|e| field("camera", e.to_string()))?;

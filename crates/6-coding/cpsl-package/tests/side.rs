@@ -181,7 +181,7 @@ fn manifest_round_trips_and_checks_itself() {
     m3.version = 99;
     assert!(matches!(
         PackageManifest::parse(&m3.to_json()),
-        Err(ManifestError::Version(99))
+        Err(PackageManifestError::Version(99))
     ));
 }
 

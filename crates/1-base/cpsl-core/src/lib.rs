@@ -23,6 +23,7 @@ pub mod layer;
 pub mod limits;
 pub mod manifest;
 pub mod math;
+pub mod motion;
 pub mod pose;
 pub mod progress;
 pub mod resample;
@@ -42,5 +43,6 @@ pub use manifest::{
     FORMAT_VERSION,
 };
 pub use math::{Mat3, Vec3};
+pub use motion::Flow;
 pub use pose::Pose;
 pub use progress::{NoProgress, Progress, ProgressEvent};

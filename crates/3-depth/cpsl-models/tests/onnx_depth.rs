@@ -144,7 +144,7 @@ fn model_file_errors() {
     let p = d.path().join("not_onnx.onnx");
     std::fs::write(&p, b"this is not an ONNX file").unwrap();
     let desc = DepthModelDesc::load(
-        &PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../models/fastdepth.json"),
+        &PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../models/fastdepth.json"),
     )
     .unwrap();
     let e = OnnxDepth::open(&p, Some(desc.clone())).unwrap_err();

@@ -11,7 +11,6 @@
 //! position in `b` of what `a` shows at `x`: sampling anything attached to `b` at `x + u(x)`
 //! carries it to `a` (backward warping).
 
-use cpsl_core::resample::resize_bilinear;
 use rayon::prelude::*;
 use thiserror::Error;
 
@@ -26,16 +25,7 @@ pub struct Grey {
     pub data: Vec<f32>,
 }
 
-/// A dense flow field: per pixel `(dx, dy)` interleaved.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Flow {
-    /// Width.
-    pub width: usize,
-    /// Height.
-    pub height: usize,
-    /// `[dx0, dy0, dx1, dy1, ...]`.
-    pub data: Vec<f32>,
-}
+pub use cpsl_core::Flow;
 
 /// Flow errors.
 #[derive(Debug, Error, PartialEq)]
@@ -153,34 +143,6 @@ impl Grey {
         Self {
             width: w,
             height: h,
-            data,
-        }
-    }
-}
-
-impl Flow {
-    /// The flow at pixel `(x, y)`.
-    #[inline]
-    pub fn at(&self, x: usize, y: usize) -> (f32, f32) {
-        let p = (y * self.width + x) * 2;
-        (self.data[p], self.data[p + 1])
-    }
-
-    /// Bilinear resampling to `width x height` ([`cpsl_core::resample::resize_bilinear`]),
-    /// vectors scaled with the size.
-    pub fn resize(&self, width: usize, height: usize) -> Flow {
-        let (sx, sy) = (
-            width as f32 / self.width as f32,
-            height as f32 / self.height as f32,
-        );
-        let mut data = resize_bilinear(&self.data, self.width, self.height, 2, width, height);
-        for v in data.chunks_exact_mut(2) {
-            v[0] *= sx;
-            v[1] *= sy;
-        }
-        Flow {
-            width,
-            height,
             data,
         }
     }

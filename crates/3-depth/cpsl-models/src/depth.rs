@@ -366,7 +366,7 @@ mod tests {
     #[test]
     fn fastdepth_and_depth_anything_are_describable() {
         let fd = DepthModelDesc::load(
-            &PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../models/fastdepth.json"),
+            &PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../models/fastdepth.json"),
         )
         .unwrap();
         assert_eq!(fd.input_size(640, 480), (224, 224));

@@ -26,8 +26,8 @@ mod variants;
 
 pub use archive::{is_archive, pack, unpack};
 pub use manifest::{
-    scales_of, sha256_hex, unsafe_path, version_for, Codec, FileEntry, Layout, ManifestError,
-    PackageManifest, Segment, StreamEntry, MANIFEST_FILE, PACKAGE_FORMAT, PACKAGE_VERSION,
+    scales_of, sha256_hex, unsafe_path, version_for, Codec, FileEntry, Layout, PackageManifest,
+    PackageManifestError, Segment, StreamEntry, MANIFEST_FILE, PACKAGE_FORMAT, PACKAGE_VERSION,
 };
 pub use side::{
     summarise_edc, SideError, SideFrame, SideLayer, SideStream, MAX_SEGMENT_FRAMES, MAX_STREAMS,
@@ -56,7 +56,7 @@ pub enum PackageError {
         /// The manifest file.
         path: PathBuf,
         /// What is wrong.
-        source: ManifestError,
+        source: PackageManifestError,
     },
     /// A file does not match its manifest entry.
     #[error("{path}: {reason}")]

@@ -14,7 +14,7 @@
 //! otherwise.
 
 use cpsl_core::ycbcr::{Matrix, ToRgb};
-use cpsl_flow::Flow;
+use cpsl_core::Flow;
 use ffmpeg_next as ffmpeg;
 use rayon::prelude::*;
 use std::path::{Path, PathBuf};

@@ -5,6 +5,7 @@ use clap::{Args, Subcommand, ValueEnum};
 use cpsl_core::{Homography, LayerSet, Pose, PremulImage};
 use cpsl_render::{CpuRenderer, PreparedLayers, Renderer};
 use cpsl_synth::layers::{synthetic_layer_set, Coverage};
+use cpsl_eval::report::today;
 use serde::Serialize;
 use std::path::PathBuf;
 use std::time::Instant;
@@ -300,25 +301,6 @@ struct Report {
     pose: String,
     frames: u32,
     cases: Vec<Case>,
-}
-
-/// `YYYY-MM-DD` (UTC) from the system clock.
-pub fn today() -> String {
-    let secs = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map(|d| d.as_secs())
-        .unwrap_or(0);
-    // Civil-from-days (Howard Hinnant).
-    let z = (secs / 86_400) as i64 + 719_468;
-    let era = z.div_euclid(146_097);
-    let doe = z - era * 146_097;
-    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
-    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
-    let mp = (5 * doy + 2) / 153;
-    let d = doy - (153 * mp + 2) / 5 + 1;
-    let m = if mp < 10 { mp + 3 } else { mp - 9 };
-    let y = yoe + era * 400 + (m <= 2) as i64;
-    format!("{y:04}-{m:02}-{d:02}")
 }
 
 fn cpu_name() -> String {

@@ -2,26 +2,14 @@
 //! frame-wise depth slicing (the normalising baseline), frame-wise CPSL, I/P propagation,
 //! and I/P with refinement and adaptive refresh with hysteresis.
 
-use crate::render::DPS;
-use anyhow::{Context, Result};
+use anyhow::Result;
 use clap::{Args, ValueEnum};
-use cpsl_core::{Camera, DepthSource, LayerSet, Limits, Pose, Vec3};
-use cpsl_eval::datasets::Distortion;
-use cpsl_eval::metrics::psnr_masked;
-use cpsl_eval::temporal::{
-    alpha_owner, boundary_variance, f_ssim, flicker, warping_error, ClipMotion,
-};
-use cpsl_flow::Flow;
-use cpsl_layering::{slice_by_depth, LayeringConfig, SliceConfig};
-use cpsl_pipeline::sources::open_depth_model;
-use cpsl_render::{CpuRenderer, FrameLayers};
-use cpsl_temporal::{GopConfig, VideoLayerer};
-use serde::Serialize;
-use std::path::{Path, PathBuf};
+use cpsl_eval::video::{evaluate_video, Clip, VideoOptions, VideoRow};
+use std::path::PathBuf;
 
 /// The clips.
 #[derive(ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
-pub enum Clip {
+pub enum ClipArg {
     /// The built-in scene with its moving board, pole and disc (exact depth, true motion and
     /// ray-cast novel views).
     Synthetic,
@@ -37,12 +25,24 @@ pub enum Clip {
     All,
 }
 
+impl From<ClipArg> for Clip {
+    fn from(c: ClipArg) -> Self {
+        match c {
+            ClipArg::Synthetic => Clip::Synthetic,
+            ClipArg::HciRow => Clip::HciRow,
+            ClipArg::Fox => Clip::Fox,
+            ClipArg::Kitti => Clip::Kitti,
+            ClipArg::All => Clip::All,
+        }
+    }
+}
+
 /// Arguments of `cpsl eval-video`.
 #[derive(Args)]
 pub struct EvalVideoArgs {
     /// Clip.
-    #[arg(value_enum, default_value_t = Clip::All)]
-    pub clip: Clip,
+    #[arg(value_enum, default_value_t = ClipArg::All)]
+    pub clip: ClipArg,
     /// Folder holding the datasets.
     #[arg(long, default_value = "../shared/data")]
     pub data: PathBuf,
@@ -64,516 +64,44 @@ pub struct EvalVideoArgs {
     pub json: Option<PathBuf>,
 }
 
-/// A clip ready to layer.
-struct ClipData {
-    name: &'static str,
-    camera: Camera,
-    frames: Vec<Vec<u8>>,
-    depth: Vec<Vec<f32>>,
-    depth_name: String,
-    /// Per frame: the novel viewpoint and its camera.
-    novel: Vec<(Pose, Camera)>,
-    /// Ground truth at the novel viewpoint, where known.
-    truth: Option<Vec<Vec<u8>>>,
-    /// The true motion of the input, where known.
-    motion: Option<ClipMotion>,
-    /// The true object partition of every frame, where known.
-    objects: Option<Vec<Vec<u8>>>,
-}
-
-/// One row of the table.
-#[derive(Serialize)]
-struct Row {
-    clip: String,
-    method: String,
-    depth: String,
-    frames: usize,
-    i_frames: usize,
-    boundary_variance_px2: f64,
-    /// Relative to frame-wise depth slicing (the paper's normalisation).
-    boundary_variance: f64,
-    /// Relative to frame-wise CPSL.
-    boundary_variance_vs_frame_wise: f64,
-    f_ssim: f64,
-    warping_error: f64,
-    flicker: Option<f64>,
-    psnr: Option<f64>,
-}
-
-const METHODS: [&str; 4] = [
-    "depth-slice (frame-wise)",
-    "cpsl frame-wise",
-    "cpsl I/P",
-    "cpsl I/P + refinement + hysteresis",
-];
-
-fn fastdepth() -> Result<Box<dyn DepthSource>> {
-    Ok(Box::new(open_depth_model("fastdepth", None)?))
-}
-
-fn synthetic() -> ClipData {
-    let scene = cpsl_synth::Scene::default_scene(480, 360);
-    let dt = 0.1;
-    let novel = Pose::from_translation(Vec3::new(0.15, 0.0, 0.0));
-    let (mut views, mut truth) = (vec![], vec![]);
-    for t in 0..16 {
-        views.push(scene.render(&scene.camera, &Pose::IDENTITY, t as f64 * dt, 2));
-        truth.push(scene.render(&scene.camera, &novel, t as f64 * dt, 2).rgb);
-    }
-    let cam = scene.camera;
-    let (w, h) = (cam.width as usize, cam.height as usize);
-    let (back, valid): (Vec<Flow>, Vec<Vec<bool>>) = views
-        .windows(2)
-        .map(|v| {
-            let (data, seen) = scene.backward_motion(&v[0], &v[1], dt);
-            (
-                Flow {
-                    width: w,
-                    height: h,
-                    data,
-                },
-                seen,
-            )
-        })
-        .unzip();
-    let objects = views
-        .iter()
-        .map(|v| v.object.iter().map(|&o| o.min(255) as u8).collect())
-        .collect();
-    let (frames, depth): (Vec<Vec<u8>>, Vec<Vec<f32>>) =
-        views.into_iter().map(|v| (v.rgb, v.depth)).unzip();
-    ClipData {
-        name: "synthetic",
-        camera: cam,
-        novel: vec![(novel, cam); frames.len()],
-        frames,
-        depth,
-        depth_name: "exact".into(),
-        truth: Some(truth),
-        motion: Some(ClipMotion {
-            width: w,
-            height: h,
-            back,
-            valid,
-        }),
-        objects: Some(objects),
-    }
-}
-
-fn hci_row(data: &Path) -> Result<ClipData> {
-    let ds = cpsl_eval::datasets::load(data, "hci/backgammon")?;
-    let (w, h) = (ds.camera.width as usize, ds.camera.height as usize);
-    let f = ds.camera.fx;
-    let view = |row: i32, col: i32| -> Option<&cpsl_eval::datasets::Target> {
-        let name = format!("input_Cam{:03}", 9 * row + col);
-        ds.targets.iter().find(|t| t.name == name)
-    };
-    let (mut frames, mut depth, mut truth, mut novel) = (vec![], vec![], vec![], vec![]);
-    for col in 0..9 {
-        let (rgb, pose, cam) = match view(4, col) {
-            Some(t) => (t.rgb.clone(), t.pose, t.camera),
-            None => (ds.rgb.clone(), Pose::IDENTITY, ds.camera),
-        };
-        // Ground-truth depth carried from the centre view (z-buffered, holes from the row).
-        let shift = |z: f32| (pose.translation.x() * f / z as f64) as f32;
-        let mut z = vec![f32::INFINITY; w * h];
-        for p in 0..w * h {
-            let zc = ds.depth[p];
-            if !zc.is_finite() {
-                continue;
-            }
-            let x = (p % w) as f32 - shift(zc) + (cam.cx - ds.camera.cx) as f32;
-            let xi = x.round();
-            if xi >= 0.0 && (xi as usize) < w {
-                let q = (p / w) * w + xi as usize;
-                z[q] = z[q].min(zc);
-            }
-        }
-        for y in 0..h {
-            let row = &mut z[y * w..(y + 1) * w];
-            // Fill holes with the farther neighbour (disocclusions show background).
-            for x in 0..w {
-                if !row[x].is_finite() {
-                    let l = (0..x).rev().map(|i| row[i]).find(|v| v.is_finite());
-                    let r = (x + 1..w).map(|i| row[i]).find(|v| v.is_finite());
-                    row[x] = match (l, r) {
-                        (Some(a), Some(b)) => a.max(b),
-                        (Some(a), None) | (None, Some(a)) => a,
-                        (None, None) => 1.0,
-                    };
-                }
-            }
-        }
-        let above = view(3, col).context("HCI row above")?;
-        frames.push(rgb);
-        depth.push(z);
-        truth.push(above.rgb.clone());
-        // The view above relative to this one.
-        novel.push((
-            Pose::from_translation(above.pose.translation - pose.translation),
-            above.camera,
-        ));
-        let _ = cam;
-    }
-    Ok(ClipData {
-        name: "hci-row",
-        camera: ds.camera,
-        frames,
-        depth,
-        depth_name: "ground truth".into(),
-        novel,
-        truth: Some(truth),
-        motion: None,
-        objects: None,
-    })
-}
-
-/// Frames (RGB), their depth maps and the depth's source.
-type Estimated = (Vec<Vec<u8>>, Vec<Vec<f32>>, String);
-
-/// The frames of `files` downscaled by `scale` (and undistorted with `lens`, if any) and their
-/// FastDepth depth.
-fn estimate_frames(
-    files: &[PathBuf],
-    camera: Camera,
-    scale: usize,
-    lens: Option<&Distortion>,
-) -> Result<Estimated> {
-    let mut model = fastdepth()?;
-    let (mut frames, mut depth) = (vec![], vec![]);
-    for f in files {
-        let img = cpsl_io::images::read_rgb8(f, &Limits::default())
-            .with_context(|| format!("reading {}", f.display()))?;
-        let (rgb, _, _) = crate::util::downscale_rgb(
-            &img.data,
-            img.width as usize,
-            img.height as usize,
-            img.width as usize / scale,
-        );
-        let rgb = match lens {
-            Some(l) => l.undistort_rgb(&rgb, &camera),
-            None => rgb,
-        };
-        let z = model.depth(&rgb, camera.width, camera.height)?;
-        frames.push(rgb);
-        depth.push(z);
-    }
-    Ok((frames, depth, model.name()))
-}
-
-/// A clip without truth at a novel view: a lateral step of 3 % of the first frame's median
-/// depth, scored against the input.
-fn estimated(
-    name: &'static str,
-    files: Vec<PathBuf>,
-    camera: Camera,
-    scale: usize,
-) -> Result<ClipData> {
-    let (frames, depth, depth_name) = estimate_frames(&files, camera, scale, None)?;
-    let median = cpsl_eval::datasets::median(&depth[0]).unwrap_or(1.0) as f64;
-    let pose = Pose::from_translation(Vec3::new(0.03 * median, 0.0, 0.0));
-    Ok(ClipData {
-        name,
-        camera,
-        novel: vec![(pose, camera); frames.len()],
-        frames,
-        depth,
-        depth_name,
-        truth: None,
-        motion: None,
-        objects: None,
-    })
-}
-
-/// The fox downscaled by `scale` and undistorted: frames, FastDepth depth with one scale for
-/// the clip (the median over the frames of the poses' scene-centre depth over the estimate's
-/// median, so that depth is in the poses' unit; missing values filled) and the poses.
-pub(crate) struct Fox {
-    pub video: cpsl_eval::datasets::PosedVideo,
-    pub camera: Camera,
-    pub frames: Vec<Vec<u8>>,
-    pub depth: Vec<Vec<f32>>,
-    pub depth_name: String,
-}
-
-pub(crate) fn load_fox(data: &Path, scale: u32) -> Result<Fox> {
-    let video = cpsl_eval::datasets::fox(data)?;
-    let camera = video.camera.scaled(1.0 / scale as f64);
-    let (frames, mut depth, name) =
-        estimate_frames(&video.files, camera, scale as usize, Some(&video.lens))?;
-    let ratios: Vec<f32> = depth
-        .iter()
-        .zip(&video.centre_depth)
-        .filter_map(|(z, c)| cpsl_eval::datasets::median(z).map(|m| c / m))
-        .collect();
-    let k = cpsl_eval::datasets::median(&ratios).context("fox: no depth to scale")?;
-    let (w, h) = (camera.width as usize, camera.height as usize);
-    for z in &mut depth {
-        // Pixels the model gave no positive depth get one from their neighbours (in inverse
-        // depth, as the layering does), so that every method sees the same depth.
-        let known: Vec<f32> = z.iter().map(|v| v.is_finite() as u8 as f32).collect();
-        let mut inv: Vec<f32> = z
-            .iter()
-            .map(|v| if v.is_finite() { 1.0 / (v * k) } else { 0.0 })
-            .collect();
-        anyhow::ensure!(
-            cpsl_layering::fill::push_pull(&mut inv, &known, w, h, 1),
-            "fox: a frame without depth"
-        );
-        z.iter_mut().zip(&inv).for_each(|(v, i)| *v = 1.0 / i);
-    }
-    Ok(Fox {
-        video,
-        camera,
-        frames,
-        depth,
-        depth_name: format!("{name}, pose-scaled x{k:.3}"),
-    })
-}
-
-/// The fox at a quarter of full size. Its poses give every frame a real novel view: frame t is
-/// rendered at frame t+1's camera (the last frame at frame t-1's) and scored against that
-/// frame.
-fn fox(data: &Path) -> Result<ClipData> {
-    let f = load_fox(data, 4)?;
-    let n = f.frames.len();
-    let target = |t: usize| {
-        if t + 1 < n {
-            t + 1
-        } else {
-            t.saturating_sub(1)
-        }
-    };
-    Ok(ClipData {
-        name: "fox",
-        camera: f.camera,
-        novel: (0..n)
-            .map(|t| (f.video.relative(t, target(t)), f.camera))
-            .collect(),
-        truth: Some((0..n).map(|t| f.frames[target(t)].clone()).collect()),
-        frames: f.frames,
-        depth: f.depth,
-        depth_name: f.depth_name,
-        motion: None,
-        objects: None,
-    })
-}
-
-fn kitti(data: &Path) -> Result<ClipData> {
-    let dir = data.join("kitti_odometry06_stereo_snippet/image_2_left_color");
-    let files: Vec<PathBuf> = ["000012", "000013", "000014", "000017"]
-        .iter()
-        .map(|n| dir.join(format!("{n}.png")))
-        .collect();
-    let (w, h) = cpsl_io::images::dimensions(&files[0], &Limits::default())?;
-    let camera = Camera {
-        width: w,
-        height: h,
-        fx: 707.0912,
-        fy: 707.0912,
-        cx: 601.8873,
-        cy: 183.1104,
-    };
-    estimated("kitti", files, camera, 1)
-}
-
-/// Per-frame layer sets of one method (with the Edge-Depth Cache where it has one).
-fn layer_clip(
-    c: &ClipData,
-    method: &str,
-    cfg: &LayeringConfig,
-    gop: usize,
-    true_motion: Option<&ClipMotion>,
-) -> Result<Vec<(LayerSet, Option<cpsl_core::Edc>, bool)>> {
-    if method.starts_with("depth-slice") {
-        let sc = SliceConfig {
-            layers: cfg.layers,
-            ..SliceConfig::default()
-        };
-        return c
-            .frames
-            .iter()
-            .zip(&c.depth)
-            .map(|(rgb, z)| Ok((slice_by_depth(rgb, z, c.camera, &sc)?, None, true)))
-            .collect();
-    }
-    let g = match method {
-        "cpsl frame-wise" => GopConfig::frame_wise(),
-        "cpsl I/P" => GopConfig {
-            gop,
-            ..GopConfig::propagation_only()
-        },
-        _ => GopConfig {
-            gop,
-            ..GopConfig::default()
-        },
-    };
-    let mut cfg = *cfg;
-    cfg.cues.allow_missing_depth = true;
-    let mut v = VideoLayerer::new(c.camera, cfg, g)?;
-    let n = c.frames.len();
-    c.frames
-        .iter()
-        .zip(&c.depth)
-        .enumerate()
-        .map(|(i, (rgb, z))| {
-            v.set_frames_left(Some(n - i));
-            let given = true_motion.filter(|_| i > 0).map(|m| m.back[i - 1].clone());
-            let f = v.push_with_motion(rgb, Some(z), given)?;
-            Ok((f.set, Some(f.edc), f.refresh.is_some()))
-        })
-        .collect()
-}
-
 /// Runs `cpsl eval-video`.
 pub fn run(a: EvalVideoArgs) -> Result<()> {
-    let clips = match a.clip {
-        Clip::All => vec![Clip::Synthetic, Clip::HciRow, Clip::Fox, Clip::Kitti],
-        c => vec![c],
-    };
-    anyhow::ensure!(
-        !a.true_motion || clips == [Clip::Synthetic],
-        "--true-motion needs the synthetic clip: no other clip has a true motion"
-    );
-    let mut lpips = if a.no_lpips {
-        None
-    } else {
-        Some(
-            cpsl_models::Lpips::open(&cpsl_models::lpips::default_path()).context(
-                "LPIPS for the flicker score (run scripts/setup-models.sh or pass --no-lpips)",
-            )?,
-        )
-    };
-    let cfg = LayeringConfig {
+    let opts = VideoOptions {
+        clip: a.clip.into(),
+        data: a.data,
+        gop: a.gop,
         layers: a.layers,
-        ..LayeringConfig::default()
+        lpips: !a.no_lpips,
+        true_motion: a.true_motion,
     };
-    let mut rows = Vec::new();
     println!(
         "{:<10} {:<36} {:>6} {:>9} {:>9} {:>8} {:>8} {:>8} {:>8}",
         "clip", "method", "I/all", "bnd px^2", "vs fw", "F-SSIM", "warp", "flicker", "PSNR"
     );
-    for clip in clips {
-        let c = match clip {
-            Clip::Synthetic => synthetic(),
-            Clip::HciRow => hci_row(&a.data)?,
-            Clip::Fox => fox(&a.data)?,
-            Clip::Kitti => kitti(&a.data)?,
-            Clip::All => unreachable!(),
-        };
-        let (w, h) = (c.camera.width as usize, c.camera.height as usize);
-        let input_motion = match &c.motion {
-            Some(m) => m.clone(),
-            None => ClipMotion::estimate(&c.frames, w, h),
-        };
-        let given = c.motion.as_ref().filter(|_| a.true_motion);
-        // Output frames live at the novel viewpoint: their motion is the truth's where known.
-        let (nw, nh) = (c.novel[0].1.width as usize, c.novel[0].1.height as usize);
-        let reference = c.truth.clone().unwrap_or_else(|| c.frames.clone());
-        let out_motion = ClipMotion::estimate(&reference, nw, nh);
-        let first = rows.len();
-        for method in METHODS {
-            let sets = layer_clip(&c, method, &cfg, a.gop, given)?;
-            let owners: Vec<Vec<u8>> = sets.iter().map(|s| alpha_owner(&s.0)).collect();
-            let bv = boundary_variance(&owners, &input_motion);
-            let renders: Vec<(Vec<u8>, Vec<bool>)> = sets
-                .iter()
-                .zip(&c.novel)
-                .map(|((set, edc, _), (pose, cam))| {
-                    let frame = FrameLayers::new(set.clone(), edc.clone());
-                    let img = CpuRenderer.view(&frame, pose, cam, edc.is_some().then_some(&DPS));
-                    (img.over_background([0, 0, 0]), img.covered(128))
-                })
-                .collect();
-            let outs: Vec<Vec<u8>> = renders.iter().map(|r| r.0.clone()).collect();
-            let psnr = c.truth.as_ref().map(|truth| {
-                let v: Vec<f64> = renders
-                    .iter()
-                    .zip(truth)
-                    .filter_map(|((o, m), t)| psnr_masked(o, t, m))
-                    .collect();
-                v.iter().sum::<f64>() / v.len().max(1) as f64
-            });
-            let flick = lpips
-                .as_mut()
-                .map(|l| -> Result<f64> {
-                    let mut err = None;
-                    let v = flicker(&outs, &reference, |x, y| {
-                        l.distance(x, y, nw as u32, nh as u32)
-                            .map(f64::from)
-                            .unwrap_or_else(|e| {
-                                err = Some(e);
-                                0.0
-                            })
-                    });
-                    match err {
-                        Some(e) => Err(e.into()),
-                        None => Ok(v),
-                    }
-                })
-                .transpose()?;
-            let row = Row {
-                clip: c.name.into(),
-                method: method.into(),
-                depth: c.depth_name.clone(),
-                frames: sets.len(),
-                i_frames: sets.iter().filter(|s| s.2).count(),
-                boundary_variance_px2: bv,
-                boundary_variance: 0.0,
-                boundary_variance_vs_frame_wise: 0.0,
-                f_ssim: f_ssim(&outs, &reference, &out_motion),
-                warping_error: warping_error(&outs, &out_motion),
-                flicker: flick,
-                psnr,
-            };
-            rows.push(row);
-        }
-        // Boundary variance relative to frame-wise slicing (the paper's normalisation) and to
-        // frame-wise CPSL.
-        let by = |m: &str| {
-            rows[first..]
-                .iter()
-                .find(|r| r.method == m)
-                .map(|r| r.boundary_variance_px2)
-        };
-        let (slice, fw) = (by(METHODS[0]).unwrap_or(0.0), by(METHODS[1]).unwrap_or(0.0));
-        for row in &mut rows[first..] {
-            let rel = |base: f64| {
-                if base > 0.0 {
-                    row.boundary_variance_px2 / base
-                } else {
-                    f64::NAN
-                }
-            };
-            row.boundary_variance = rel(slice);
-            row.boundary_variance_vs_frame_wise = rel(fw);
-            let opt = |v: Option<f64>, p: usize| v.map_or("-".to_string(), |x| format!("{x:.p$}"));
-            println!(
-                "{:<10} {:<36} {:>6} {:>9.3} {:>9.3} {:>8.4} {:>8.4} {:>8} {:>8}",
-                row.clip,
-                row.method,
-                format!("{}/{}", row.i_frames, row.frames),
-                row.boundary_variance_px2,
-                row.boundary_variance_vs_frame_wise,
-                row.f_ssim,
-                row.warping_error,
-                opt(row.flicker, 4),
-                opt(row.psnr, 2),
-            );
-        }
-        if let Some(objects) = &c.objects {
-            println!(
-                "{:<10} {:<36} {:>6} {:>9.3}   (exact object contours moving with the true motion)",
-                c.name,
-                "true object partition",
-                "-",
-                boundary_variance(objects, &input_motion)
-            );
-        }
-    }
+    let opt = |v: Option<f64>, p: usize| v.map_or("-".to_string(), |x| format!("{x:.p$}"));
+    let rows = evaluate_video(&opts, |row| match row {
+        VideoRow::Scored(row) => println!(
+            "{:<10} {:<36} {:>6} {:>9.3} {:>9.3} {:>8.4} {:>8.4} {:>8} {:>8}",
+            row.clip,
+            row.method,
+            format!("{}/{}", row.i_frames, row.frames),
+            row.boundary_variance_px2,
+            row.boundary_variance_vs_frame_wise,
+            row.f_ssim,
+            row.warping_error,
+            opt(row.flicker, 4),
+            opt(row.psnr, 2),
+        ),
+        VideoRow::ObjectPartition {
+            clip,
+            boundary_variance_px2,
+        } => println!(
+            "{:<10} {:<36} {:>6} {:>9.3}   (exact object contours moving with the true motion)",
+            clip, "true object partition", "-", boundary_variance_px2
+        ),
+    })?;
     if let Some(p) = &a.json {
-        std::fs::write(p, serde_json::to_vec_pretty(&rows)?)
-            .with_context(|| format!("writing {}", p.display()))?;
+        crate::util::write_json(p, &rows)?;
         println!("wrote {}", p.display());
     }
     Ok(())

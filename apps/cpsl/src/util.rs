@@ -3,7 +3,6 @@
 use anyhow::{Context, Result};
 use cpsl_core::{Limits, PremulImage};
 use cpsl_io::images::write_png;
-use cpsl_io::write_file_atomic;
 use std::path::Path;
 use std::process::Command;
 
@@ -45,30 +44,10 @@ pub fn write_render(path: &Path, img: &PremulImage, how: Output) -> Result<()> {
 
 /// Writes pretty JSON atomically.
 pub fn write_json(path: &Path, value: &impl serde::Serialize) -> Result<()> {
-    let s = serde_json::to_string_pretty(value)?;
-    write_file_atomic(path, s.as_bytes()).with_context(|| format!("writing {}", path.display()))
+    Ok(cpsl_eval::report::write_json(path, value)?)
 }
 
-/// Box-downscales RGB so that the width becomes at most `max_w`.
-pub fn downscale_rgb(rgb: &[u8], w: usize, h: usize, max_w: usize) -> (Vec<u8>, usize, usize) {
-    let f = w.div_ceil(max_w).max(1);
-    let (nw, nh) = (w / f, h / f);
-    let mut out = vec![0u8; nw * nh * 3];
-    for y in 0..nh {
-        for x in 0..nw {
-            for c in 0..3 {
-                let mut s = 0u32;
-                for dy in 0..f {
-                    for dx in 0..f {
-                        s += rgb[((y * f + dy) * w + x * f + dx) * 3 + c] as u32;
-                    }
-                }
-                out[(y * nw + x) * 3 + c] = (s / (f * f) as u32) as u8;
-            }
-        }
-    }
-    (out, nw, nh)
-}
+pub use cpsl_core::resample::downscale_rgb;
 
 /// Lays RGB frames (same size) side by side with a 4 px gap.
 pub fn contact_sheet(frames: &[Vec<u8>], w: usize, h: usize) -> (Vec<u8>, usize, usize) {

@@ -13,6 +13,7 @@
 //! * Colours are stored premultiplied by alpha, 8 bits per channel.
 
 pub mod camera;
+pub mod context;
 pub mod depth;
 pub mod edc;
 pub mod error;

@@ -67,17 +67,4 @@ pub enum PipelineError {
     },
 }
 
-/// Adds what was being done to an error.
-pub trait Context<T> {
-    /// Wraps the error with `f()`.
-    fn context_with(self, f: impl FnOnce() -> String) -> Result<T, PipelineError>;
-}
-
-impl<T, E: Into<PipelineError>> Context<T> for Result<T, E> {
-    fn context_with(self, f: impl FnOnce() -> String) -> Result<T, PipelineError> {
-        self.map_err(|e| PipelineError::Context {
-            context: f(),
-            source: Box::new(e.into()),
-        })
-    }
-}
+cpsl_core::error_context!(PipelineError);

@@ -89,6 +89,29 @@ pub fn resize_bilinear(
     out
 }
 
+/// Box-downscales interleaved RGB by the whole factor `f` that brings the width to at most
+/// `max_w` (each output pixel the mean of an `f x f` block, rounded down); returns the pixels
+/// and their size.
+pub fn downscale_rgb(rgb: &[u8], w: usize, h: usize, max_w: usize) -> (Vec<u8>, usize, usize) {
+    let f = w.div_ceil(max_w.max(1)).max(1);
+    let (nw, nh) = (w / f, h / f);
+    let mut out = vec![0u8; nw * nh * 3];
+    for y in 0..nh {
+        for x in 0..nw {
+            for c in 0..3 {
+                let mut s = 0u32;
+                for dy in 0..f {
+                    for dx in 0..f {
+                        s += rgb[((y * f + dy) * w + x * f + dx) * 3 + c] as u32;
+                    }
+                }
+                out[(y * nw + x) * 3 + c] = (s / (f * f) as u32) as u8;
+            }
+        }
+    }
+    (out, nw, nh)
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -136,6 +159,27 @@ mod tests {
             }
             assert!(got[..3].iter().all(|&c| c <= got[3]), "{got:?}");
         }
+    }
+
+    #[test]
+    fn downscaling_averages_blocks() {
+        // 4x2 RGB: two 2x2 blocks, one all 10/20/30, one mixing 0 and 255 in red.
+        let mut rgb = vec![0u8; 4 * 2 * 3];
+        for y in 0..2 {
+            for x in 0..4 {
+                let p = (y * 4 + x) * 3;
+                let px = if x < 2 {
+                    [10, 20, 30]
+                } else {
+                    [255 * (x % 2) as u8, 0, 0]
+                };
+                rgb[p..p + 3].copy_from_slice(&px);
+            }
+        }
+        let (out, w, h) = downscale_rgb(&rgb, 4, 2, 2);
+        assert_eq!((w, h), (2, 1));
+        assert_eq!(out, [10, 20, 30, 127, 0, 0]);
+        assert_eq!(downscale_rgb(&rgb, 4, 2, 4).0, rgb, "no reduction needed");
     }
 
     #[test]

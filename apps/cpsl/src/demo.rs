@@ -5,9 +5,8 @@
 use crate::encode::CodecArg;
 use crate::layer::InstanceArg;
 use crate::progress::Bars;
-use crate::render::{render_sweep, Sweep, DPS};
 use crate::synth::{depth_list, estimate_depth, synthesise, SynthArgs};
-use crate::util::{self, Output};
+use crate::util;
 use anyhow::{Context, Result};
 use clap::Args;
 use cpsl_codec::RateControl;
@@ -20,8 +19,9 @@ use cpsl_pipeline::encode::{encode, EncodeJob, Target};
 use cpsl_pipeline::image::{layer_image, write_image_layers};
 use cpsl_pipeline::sources::{layering_config, CameraChoice, VideoDepth};
 use cpsl_pipeline::video::{MotionSource, VideoJob};
+use cpsl_player::sweep::{render_sweep, Output, Sweep};
 use cpsl_player::Source;
-use cpsl_render::{CpuRenderer, FrameLayers, Renderer};
+use cpsl_render::{CpuRenderer, DpsConfig, FrameLayers, Renderer};
 use cpsl_synth::Scene;
 use cpsl_temporal::GopConfig;
 use serde::Serialize;
@@ -178,7 +178,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
             prepared,
             &entry.pose_matrix,
             set.camera(),
-            Some(&DPS),
+            Some(&DpsConfig::DEFAULT),
             &mut img,
         )?;
         scores.push(Score {
@@ -311,7 +311,13 @@ fn clip(a: &DemoArgs, scene: &Scene, bars: &Bars) -> Result<()> {
     let mut img = cpsl_core::PremulImage::new(cam.width, cam.height);
     let mut scores = Vec::new();
     for (i, t) in &truth {
-        CpuRenderer.render(source.at(*i)?, &novel, &cam, Some(&DPS), &mut img)?;
+        CpuRenderer.render(
+            source.at(*i)?,
+            &novel,
+            &cam,
+            Some(&DpsConfig::DEFAULT),
+            &mut img,
+        )?;
         scores.push(serde_json::json!({
             "frame": i,
             "psnr_db": psnr(&img.over_background([0, 0, 0]), t),

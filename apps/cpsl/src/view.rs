@@ -1,13 +1,10 @@
-//! `cpsl view`: the desktop viewer (`cpsl-viewer`) on a package or a layer set. Controls: left
-//! drag orbits, right (or shift) drag pans, the wheel dollies, R resets, space plays/pauses,
-//! Left/Right step a frame, PageUp/PageDown jump a second, Home goes to the start, S toggles
-//! side-by-side stereo, [ and ] change the eye separation, D toggles the Dynamic Pixel Strip,
-//! H the on-screen readout, Esc/Q quit.
+//! `cpsl view`: the desktop viewer (`cpsl-viewer`, whose documentation lists the controls) on
+//! a package or a layer set.
 
 use anyhow::Result;
 use clap::Args;
 use cpsl_core::Pose;
-use cpsl_viewer::ViewOptions;
+use cpsl_viewer::{ViewOptions, ViewerEvent};
 use std::path::PathBuf;
 
 /// Arguments of `cpsl view`.
@@ -44,15 +41,23 @@ pub struct ViewArgs {
 
 /// Runs `cpsl view`.
 pub fn run(a: ViewArgs) -> Result<()> {
-    Ok(cpsl_viewer::run(ViewOptions {
-        source: a.source,
-        frame: a.frame,
-        pose: a.pose,
-        paused: a.paused,
-        stereo: a.stereo,
-        eye_separation: a.eye_separation,
-        dps: !a.no_dps,
-        hud: !a.no_hud,
-        exit_after: a.exit_after,
-    })?)
+    let events = |e: ViewerEvent| match e {
+        ViewerEvent::Opened { adapter, format } => eprintln!("cpsl view: {adapter} ({format})"),
+        // Tests wait for this line before taking a screenshot.
+        ViewerEvent::Shown { adapter } => println!("shown on {adapter}"),
+    };
+    Ok(cpsl_viewer::run(
+        ViewOptions {
+            source: a.source,
+            frame: a.frame,
+            pose: a.pose,
+            paused: a.paused,
+            stereo: a.stereo,
+            eye_separation: a.eye_separation,
+            dps: !a.no_dps,
+            hud: !a.no_hud,
+            exit_after: a.exit_after,
+        },
+        events,
+    )?)
 }

@@ -73,6 +73,23 @@ pub enum ViewerError {
 
 type Result<T> = std::result::Result<T, ViewerError>;
 
+/// What the viewer reports to its caller as it starts.
+#[derive(Debug, Clone, PartialEq)]
+pub enum ViewerEvent {
+    /// The window is open on this GPU adapter, with this surface format.
+    Opened {
+        /// The adapter.
+        adapter: String,
+        /// The surface format.
+        format: String,
+    },
+    /// The first frame is on screen.
+    Shown {
+        /// The adapter.
+        adapter: String,
+    },
+}
+
 /// A decoded frame from the background thread, tagged with the seek generation it belongs to.
 struct Decoded {
     generation: u64,
@@ -189,6 +206,7 @@ struct Viewer {
     gfx: Option<Gfx>,
     error: Option<ViewerError>,
     announced: bool,
+    events: Box<dyn FnMut(ViewerEvent)>,
 }
 
 struct Gfx {
@@ -395,8 +413,9 @@ impl Viewer {
         self.frame_ms = 0.9 * self.frame_ms + 0.1 * (now - self.last_present).as_secs_f64() * 1e3;
         self.last_present = now;
         if !self.announced {
-            // Tests wait for this line before taking a screenshot.
-            println!("shown on {}", gfx.gpu.adapter());
+            (self.events)(ViewerEvent::Shown {
+                adapter: gfx.gpu.adapter().to_string(),
+            });
             self.announced = true;
         }
         Ok(())
@@ -481,7 +500,10 @@ impl Viewer {
             gpu.target_texture(&self.camera),
             gpu.target_texture(&self.camera),
         );
-        eprintln!("cpsl view: {} ({format:?})", gpu.adapter());
+        (self.events)(ViewerEvent::Opened {
+            adapter: gpu.adapter().to_string(),
+            format: format!("{format:?}"),
+        });
         self.gfx = Some(Gfx {
             window,
             surface,
@@ -584,8 +606,9 @@ impl ApplicationHandler for Viewer {
     }
 }
 
-/// Opens the window and runs until it is closed (or `exit_after` passes).
-pub fn run(a: ViewOptions) -> Result<()> {
+/// Opens the window and runs until it is closed (or `exit_after` passes), telling `events`
+/// when the window opens and when the first frame is shown.
+pub fn run(a: ViewOptions, events: impl FnMut(ViewerEvent) + 'static) -> Result<()> {
     let (camera, frames, fps, decoder, current) = match Source::open(&a.source)? {
         Source::Package(player) => {
             let m = player.package().manifest().clone();
@@ -634,6 +657,7 @@ pub fn run(a: ViewOptions) -> Result<()> {
         gfx: None,
         error: None,
         announced: false,
+        events: Box::new(events),
         args: a,
     };
     event_loop

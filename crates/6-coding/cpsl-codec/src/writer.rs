@@ -1,0 +1,183 @@
+//! Writing a package: frames pushed in, a segment coded per group of pictures, the budget
+//! shared out across segments, the manifest, and the staged folder moved into place.
+
+use crate::segment::{encode_segment, SegmentReport};
+use crate::{yuv, CodecError, CodingOptions, RateControl};
+use cpsl_core::LayeredFrame;
+use cpsl_package::Segment;
+use std::path::Path;
+
+/// The bits a segment of `n` frames gets from a total budget of `bps` bits per second after
+/// `done` frames that took `spent` bits: its own share, corrected by what the earlier
+/// segments spent above or below theirs (a bit reservoir), by at most half the share either
+/// way. A short segment cut by a refresh costs more than its share (a whole key frame); the
+/// following ones pay it back, so that the package keeps to the budget.
+pub fn segment_budget(bps: f64, fps: f64, done: u32, spent: f64, n: usize) -> f64 {
+    let share = bps * n as f64 / fps;
+    let balance = bps * done as f64 / fps - spent;
+    (share + balance).clamp(0.5 * share, 1.5 * share)
+}
+
+/// Writes a package: segments are coded into a hidden staging folder beside the output, and
+/// the finished package is moved into place by [`PackageWriter::finish`]. Dropping an
+/// unfinished writer removes the staging folder, so an interrupted run never leaves a
+/// half-written package; an existing package at the output is replaced only when the new
+/// one is complete, and anything else there is never replaced.
+pub struct PackageWriter {
+    stage: cpsl_io::Staged,
+    camera: cpsl_core::Camera,
+    layers: u32,
+    opts: CodingOptions,
+    segments: Vec<Segment>,
+    frames: u32,
+    /// Bits written so far (layer and side streams).
+    spent: f64,
+    /// Frames of the segment being gathered by [`PackageWriter::push`].
+    pending: Vec<LayeredFrame>,
+}
+
+impl PackageWriter {
+    /// Starts a package at `out` for frames of `camera` layered with target K `layers`.
+    pub fn create(
+        out: &Path,
+        camera: cpsl_core::Camera,
+        layers: u32,
+        opts: CodingOptions,
+    ) -> Result<Self, CodecError> {
+        let stage = cpsl_io::Staged::folder(out, replaceable_package).map_err(|e| match e {
+            cpsl_io::IoError::TargetExists { path } => CodecError::Io {
+                path,
+                source: std::io::Error::new(
+                    std::io::ErrorKind::AlreadyExists,
+                    "exists and is not a CPSL package folder; not replacing it",
+                ),
+            },
+            e => CodecError::Write(e),
+        })?;
+        Ok(Self {
+            stage,
+            camera,
+            layers,
+            opts,
+            segments: Vec::new(),
+            frames: 0,
+            spent: 0.0,
+            pending: Vec::new(),
+        })
+    }
+
+    /// Takes the next frame. An I-frame closes the segment gathered so far, which is coded
+    /// then and its report returned; [`PackageWriter::flush`] or [`PackageWriter::finish`]
+    /// codes the last one.
+    pub fn push(&mut self, frame: LayeredFrame) -> Result<Option<SegmentReport>, CodecError> {
+        let report = match frame.refresh {
+            Some(_) => self.flush()?,
+            None => None,
+        };
+        self.pending.push(frame);
+        Ok(report)
+    }
+
+    /// Codes the frames pushed since the last segment, if any, as a segment.
+    pub fn flush(&mut self) -> Result<Option<SegmentReport>, CodecError> {
+        if self.pending.is_empty() {
+            return Ok(None);
+        }
+        let frames = std::mem::take(&mut self.pending);
+        self.push_segment(&frames).map(Some)
+    }
+
+    /// Codes the next segment (its first frame must follow the previous segment's last).
+    pub fn push_segment(&mut self, frames: &[LayeredFrame]) -> Result<SegmentReport, CodecError> {
+        if frames.first().map(|f| f.index) != Some(self.frames) {
+            return Err(CodecError::Tracks {
+                frame: frames.first().map_or(0, |f| f.index),
+                reason: format!(
+                    "segments must be contiguous; frame {} expected",
+                    self.frames
+                ),
+            });
+        }
+        let opts = match self.opts.rate {
+            RateControl::Budget(bps) => {
+                let fps = self.opts.fps;
+                let bits = segment_budget(bps, fps, self.frames, self.spent, frames.len());
+                CodingOptions {
+                    rate: RateControl::Budget(bits * fps / frames.len() as f64),
+                    ..self.opts
+                }
+            }
+            RateControl::Quality(_) => self.opts,
+        };
+        let (seg, report) = encode_segment(self.stage.path(), self.segments.len(), frames, &opts)?;
+        self.frames += seg.frames;
+        self.spent += report.bits;
+        self.segments.push(seg);
+        Ok(report)
+    }
+
+    /// Codes the pending frames ([`PackageWriter::flush`]; their report is dropped: flush
+    /// first to see it), writes the manifest and moves the package into place.
+    pub fn finish(mut self) -> Result<cpsl_package::PackageManifest, CodecError> {
+        self.flush()?;
+        if self.segments.is_empty() {
+            return Err(CodecError::Empty);
+        }
+        let (cw, ch) = yuv::coded_size(self.camera.width, self.camera.height);
+        let m = cpsl_package::PackageManifest {
+            format: cpsl_package::PACKAGE_FORMAT.into(),
+            version: cpsl_package::version_for(
+                self.segments
+                    .iter()
+                    .flat_map(|s| s.streams.iter().map(|t| t.scale)),
+            ),
+            camera: self.camera,
+            frame_rate: self.opts.fps,
+            frames: self.frames,
+            layers: self.layers,
+            codec: self.opts.codec,
+            layout: cpsl_package::Layout {
+                kind: "colour-over-alpha".into(),
+                coded_width: cw as u32,
+                coded_height: ch as u32,
+                pixel_format: "yuv420p".into(),
+                matrix: "bt709".into(),
+                range: "limited".into(),
+            },
+            budget: match self.opts.rate {
+                RateControl::Budget(b) => Some(b.round() as u64),
+                RateControl::Quality(_) => None,
+            },
+            segments: std::mem::take(&mut self.segments),
+            checksum: String::new(),
+        };
+        let path = self.stage.path().join(cpsl_package::MANIFEST_FILE);
+        std::fs::write(&path, m.to_json()).map_err(|source| CodecError::Io { path, source })?;
+        self.stage.commit(replaceable_package)?;
+        Ok(m)
+    }
+}
+
+/// Whether a package writer may replace what is at `out`: only a package folder.
+fn replaceable_package(out: &Path) -> bool {
+    out.is_dir() && cpsl_package::is_package(out)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::segment_budget;
+
+    #[test]
+    fn the_reservoir_repays_overspending_and_spends_savings_within_half_a_share() {
+        // 1 Mbit/s, 30 fps, segments of 30 frames: a share of 1 Mbit.
+        assert_eq!(segment_budget(1e6, 30.0, 0, 0.0, 30), 1e6);
+        // 0.2 Mbit over after one segment: the next gets 0.8; far over: never below half.
+        assert!((segment_budget(1e6, 30.0, 30, 1.2e6, 30) - 0.8e6).abs() < 1e-6);
+        assert_eq!(segment_budget(1e6, 30.0, 30, 5e6, 30), 0.5e6);
+        // Savings are spent, up to one and a half shares.
+        assert!((segment_budget(1e6, 30.0, 60, 1.7e6, 30) - 1.3e6).abs() < 1e-6);
+        assert_eq!(segment_budget(1e6, 30.0, 90, 0.0, 30), 1.5e6);
+        // A one-frame segment's share is a thirtieth.
+        assert!((segment_budget(1e6, 30.0, 0, 0.0, 1) - 1e6 / 30.0).abs() < 1e-6);
+    }
+}

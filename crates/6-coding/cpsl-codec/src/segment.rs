@@ -72,42 +72,40 @@ fn stream_map(frames: &[LayeredFrame]) -> Result<Vec<Vec<u8>>, CodecError> {
         .collect()
 }
 
-/// Codes one segment into `root/seg_NNNNNN/` (layer streams and side stream) and returns its
-/// manifest entry. The first frame must be an I-frame, the others P-frames of the same layers.
-pub fn encode_segment(
-    root: &Path,
-    number: usize,
-    frames: &[LayeredFrame],
-    opts: &CodingOptions,
-) -> Result<(Segment, SegmentReport), CodecError> {
-    let first = frames.first().ok_or(CodecError::Empty)?;
-    let (w, h) = (first.set.camera().width, first.set.camera().height);
-    let map = stream_map(frames)?;
-    let n_streams = first.set.len();
-    // Per stream, per frame: the layer's picture (transparent where the frame lacks it).
-    let blank = PremulImage::new(w, h);
-    let mut pictures: Vec<Vec<&PremulImage>> = vec![vec![&blank; frames.len()]; n_streams];
-    for (fi, (f, m)) in frames.iter().zip(&map).enumerate() {
+/// Per stream, per frame: the layer's picture (`blank` where the frame lacks it).
+fn stream_pictures<'a>(
+    frames: &'a [LayeredFrame],
+    map: &[Vec<u8>],
+    n_streams: usize,
+    blank: &'a PremulImage,
+) -> Vec<Vec<&'a PremulImage>> {
+    let mut pictures: Vec<Vec<&PremulImage>> = vec![vec![blank; frames.len()]; n_streams];
+    for (fi, (f, m)) in frames.iter().zip(map).enumerate() {
         for (l, &s) in f.set.layers().iter().zip(m) {
             pictures[s as usize][fi] = &l.image;
         }
     }
-    let dir_name = segment_dir(number);
-    let dir = root.join(&dir_name);
-    std::fs::create_dir_all(&dir).map_err(|source| CodecError::Io {
-        path: dir.clone(),
-        source,
-    })?;
-    // The side stream.
-    let side = SideStream {
+    pictures
+}
+
+/// The segment's side stream: per frame the layer-to-stream map, depths, confidence, refresh
+/// flags and the Edge-Depth Cache summary.
+fn side_stream(
+    number: usize,
+    frames: &[LayeredFrame],
+    map: &[Vec<u8>],
+    (w, h): (u32, u32),
+) -> SideStream {
+    let first = &frames[0];
+    SideStream {
         segment: number as u32,
         start: first.index,
-        streams: n_streams as u16,
+        streams: first.set.len() as u16,
         width: w,
         height: h,
         frames: frames
             .iter()
-            .zip(&map)
+            .zip(map)
             .enumerate()
             .map(|(i, (f, m))| SideFrame {
                 index: f.index,
@@ -133,16 +131,12 @@ pub fn encode_segment(
                 edc: cpsl_package::summarise_edc(&f.edc),
             })
             .collect(),
-    };
-    let side_rel = format!("{dir_name}/side.bin");
-    let side_bytes = side.encode();
-    let side_path = root.join(&side_rel);
-    std::fs::write(&side_path, &side_bytes).map_err(|source| CodecError::Io {
-        path: side_path,
-        source,
-    })?;
-    // Weights from the I-frame: saliency and share of depth-edge samples.
-    let mut edges = vec![0usize; n_streams];
+    }
+}
+
+/// Stream weights from the I-frame: its layers' saliency and share of depth-edge samples.
+fn stream_weights(first: &LayeredFrame) -> Vec<f32> {
+    let mut edges = vec![0usize; first.set.len()];
     for s in &first.edc.samples {
         for k in [s.front, s.back] {
             if let Some(e) = edges.get_mut(k as usize) {
@@ -151,13 +145,104 @@ pub fn encode_segment(
         }
     }
     let max_edges = edges.iter().copied().max().unwrap_or(0);
-    let weights: Vec<f32> = first
+    first
         .set
         .layers()
         .iter()
         .zip(&edges)
         .map(|(l, &e)| alloc::weight(l.meta.saliency.unwrap_or(0.0), e, max_edges))
-        .collect();
+        .collect()
+}
+
+/// The first choice of rung and quality per stream: the given quality, or under a budget
+/// the allocation over rate-distortion models fitted from trial encodes (`fit`), first at
+/// full size and, only where full size would need a quality worse than the upper trial's, on
+/// the smaller rungs too (`prepare_smaller` makes their pictures first).
+fn choose_coding(
+    opts: &CodingOptions,
+    seconds: f64,
+    side_bits: f64,
+    weights: &[f32],
+    rungs: usize,
+    fit: impl Fn(&[usize]) -> Result<Vec<Vec<alloc::RdModel>>, CodecError>,
+    prepare_smaller: impl Fn(),
+) -> Result<Choice, CodecError> {
+    let n_streams = weights.len();
+    let (q_min, q_max, _) = quality_range(opts.codec);
+    Ok(match opts.rate {
+        RateControl::Quality(q) => Choice {
+            rung: vec![0; n_streams],
+            quality: vec![q.clamp(q_min, q_max); n_streams],
+            feasible: true,
+            budget: None,
+            encodes: 0,
+        },
+        RateControl::Budget(bps) => {
+            let budget = bps * seconds - side_bits;
+            let mut models = fit(&[0])?;
+            let mut encodes = 2 * n_streams;
+            let mut a = alloc::allocate(&models, weights, budget, q_min, q_max);
+            let upper = trial_qualities(opts.codec, 0)[1];
+            if rungs > 1 && !(a.feasible && a.quality.iter().all(|&q| q <= upper)) {
+                let lower: Vec<usize> = (1..rungs).collect();
+                prepare_smaller();
+                for (m, l) in models.iter_mut().zip(fit(&lower)?) {
+                    m.extend(l);
+                }
+                encodes += 3 * n_streams * lower.len();
+                a = alloc::allocate(&models, weights, budget, q_min, q_max);
+            }
+            Choice {
+                rung: a.rung,
+                quality: a.quality,
+                feasible: a.feasible,
+                budget: Some((bps * seconds, models)),
+                encodes,
+            }
+        }
+    })
+}
+
+/// What [`choose_coding`] chose.
+struct Choice {
+    rung: Vec<usize>,
+    quality: Vec<f32>,
+    feasible: bool,
+    /// The segment's total bits and the models, under a budget.
+    budget: Option<(f64, Vec<Vec<alloc::RdModel>>)>,
+    /// Trial encodes run.
+    encodes: usize,
+}
+
+/// Codes one segment into `root/seg_NNNNNN/` (layer streams and side stream) and returns its
+/// manifest entry. The first frame must be an I-frame, the others P-frames of the same layers.
+pub fn encode_segment(
+    root: &Path,
+    number: usize,
+    frames: &[LayeredFrame],
+    opts: &CodingOptions,
+) -> Result<(Segment, SegmentReport), CodecError> {
+    let first = frames.first().ok_or(CodecError::Empty)?;
+    let (w, h) = (first.set.camera().width, first.set.camera().height);
+    let map = stream_map(frames)?;
+    let n_streams = first.set.len();
+    let blank = PremulImage::new(w, h);
+    let pictures = stream_pictures(frames, &map, n_streams, &blank);
+    let dir_name = segment_dir(number);
+    let dir = root.join(&dir_name);
+    std::fs::create_dir_all(&dir).map_err(|source| CodecError::Io {
+        path: dir.clone(),
+        source,
+    })?;
+    let side = side_stream(number, frames, &map, (w, h));
+    let side_rel = format!("{dir_name}/side.bin");
+    let side_bytes = side.encode();
+    let side_path = root.join(&side_rel);
+    std::fs::write(&side_path, &side_bytes).map_err(|source| CodecError::Io {
+        path: side_path,
+        source,
+    })?;
+    let weights = stream_weights(first);
     let stream_rel = |k: usize| format!("{dir_name}/layer_{k:02}.mp4");
     // The resolution ladder: only a budget may send a stream below full size.
     let rungs = match opts.rate {
@@ -189,47 +274,27 @@ pub fn encode_segment(
     };
     let seconds = frames.len() as f64 / opts.fps;
     let (q_min, q_max, _) = quality_range(opts.codec);
-    let mut encodes = 0;
-    let (rung, quality, feasible, budget) = match opts.rate {
-        RateControl::Quality(q) => (
-            vec![0; n_streams],
-            vec![q.clamp(q_min, q_max); n_streams],
-            true,
-            None,
-        ),
-        RateControl::Budget(bps) => {
-            let budget = bps * seconds - side_bytes.len() as f64 * 8.0;
-            let fit = |which: &[usize]| {
-                trial_models(
-                    root,
-                    &stream_rel,
-                    &pictures,
-                    &pics,
-                    &rungs,
-                    which,
-                    frames,
-                    &map,
-                    opts,
-                )
-            };
-            let mut models = fit(&[0])?;
-            encodes += 2 * n_streams;
-            let mut a = alloc::allocate(&models, &weights, budget, q_min, q_max);
-            // The smaller rungs are fitted only when full size would need a quality worse
-            // than the upper trial's: within the trials' range full size wins anyway.
-            let upper = trial_qualities(opts.codec, 0)[1];
-            if rungs.len() > 1 && !(a.feasible && a.quality.iter().all(|&q| q <= upper)) {
-                let lower: Vec<usize> = (1..rungs.len()).collect();
-                pics(0, 1);
-                for (m, l) in models.iter_mut().zip(fit(&lower)?) {
-                    m.extend(l);
-                }
-                encodes += 3 * n_streams * lower.len();
-                a = alloc::allocate(&models, &weights, budget, q_min, q_max);
-            }
-            (a.rung, a.quality, a.feasible, Some((bps * seconds, models)))
-        }
+    let fit = |which: &[usize]| {
+        trial_models(
+            root,
+            &stream_rel,
+            &pictures,
+            &pics,
+            &rungs,
+            which,
+            frames,
+            &map,
+            opts,
+        )
     };
+    let side_bits = side_bytes.len() as f64 * 8.0;
+    // The smaller pictures are made before the smaller rungs are fitted in parallel.
+    let choice = choose_coding(opts, seconds, side_bits, &weights, rungs.len(), fit, || {
+        pics(0, 1);
+    })?;
+    let (rung, quality, feasible, budget) =
+        (choice.rung, choice.quality, choice.feasible, choice.budget);
+    let mut encodes = choice.encodes;
     let budget_bits = budget.as_ref().map(|b| b.0);
     let encode_jobs = |jobs: &[(usize, usize, f32)]| -> Result<Vec<f64>, CodecError> {
         jobs.par_iter()
@@ -245,7 +310,6 @@ pub fn encode_segment(
         quality,
     };
     encodes += n_streams;
-    let side_bits = side_bytes.len() as f64 * 8.0;
     let mut feasible = feasible;
     // Rates extrapolated beyond the trial qualities may miss, and a correction may move a
     // stream to a rung whose model is not yet anchored: up to four correction rounds.

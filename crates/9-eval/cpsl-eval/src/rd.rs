@@ -581,18 +581,17 @@ fn spearman(x: &[f64], y: &[f64]) -> Option<f64> {
     Some(cov / var)
 }
 
-/// Measures every method's curve; `on_point(method, point)` sees each coded point as it is
-/// measured.
-pub fn evaluate_rd(
-    a: &RdOptions,
-    progress: &dyn Progress,
-    mut on_point: impl FnMut(&str, &Point),
-) -> Result<RdReport> {
-    let codec = a.codec;
-    cpsl_pipeline::encode::require_encoder(codec)?;
+/// LPIPS, which the curves need once asked for.
+fn open_lpips() -> Result<cpsl_models::Lpips> {
+    cpsl_models::Lpips::open(&cpsl_models::lpips::default_path())
+        .context_with(|| "LPIPS (scripts/setup-models.sh, or --no-lpips)".into())
+}
+
+/// The baselines' qualities: `given`, or five points spread over the codec's range.
+fn baseline_qualities(codec: Codec, given: Option<&[f32]>) -> Result<Vec<f32>> {
     let (q_min, q_max, _) = cpsl_codec::quality_range(codec);
-    let qualities = match &a.qualities {
-        Some(q) => q.clone(),
+    let qualities = match given {
+        Some(q) => q.to_vec(),
         None => [0.2, 0.35, 0.5, 0.65, 0.8]
             .iter()
             .map(|t| (q_min + t * (q_max - q_min)).round())
@@ -604,15 +603,76 @@ pub fn evaluate_rd(
             codec.name()
         )));
     }
-    let bars = progress;
-    let mut lpips = if !a.lpips {
-        None
-    } else {
-        Some(
-            cpsl_models::Lpips::open(&cpsl_models::lpips::default_path())
-                .context_with(|| "LPIPS (scripts/setup-models.sh, or --no-lpips)".into())?,
-        )
+    Ok(qualities)
+}
+
+/// How DIBR's colour-over-depth stream is coded.
+struct DibrStream<'a> {
+    /// 16-bit depth in a 10-bit stream, else 8-bit in 8-bit.
+    deep: bool,
+    codec: Codec,
+    /// Where the stream is written.
+    path: &'a Path,
+    /// Depth to `[0, 1]`.
+    to_unit: &'a dyn Fn(f32) -> f64,
+    /// Back to depth.
+    from_unit: &'a dyn Fn(f64) -> f32,
+}
+
+/// DIBR streaming's curve: the clip coded at every quality, decoded, warped and scored;
+/// `on_point` sees each point as it is measured.
+fn dibr_curve(
+    clip: &Clip,
+    stream: &DibrStream<'_>,
+    qualities: &[f32],
+    uncompressed: &Point,
+    lpips: &mut Option<cpsl_models::Lpips>,
+    on_point: &mut dyn FnMut(&str, &Point),
+) -> Result<Curve> {
+    let cam = clip.camera;
+    let mut curve = Curve {
+        method: if stream.deep { "dibr-16" } else { "dibr" },
+        uncompressed: uncompressed.clone(),
+        points: Vec::new(),
     };
+    for &q in qualities {
+        let (path, codec, to, from) = (stream.path, stream.codec, stream.to_unit, stream.from_unit);
+        let (bytes, decoded) = if stream.deep {
+            dibr_stream::<u16>(path, clip, codec, q, &to, &from)?
+        } else {
+            dibr_stream::<u8>(path, clip, codec, q, &to, &from)?
+        };
+        if decoded.len() != clip.rgb.len() {
+            return Err(EvalError::Invalid("DIBR stream lost frames".into()));
+        }
+        let (p, l) = score(clip, lpips, |f, pose| {
+            let (rgb, depth) = &decoded[f];
+            Ok(dibr(rgb, depth, &cam, pose, &cam, true).rgb)
+        })?;
+        curve.points.push(Point {
+            setting: format!("crf {q}"),
+            bitrate: Some(bytes as f64 * 8.0 * FPS / clip.rgb.len() as f64),
+            psnr: p,
+            lpips: l,
+            proxy: None,
+        });
+        on_point(curve.method, curve.points.last().expect("pushed"));
+    }
+    Ok(curve)
+}
+
+/// Measures every method's curve; `on_point(method, point)` sees each coded point as it is
+/// measured.
+pub fn evaluate_rd(
+    a: &RdOptions,
+    progress: &dyn Progress,
+    mut on_point: impl FnMut(&str, &Point),
+) -> Result<RdReport> {
+    let codec = a.codec;
+    cpsl_pipeline::encode::require_encoder(codec)?;
+    let qualities = baseline_qualities(codec, a.qualities.as_deref())?;
+    let bars = progress;
+    let mut lpips = a.lpips.then(open_lpips).transpose()?;
     let clip = match a.clip {
         RdClip::Synthetic => ray_cast(a, bars),
         RdClip::Fox => fox_clip(a)?,
@@ -679,34 +739,22 @@ pub fn evaluate_rd(
     })?;
     let dibr_uncompressed = uncompressed(p, l);
     for deep in [false, true] {
-        let mut curve = Curve {
-            method: if deep { "dibr-16" } else { "dibr" },
-            uncompressed: dibr_uncompressed.clone(),
-            points: Vec::new(),
+        let stream = DibrStream {
+            deep,
+            codec,
+            path: &tmp.path().join("dibr.mp4"),
+            to_unit: &to_unit,
+            from_unit: &from_unit,
         };
-        for &q in &qualities {
-            let path = tmp.path().join("dibr.mp4");
-            let (bytes, decoded) = if deep {
-                dibr_stream::<u16>(&path, &clip, codec, q, &to_unit, &from_unit)?
-            } else {
-                dibr_stream::<u8>(&path, &clip, codec, q, &to_unit, &from_unit)?
-            };
-            if decoded.len() != clip.rgb.len() {
-                return Err(EvalError::Invalid("DIBR stream lost frames".into()));
-            }
-            let (p, l) = score(&clip, &mut lpips, |f, pose| {
-                let (rgb, depth) = &decoded[f];
-                Ok(dibr(rgb, depth, &cam, pose, &cam, true).rgb)
-            })?;
-            curve.points.push(Point {
-                setting: format!("crf {q}"),
-                bitrate: Some(bytes as f64 * 8.0 * FPS / clip.rgb.len() as f64),
-                psnr: p,
-                lpips: l,
-                proxy: None,
-            });
-            on_point(curve.method, curve.points.last().expect("pushed"));
-        }
+        let uncompressed = &dibr_uncompressed;
+        let curve = dibr_curve(
+            &clip,
+            &stream,
+            &qualities,
+            uncompressed,
+            &mut lpips,
+            &mut on_point,
+        )?;
         curves.push(curve);
     }
 

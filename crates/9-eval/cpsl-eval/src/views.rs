@@ -248,6 +248,52 @@ pub struct MethodReport {
     pub views: Vec<ViewScore>,
 }
 
+impl MethodReport {
+    /// The report of `method` on `dataset` from its views' scores (LPIPS averaged where the
+    /// views have it).
+    fn new(
+        dataset: &str,
+        method: Method,
+        layers: usize,
+        depth: &str,
+        bits: Option<f64>,
+        views: Vec<ViewScore>,
+    ) -> Self {
+        let scored = views.iter().any(|v| v.lpips.is_some());
+        Self {
+            dataset: dataset.into(),
+            method: method.name().into(),
+            layers,
+            depth: depth.into(),
+            bits,
+            mean_psnr: mean(
+                views
+                    .iter()
+                    .filter_map(|v| v.psnr)
+                    .filter(|p| p.is_finite()),
+            ),
+            mean_ssim: mean(views.iter().map(|v| v.ssim)),
+            mean_lpips: scored.then(|| mean(views.iter().filter_map(|v| v.lpips))),
+            mean_crack: mean(views.iter().map(|v| v.crack)),
+            mean_hole: mean(views.iter().map(|v| v.hole)),
+            views,
+        }
+    }
+}
+
+/// LPIPS, or a warning and `None` where its graph cannot be loaded.
+fn open_lpips(progress: &dyn Progress) -> Option<std::cell::RefCell<cpsl_models::Lpips>> {
+    match cpsl_models::Lpips::open(&cpsl_models::lpips::default_path()) {
+        Ok(m) => Some(std::cell::RefCell::new(m)),
+        Err(e) => {
+            progress.event(ProgressEvent::Warning {
+                message: format!("LPIPS skipped: {e}"),
+            });
+            None
+        }
+    }
+}
+
 /// A synthesised target view.
 struct Synth {
     /// RGB over black.
@@ -265,7 +311,23 @@ struct Scorer<'a> {
     lpips: Option<&'a std::cell::RefCell<cpsl_models::Lpips>>,
 }
 
-impl Scorer<'_> {
+impl<'a> Scorer<'a> {
+    /// The scorer of `ds`'s target views: their depth-edge bands and co-visibility masks
+    /// from `depth`, and LPIPS when given.
+    fn new(
+        ds: &'a Dataset,
+        depth: &[f32],
+        lpips: Option<&'a std::cell::RefCell<cpsl_models::Lpips>>,
+    ) -> Self {
+        let per_target = |f: &dyn Fn(&Target) -> Vec<bool>| ds.targets.iter().map(f).collect();
+        Self {
+            ds,
+            bands: per_target(&|t| edge_band(depth, &ds.camera, &t.pose, &t.camera, 0.05, 2)),
+            masks: per_target(&|t| covisible(depth, &ds.camera, &t.pose, &t.camera)),
+            lpips,
+        }
+    }
+
     /// Scores every target view synthesised by `synth`; returns the scores and the view
     /// with the largest offset (for the report's crops).
     fn score(
@@ -402,20 +464,7 @@ pub fn evaluate_views(
         m => vec![m],
     };
     let coding = RoundTrip::new(a)?;
-    let lpips = if !a.lpips {
-        None
-    } else {
-        let path = cpsl_models::lpips::default_path();
-        match cpsl_models::Lpips::open(&path) {
-            Ok(m) => Some(std::cell::RefCell::new(m)),
-            Err(e) => {
-                progress.event(ProgressEvent::Warning {
-                    message: format!("LPIPS skipped: {e}"),
-                });
-                None
-            }
-        }
-    };
+    let lpips = if a.lpips { open_lpips(progress) } else { None };
     let mut reports = Vec::new();
     let mut crops = Vec::new();
     for name in names {
@@ -427,20 +476,7 @@ pub fn evaluate_views(
             ));
             continue;
         };
-        let scorer = Scorer {
-            ds: &ds,
-            bands: ds
-                .targets
-                .iter()
-                .map(|t| edge_band(&depth, &ds.camera, &t.pose, &t.camera, 0.05, 2))
-                .collect(),
-            masks: ds
-                .targets
-                .iter()
-                .map(|t| covisible(&depth, &ds.camera, &t.pose, &t.camera))
-                .collect(),
-            lpips: lpips.as_ref(),
-        };
+        let scorer = Scorer::new(&ds, &depth, lpips.as_ref());
         for &method in &methods {
             // The layers as rendered: the set itself, or the set coded and decoded again.
             let prepare =
@@ -530,26 +566,7 @@ pub fn evaluate_views(
                 }
                 Method::All => unreachable!("expanded above"),
             };
-            let r = MethodReport {
-                dataset: name.into(),
-                method: method.name().into(),
-                layers,
-                depth: depth_name.clone(),
-                bits,
-                mean_psnr: mean(
-                    views
-                        .iter()
-                        .filter_map(|v| v.psnr)
-                        .filter(|p| p.is_finite()),
-                ),
-                mean_ssim: mean(views.iter().map(|v| v.ssim)),
-                mean_lpips: lpips
-                    .as_ref()
-                    .map(|_| mean(views.iter().filter_map(|v| v.lpips))),
-                mean_crack: mean(views.iter().map(|v| v.crack)),
-                mean_hole: mean(views.iter().map(|v| v.hole)),
-                views,
-            };
+            let r = MethodReport::new(name, method, layers, &depth_name, bits, views);
             rows(Row::Scored(&r));
             if a.html.is_some() {
                 let t = &ds.targets[farthest(&ds)];

@@ -113,6 +113,49 @@ impl Stats {
     }
 }
 
+/// Promotion candidates, best score first: regions (per region its statistics, its ring of
+/// neighbouring pixels and its summed instance confidence) of moderate area that stand out
+/// in front of their surroundings, are compact in depth and salient enough; at most
+/// `cfg.max_promoted`, and at most half of the `k` layers.
+fn candidates(
+    disparity: &[f32],
+    region: &[u32],
+    (rs, ring, inst): (&[Stats], &[Stats], &[f64]),
+    k: usize,
+    cfg: &PromoteConfig,
+) -> Vec<(usize, f32)> {
+    let n = region.len();
+    let mut cand: Vec<(usize, f32)> = Vec::new();
+    for r in 0..rs.len() {
+        let area = (rs[r].n / n as f64) as f32;
+        if area < cfg.min_area || area > cfg.max_area || ring[r].n == 0.0 {
+            continue;
+        }
+        let standout = (rs[r].mean(rs[r].disp) - ring[r].mean(ring[r].disp)) as f32;
+        if standout < cfg.min_standout {
+            continue;
+        }
+        let mut d: Vec<f32> = (0..n)
+            .filter(|&p| region[p] as usize == r)
+            .map(|p| disparity[p])
+            .collect();
+        d.sort_by(f32::total_cmp);
+        if d[d.len() * 9 / 10] - d[d.len() / 10] > cfg.max_spread {
+            continue;
+        }
+        let support = (inst[r] / rs[r].n) as f32;
+        let size = (area / 0.02).min(1.0).sqrt();
+        let score = rs[r].mean(rs[r].sal) as f32 * (0.5 + 0.5 * support) * size;
+        if score >= cfg.threshold {
+            cand.push((r, score));
+        }
+    }
+    cand.sort_by(|a, b| b.1.total_cmp(&a.1));
+    // At least half the layers stay for the background depth range.
+    cand.truncate(cfg.max_promoted.min(k.saturating_sub(1) / 2));
+    cand
+}
+
 /// Promotes salient regions and merges the background to at most `k` layers.
 pub fn promote(work: &Work, fusion: &Fusion, k: usize, cfg: &PromoteConfig) -> Plan {
     let (w, h) = (work.width, work.height);
@@ -159,35 +202,7 @@ pub fn promote(work: &Work, fusion: &Fusion, k: usize, cfg: &PromoteConfig) -> P
         }
     }
 
-    // Promotion candidates.
-    let mut cand: Vec<(usize, f32)> = Vec::new();
-    for r in 0..nr {
-        let area = (rs[r].n / n as f64) as f32;
-        if area < cfg.min_area || area > cfg.max_area || ring[r].n == 0.0 {
-            continue;
-        }
-        let standout = (rs[r].mean(rs[r].disp) - ring[r].mean(ring[r].disp)) as f32;
-        if standout < cfg.min_standout {
-            continue;
-        }
-        let mut d: Vec<f32> = (0..n)
-            .filter(|&p| region[p] as usize == r)
-            .map(|p| work.disparity[p])
-            .collect();
-        d.sort_by(f32::total_cmp);
-        if d[d.len() * 9 / 10] - d[d.len() / 10] > cfg.max_spread {
-            continue;
-        }
-        let support = (inst[r] / rs[r].n) as f32;
-        let size = (area / 0.02).min(1.0).sqrt();
-        let score = rs[r].mean(rs[r].sal) as f32 * (0.5 + 0.5 * support) * size;
-        if score >= cfg.threshold {
-            cand.push((r, score));
-        }
-    }
-    cand.sort_by(|a, b| b.1.total_cmp(&a.1));
-    // At least half the layers stay for the background depth range.
-    cand.truncate(cfg.max_promoted.min(k.saturating_sub(1) / 2));
+    let cand = candidates(&work.disparity, &region, (&rs, &ring, &inst), k, cfg);
 
     // Candidates are taken best score first; each is promoted only if the plan's depth-fit
     // error stays within the tolerance of the plan without it.

@@ -5,7 +5,7 @@
 use crate::encode::CodecArg;
 use crate::layer::InstanceArg;
 use crate::progress::Bars;
-use crate::synth::{depth_list, estimate_depth, synthesise, SynthArgs};
+use crate::synth::{depth_list, estimate_depth};
 use crate::util;
 use anyhow::{Context, Result};
 use clap::Args;
@@ -18,6 +18,7 @@ use cpsl_package::Package;
 use cpsl_pipeline::encode::{encode, EncodeJob, Target};
 use cpsl_pipeline::image::{layer_image, write_image_layers};
 use cpsl_pipeline::sources::{layering_config, CameraChoice, VideoDepth};
+use cpsl_pipeline::synthetic::{synthesise, SynthOptions};
 use cpsl_pipeline::video::{MotionSource, VideoJob};
 use cpsl_player::sweep::{render_sweep, Output, Sweep};
 use cpsl_player::Source;
@@ -84,7 +85,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
     let bars = Bars::default();
     let synth_dir = a.output.join("scene");
     let synth = synthesise(
-        &SynthArgs {
+        &SynthOptions {
             output: synth_dir.clone(),
             width: a.width,
             height: a.height,

@@ -15,7 +15,7 @@ use cpsl_eval::metrics::psnr;
 use cpsl_io::images::write_png;
 use cpsl_io::pfm::{write_pfm, FloatImage};
 use cpsl_package::Package;
-use cpsl_pipeline::encode::{encode, EncodeJob, Target};
+use cpsl_pipeline::encode::{encode, EncodeJob, EncodeTarget};
 use cpsl_pipeline::image::{layer_image, write_image_layers};
 use cpsl_pipeline::sources::{layering_config, CameraChoice, VideoDepth};
 use cpsl_pipeline::synthetic::{synthesise, SynthOptions};
@@ -281,7 +281,7 @@ fn clip(a: &DemoArgs, scene: &Scene, bars: &Bars) -> Result<()> {
         },
         codec: a.codec.into(),
         fps: Some(CLIP_FPS),
-        target: Target::Package(package.clone(), RateControl::Budget(a.bitrate)),
+        target: EncodeTarget::Package(package.clone(), RateControl::Budget(a.bitrate)),
     };
     encode(&job, &mut depth, bars, &AtomicBool::new(false))?;
     println!(

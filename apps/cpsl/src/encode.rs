@@ -7,7 +7,7 @@ use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
 use cpsl_codec::RateControl;
 use cpsl_package::{Codec, Package};
-use cpsl_pipeline::encode::{encode, EncodeJob, Target};
+use cpsl_pipeline::encode::{encode, EncodeJob, EncodeTarget};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -106,9 +106,9 @@ pub fn run(a: EncodeArgs) -> Result<()> {
         (None, None) => RateControl::Quality(q_default),
     };
     let target = match (a.archive, a.variants.is_empty()) {
-        (_, false) => Target::Variants(a.output.clone(), a.variants.clone()),
-        (true, true) => Target::Archive(a.output.clone(), rate),
-        (false, true) => Target::Package(a.output.clone(), rate),
+        (_, false) => EncodeTarget::Variants(a.output.clone(), a.variants.clone()),
+        (true, true) => EncodeTarget::Archive(a.output.clone(), rate),
+        (false, true) => EncodeTarget::Package(a.output.clone(), rate),
     };
     let (video, mut depth) = a.layering.job(&a.input)?;
     let job = EncodeJob {

@@ -14,7 +14,7 @@ use std::time::Instant;
 
 /// What an encode writes.
 #[derive(Debug, Clone, PartialEq)]
-pub enum Target {
+pub enum EncodeTarget {
     /// One package folder at this rate.
     Package(PathBuf, RateControl),
     /// One package as a single archive file at this rate.
@@ -33,7 +33,7 @@ pub struct EncodeJob {
     /// Frames per second of the package; the input's when `None`.
     pub fps: Option<f64>,
     /// What to write.
-    pub target: Target,
+    pub target: EncodeTarget,
 }
 
 /// What an encode wrote.
@@ -62,10 +62,10 @@ pub fn require_encoder(codec: Codec) -> Result<(), PipelineError> {
 }
 
 /// The packages to write, each with its rate: one, or one per budget.
-fn plan(target: &Target) -> Result<Vec<(PathBuf, RateControl)>, PipelineError> {
+fn plan(target: &EncodeTarget) -> Result<Vec<(PathBuf, RateControl)>, PipelineError> {
     let refuse = |what: String| Err(PipelineError::Invalid(what));
     match target {
-        Target::Package(out, rate) => {
+        EncodeTarget::Package(out, rate) => {
             if out.exists() && !(out.is_dir() && cpsl_package::is_package(out)) {
                 return refuse(format!(
                     "{} exists and is not a CPSL package; not replacing it",
@@ -74,7 +74,7 @@ fn plan(target: &Target) -> Result<Vec<(PathBuf, RateControl)>, PipelineError> {
             }
             Ok(vec![(out.clone(), *rate)])
         }
-        Target::Archive(out, rate) => {
+        EncodeTarget::Archive(out, rate) => {
             if out.exists() && !cpsl_package::is_archive(out) {
                 return refuse(format!(
                     "{} exists and is not a CPSL package archive; not replacing it",
@@ -83,7 +83,7 @@ fn plan(target: &Target) -> Result<Vec<(PathBuf, RateControl)>, PipelineError> {
             }
             Ok(vec![(archive_folder(out), *rate)])
         }
-        Target::Variants(dir, budgets) => {
+        EncodeTarget::Variants(dir, budgets) => {
             if dir.exists() && !dir.join(VARIANTS_FILE).is_file() {
                 return refuse(format!(
                     "{} exists and is not a variant set (no {VARIANTS_FILE}); not replacing it",
@@ -213,7 +213,7 @@ pub fn encode(
     }
     let mut variant_set = None;
     match &job.target {
-        Target::Archive(out, _) => {
+        EncodeTarget::Archive(out, _) => {
             let folder = &packages[0].0;
             let packed = cpsl_package::pack(folder, out);
             std::fs::remove_dir_all(folder).map_err(|source| PipelineError::File {
@@ -223,12 +223,12 @@ pub fn encode(
             packed.context_with(|| format!("packing {}", out.display()))?;
             packages[0].0 = out.clone();
         }
-        Target::Variants(dir, _) => {
+        EncodeTarget::Variants(dir, _) => {
             let names = packages.iter().filter_map(|(p, _)| p.file_name()?.to_str());
             VariantSet::new(names.map(String::from).collect()).write(dir)?;
             variant_set = Some(dir.join(VARIANTS_FILE));
         }
-        Target::Package(..) => {}
+        EncodeTarget::Package(..) => {}
     }
     Ok(Encoded {
         packages,

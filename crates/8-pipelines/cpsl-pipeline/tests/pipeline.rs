@@ -6,7 +6,7 @@ use cpsl_codec::RateControl;
 use cpsl_core::{NoProgress, Pose};
 use cpsl_io::pfm::{write_pfm, FloatImage};
 use cpsl_package::{Codec, Package, VariantSet, VARIANTS_FILE};
-use cpsl_pipeline::encode::{encode, EncodeJob, Target};
+use cpsl_pipeline::encode::{encode, EncodeJob, EncodeTarget};
 use cpsl_pipeline::sources::{CameraChoice, VideoDepth};
 use cpsl_pipeline::video::{write_layered_video, MotionSource, VideoJob, VIDEO_FILE};
 use cpsl_pipeline::PipelineError;
@@ -82,7 +82,7 @@ fn layered_frames_variants_and_interruption() {
         video: video.clone(),
         codec: Codec::H264,
         fps: Some(10.0),
-        target: Target::Variants(variants.clone(), vec![400e3, 150e3]),
+        target: EncodeTarget::Variants(variants.clone(), vec![400e3, 150e3]),
     };
     let done = encode(&job, &mut depth(), &NoProgress, &AtomicBool::new(false)).unwrap();
     assert_eq!(done.packages.len(), 2);
@@ -105,7 +105,7 @@ fn layered_frames_variants_and_interruption() {
     // A stop request ends the run with nothing written.
     let archive = dir.path().join("clip.cpsl");
     let job = EncodeJob {
-        target: Target::Archive(archive.clone(), RateControl::Quality(30.0)),
+        target: EncodeTarget::Archive(archive.clone(), RateControl::Quality(30.0)),
         ..job
     };
     let e = encode(&job, &mut depth(), &NoProgress, &AtomicBool::new(true)).unwrap_err();

@@ -161,9 +161,9 @@ fn layer(a: BenchLayerArgs) -> Result<()> {
         report.layers,
         report.depth,
         report.frames,
-        report.threads,
-        report.cpu,
-        report.date
+        report.run.threads,
+        report.run.cpu,
+        report.run.date
     );
     for (name, ms) in &report.stages {
         println!("  {name:<22} {ms:>8.1} ms");
@@ -209,9 +209,9 @@ fn render(a: BenchRenderArgs) -> Result<()> {
         report.layers,
         report.pose,
         report.frames,
-        report.threads,
-        report.cpu,
-        report.date
+        report.run.threads,
+        report.run.cpu,
+        report.run.date
     );
     for c in &report.cases {
         println!(
@@ -269,9 +269,9 @@ fn play(a: BenchPlayArgs) -> Result<()> {
         report.kbit_per_s,
         report.frames,
         if report.dps { ", with the strip" } else { "" },
-        report.threads,
-        report.cpu,
-        report.date
+        report.run.threads,
+        report.run.cpu,
+        report.run.date
     );
     for (name, t) in [
         ("decode", &report.decode),

@@ -19,6 +19,32 @@ fn invalid<T>(m: impl Into<String>) -> Result<T> {
     Err(EvalError::Invalid(m.into()))
 }
 
+/// Where and when a benchmark ran: the command line, the date, the CPU and the worker
+/// threads (the first fields of every report).
+#[derive(Debug, Serialize)]
+pub struct RunInfo {
+    /// The command line that made the report.
+    pub command: String,
+    /// The date it was made.
+    pub date: String,
+    /// The CPU.
+    pub cpu: String,
+    /// Worker threads.
+    pub threads: usize,
+}
+
+impl RunInfo {
+    /// This process, now.
+    pub fn now() -> Self {
+        Self {
+            command: std::env::args().collect::<Vec<_>>().join(" "),
+            date: today(),
+            cpu: cpu_name(),
+            threads: rayon::current_num_threads(),
+        }
+    }
+}
+
 /// What `bench_layer` times.
 #[derive(Debug, Clone)]
 pub struct LayerBench {
@@ -39,14 +65,9 @@ pub struct LayerBench {
 /// Per-stage times of layering one frame.
 #[derive(Debug, Serialize)]
 pub struct LayerReport {
-    /// The command line that made the report.
-    pub command: String,
-    /// The date it was made.
-    pub date: String,
-    /// The CPU.
-    pub cpu: String,
-    /// Worker threads.
-    pub threads: usize,
+    /// Where and when it was measured.
+    #[serde(flatten)]
+    pub run: RunInfo,
     /// Frame width.
     pub width: u32,
     /// Frame height.
@@ -133,10 +154,7 @@ pub fn bench_layer(a: &LayerBench) -> Result<LayerReport> {
         .map(|(j, (name, _))| (name.clone(), median(runs.iter().map(|r| r[j].1).collect())))
         .collect();
     let report = LayerReport {
-        command: std::env::args().collect::<Vec<_>>().join(" "),
-        date: today(),
-        cpu: cpu_name(),
-        threads: rayon::current_num_threads(),
+        run: RunInfo::now(),
         width: a.width,
         height: a.height,
         layers: cfg.layers,
@@ -228,14 +246,9 @@ pub struct Case {
 /// Render timings (the JSON of `cpsl bench render`).
 #[derive(Debug, Serialize)]
 pub struct RenderReport {
-    /// The command line that made the report.
-    pub command: String,
-    /// The date it was made.
-    pub date: String,
-    /// The CPU.
-    pub cpu: String,
-    /// Worker threads.
-    pub threads: usize,
+    /// Where and when it was measured.
+    #[serde(flatten)]
+    pub run: RunInfo,
     /// Frame width.
     pub width: u32,
     /// Frame height.
@@ -481,10 +494,7 @@ pub fn bench_render(a: &RenderBench, progress: &dyn Progress) -> Result<RenderRe
     let (rx, ry, rz) = a.pose.euler_deg();
     let t = a.pose.translation;
     Ok(RenderReport {
-        command: std::env::args().collect::<Vec<_>>().join(" "),
-        date: today(),
-        cpu: cpu_name(),
-        threads: rayon::current_num_threads(),
+        run: RunInfo::now(),
         width,
         height,
         layers,
@@ -510,14 +520,9 @@ pub struct PlayBench {
 /// Playback timings (the JSON of `cpsl bench play`).
 #[derive(Debug, Serialize)]
 pub struct PlayReport {
-    /// The command line that made the report.
-    pub command: String,
-    /// The date it was made.
-    pub date: String,
-    /// The CPU.
-    pub cpu: String,
-    /// Worker threads.
-    pub threads: usize,
+    /// Where and when it was measured.
+    #[serde(flatten)]
+    pub run: RunInfo,
     /// The package.
     pub package: String,
     /// Frame width.
@@ -577,10 +582,7 @@ pub fn bench_play(a: &PlayBench) -> Result<PlayReport> {
     }
     let wall = started.elapsed().as_secs_f64();
     let report = PlayReport {
-        command: std::env::args().collect::<Vec<_>>().join(" "),
-        date: today(),
-        cpu: cpu_name(),
-        threads: rayon::current_num_threads(),
+        run: RunInfo::now(),
         package: a.package.display().to_string(),
         width: cam.width,
         height: cam.height,

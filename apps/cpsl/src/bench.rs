@@ -196,7 +196,7 @@ fn render(a: BenchRenderArgs) -> Result<()> {
     };
     let report = bench_render(&opts, &Bars::default())?;
     if let Some(path) = &a.save {
-        crate::util::write_json(path, &report)?;
+        cpsl_io::write_json(path, &report)?;
     }
     if a.json {
         println!("{}", serde_json::to_string_pretty(&report)?);

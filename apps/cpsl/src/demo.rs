@@ -6,7 +6,6 @@ use crate::encode::CodecArg;
 use crate::layer::InstanceArg;
 use crate::progress::Bars;
 use crate::synth::{depth_list, estimate_depth};
-use crate::util;
 use anyhow::{Context, Result};
 use clap::Args;
 use cpsl_codec::RateControl;
@@ -207,7 +206,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
             None => println!("  {:<12}  exact{note}", s.view),
         }
     }
-    util::write_json(&a.output.join("scores.json"), &scores)?;
+    cpsl_io::write_json(&a.output.join("scores.json"), &scores)?;
     clip(&a, &synth.scene, &bars)
 }
 
@@ -260,7 +259,7 @@ fn clip(a: &DemoArgs, scene: &Scene, bars: &Bars) -> Result<()> {
         stage: "ray cast clip",
     });
     let camera_json = dir.join("camera.json");
-    util::write_json(&camera_json, &cam)?;
+    cpsl_io::write_json(&camera_json, &cam)?;
 
     let package = a.output.join("clip.cpsl");
     let exact = a.depth_model.is_none();
@@ -330,7 +329,7 @@ fn clip(a: &DemoArgs, scene: &Scene, bars: &Bars) -> Result<()> {
         .sum::<f64>()
         / scores.len() as f64;
     let bitrate = Package::open(&package)?.manifest().bitrate();
-    util::write_json(
+    cpsl_io::write_json(
         &a.output.join("clip_scores.json"),
         &serde_json::json!({
             "package": package,

@@ -160,7 +160,7 @@ pub fn run(a: EvalArgs) -> Result<()> {
         ),
     })?;
     if let Some(path) = &a.json {
-        crate::util::write_json(path, &reports)?;
+        cpsl_io::write_json(path, &reports)?;
         println!("wrote {}", path.display());
     }
     if let Some(dir) = &a.html {

@@ -102,7 +102,7 @@ pub fn run(a: EvalRdArgs) -> Result<()> {
     let description = report.clip["description"].as_str().unwrap_or_default();
     print_tables(description, codec, &report.curves, &report.summary);
     if let Some(path) = &a.json {
-        crate::util::write_json(path, &report)?;
+        cpsl_io::write_json(path, &report)?;
         println!("wrote {}", path.display());
     }
     Ok(())

@@ -101,7 +101,7 @@ pub fn run(a: EvalVideoArgs) -> Result<()> {
         ),
     })?;
     if let Some(p) = &a.json {
-        crate::util::write_json(p, &rows)?;
+        cpsl_io::write_json(p, &rows)?;
         println!("wrote {}", p.display());
     }
     Ok(())

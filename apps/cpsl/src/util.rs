@@ -1,8 +1,5 @@
 //! Small helpers shared by the commands.
 
-use anyhow::Result;
-use std::path::Path;
-
 /// Parses `R,G,B` (0-255 each).
 pub fn parse_rgb(s: &str) -> Result<[u8; 3], String> {
     let v: Vec<u8> = s
@@ -12,9 +9,4 @@ pub fn parse_rgb(s: &str) -> Result<[u8; 3], String> {
         .map_err(|e| format!("colour '{s}': {e}; expected R,G,B with values 0-255"))?;
     <[u8; 3]>::try_from(v)
         .map_err(|v| format!("colour '{s}': expected 3 values, found {}", v.len()))
-}
-
-/// Writes pretty JSON atomically.
-pub fn write_json(path: &Path, value: &impl serde::Serialize) -> Result<()> {
-    Ok(cpsl_eval::report::write_json(path, value)?)
 }

@@ -136,6 +136,13 @@ pub fn write_file_atomic(path: &Path, bytes: &[u8]) -> Result<(), IoError> {
     stage.commit(|_| true)
 }
 
+/// Writes `value` as pretty JSON, atomically ([`write_file_atomic`]).
+pub fn write_json(path: &Path, value: &impl serde::Serialize) -> Result<(), IoError> {
+    let json = serde_json::to_string_pretty(value)
+        .map_err(|e| IoError::io(path, std::io::Error::other(e)))?;
+    write_file_atomic(path, json.as_bytes())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -180,6 +187,8 @@ mod tests {
         assert_eq!(fs::read(&late).unwrap(), b"theirs");
         write_file_atomic(&late, b"mine").unwrap();
         assert_eq!(fs::read(&late).unwrap(), b"mine");
+        write_json(&late, &[1, 2]).unwrap();
+        assert_eq!(fs::read_to_string(&late).unwrap(), "[\n  1,\n  2\n]");
         assert_eq!(entries(dir.path()), ["late", "out"]);
     }
 }

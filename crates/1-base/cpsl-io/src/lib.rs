@@ -13,6 +13,6 @@ pub mod images;
 pub mod layerset;
 pub mod pfm;
 
-pub use atomic::{write_file_atomic, Staged};
+pub use atomic::{write_file_atomic, write_json, Staged};
 pub use error::IoError;
 pub use layerset::{read_edc, read_layer_set, write_layer_set, EDC_FILE, MANIFEST_FILE};

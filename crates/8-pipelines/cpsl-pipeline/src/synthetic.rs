@@ -1,13 +1,13 @@
 //! Synthetic ground truth on disk: the built-in ray-cast scene's input view, exact depth,
 //! object ids and ground-truth novel views, as files that every command reads.
 
-use crate::error::{Context, PipelineError};
+use crate::error::PipelineError;
 use cpsl_core::{Camera, Pose, Progress, ProgressEvent};
 use cpsl_io::images::write_png;
 use cpsl_io::pfm::{write_pfm, FloatImage};
 use cpsl_synth::Scene;
 use serde::Serialize;
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
 type Result<T> = std::result::Result<T, PipelineError>;
 
@@ -24,13 +24,6 @@ pub struct SynthOptions {
     pub time: f64,
     /// Supersamples per pixel side for colour (anti-aliasing).
     pub supersample: u32,
-}
-
-/// Writes `value` as pretty JSON to `path`, atomically.
-pub fn write_json(path: &Path, value: &impl Serialize) -> Result<()> {
-    let s = serde_json::to_string_pretty(value).expect("the value serialises");
-    cpsl_io::write_file_atomic(path, s.as_bytes())
-        .context_with(|| format!("writing {}", path.display()))
 }
 
 /// One ground-truth view in `views.json`.
@@ -118,8 +111,8 @@ pub fn synthesise(a: &SynthOptions, progress: &dyn Progress) -> Result<SynthOutp
     )?;
     let ids: Vec<u8> = input.object.iter().map(|&o| o.min(255) as u8).collect();
     write_png(&dir.join("objects.png"), cam.width, cam.height, 1, &ids)?;
-    write_json(&dir.join("camera.json"), &cam)?;
-    write_json(&dir.join("scene.json"), &scene)?;
+    cpsl_io::write_json(&dir.join("camera.json"), &cam)?;
+    cpsl_io::write_json(&dir.join("scene.json"), &scene)?;
     let mut out_views = Vec::new();
     for (i, (name, pose)) in views.iter().enumerate() {
         let v = scene.render(&cam, pose, a.time, a.supersample);
@@ -147,7 +140,7 @@ pub fn synthesise(a: &SynthOptions, progress: &dyn Progress) -> Result<SynthOutp
         time: a.time,
         views: out_views.iter().map(|(e, _)| e.clone()).collect(),
     };
-    write_json(&dir.join("views.json"), &file)?;
+    cpsl_io::write_json(&dir.join("views.json"), &file)?;
     Ok(SynthOutput {
         scene,
         rgb: input.rgb,

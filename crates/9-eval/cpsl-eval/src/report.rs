@@ -1,7 +1,4 @@
-//! What reports share: the date they were made and JSON written atomically.
-
-use crate::error::{Context, EvalError};
-use std::path::Path;
+//! The date reports were made (they are written with `cpsl_io::write_json`).
 
 /// Today's date (UTC), `YYYY-MM-DD`.
 pub fn today() -> String {
@@ -20,11 +17,4 @@ pub fn today() -> String {
     let m = if mp < 10 { mp + 3 } else { mp - 9 };
     let y = yoe + era * 400 + (m <= 2) as i64;
     format!("{y:04}-{m:02}-{d:02}")
-}
-
-/// Writes `value` as pretty JSON to `path`, atomically.
-pub fn write_json(path: &Path, value: &impl serde::Serialize) -> Result<(), EvalError> {
-    let s = serde_json::to_string_pretty(value).expect("reports serialise");
-    cpsl_io::write_file_atomic(path, s.as_bytes())
-        .context_with(|| format!("writing {}", path.display()))
 }

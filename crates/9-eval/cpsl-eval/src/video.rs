@@ -497,12 +497,13 @@ pub fn evaluate_video(
             let sets = layer_clip(&c, method, &cfg, a.gop, given)?;
             let owners: Vec<Vec<u8>> = sets.iter().map(|s| alpha_owner(&s.0)).collect();
             let bv = boundary_variance(&owners, &input_motion);
+            let (frames, i_frames) = (sets.len(), sets.iter().filter(|s| s.2).count());
             let renders: Vec<(Vec<u8>, Vec<bool>)> = sets
-                .iter()
+                .into_iter()
                 .zip(&c.novel)
                 .map(|((set, edc, _), (pose, cam))| {
-                    let frame = FrameLayers::new(set.clone(), edc.clone());
                     let dps = edc.is_some().then_some(&DpsConfig::DEFAULT);
+                    let frame = FrameLayers::new(set, edc);
                     let img = CpuRenderer.view(&frame, pose, cam, dps);
                     (img.over_background([0, 0, 0]), img.covered(128))
                 })
@@ -538,8 +539,8 @@ pub fn evaluate_video(
                 clip: c.name.into(),
                 method: method.into(),
                 depth: c.depth_name.clone(),
-                frames: sets.len(),
-                i_frames: sets.iter().filter(|s| s.2).count(),
+                frames,
+                i_frames,
                 boundary_variance_px2: bv,
                 boundary_variance: 0.0,
                 boundary_variance_vs_frame_wise: 0.0,

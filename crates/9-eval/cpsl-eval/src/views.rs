@@ -171,11 +171,11 @@ impl RoundTrip {
         &self,
         dataset: &str,
         method: &str,
-        set: &LayerSet,
-        edc: Option<&Edc>,
+        set: LayerSet,
+        edc: Option<Edc>,
     ) -> Result<(LayerSet, Edc, f64)> {
         let path = self.dir.join(format!("{}_{method}.cpsl", slug(dataset)));
-        let edc = edc.cloned().unwrap_or_else(|| {
+        let edc = edc.unwrap_or_else(|| {
             let step = cpsl_layering::matte::MatteConfig::default().edc_step;
             Edc::empty(
                 set.camera().width,
@@ -185,7 +185,7 @@ impl RoundTrip {
             )
         });
         let mut writer = PackageWriter::create(&path, *set.camera(), set.len() as u32, self.opts)?;
-        let frame = LayeredFrame::new(0, Some(RefreshReason::First), set.clone(), edc);
+        let frame = LayeredFrame::new(0, Some(RefreshReason::First), set, edc);
         writer.push_segment(&[frame])?;
         let manifest = writer.finish()?;
         let pkg = cpsl_package::Package::open(&path)
@@ -479,16 +479,15 @@ pub fn evaluate_views(
         let scorer = Scorer::new(&ds, &depth, lpips.as_ref());
         for &method in &methods {
             // The layers as rendered: the set itself, or the set coded and decoded again.
-            let prepare =
-                |set: &LayerSet, edc: Option<&Edc>| -> Result<(FrameLayers, Option<f64>)> {
-                    Ok(match &coding {
-                        None => (FrameLayers::new(set.clone(), edc.cloned()), None),
-                        Some(c) => {
-                            let (set, edc, bits) = c.round_trip(name, method.name(), set, edc)?;
-                            (FrameLayers::new(set, Some(edc)), Some(bits))
-                        }
-                    })
-                };
+            let prepare = |set: LayerSet, edc: Option<Edc>| -> Result<(FrameLayers, Option<f64>)> {
+                Ok(match &coding {
+                    None => (FrameLayers::new(set, edc), None),
+                    Some(c) => {
+                        let (set, edc, bits) = c.round_trip(name, method.name(), set, edc)?;
+                        (FrameLayers::new(set, Some(edc)), Some(bits))
+                    }
+                })
+            };
             let sliced = |k: usize, bins: Bins| -> Result<(FrameLayers, usize, Option<f64>)> {
                 let config = SliceConfig {
                     layers: k,
@@ -497,8 +496,9 @@ pub fn evaluate_views(
                 };
                 let set = slice_by_depth(&ds.rgb, &depth, ds.camera, &config)
                     .context_with(|| format!("layering {name}"))?;
-                let (prepared, bits) = prepare(&set, None)?;
-                Ok((prepared, set.len(), bits))
+                let layers = set.len();
+                let (prepared, bits) = prepare(set, None)?;
+                Ok((prepared, layers, bits))
             };
             let ((views, crop), layers, bits) = match method {
                 Method::Cpsl | Method::CpslNoDps | Method::CpslDepthOnly => {
@@ -528,11 +528,12 @@ pub fn evaluate_views(
                         &NoProgress,
                     )
                     .context_with(|| format!("layering {name}"))?;
-                    let (prepared, bits) = prepare(&run.layered.set, Some(&run.layered.edc))?;
+                    let layers = run.layered.set.len();
+                    let (prepared, bits) = prepare(run.layered.set, Some(run.layered.edc))?;
                     let dps = method != Method::CpslNoDps;
                     (
                         scorer.score(|t| render_layers(&prepared, t, dps), progress)?,
-                        run.layered.set.len(),
+                        layers,
                         bits,
                     )
                 }

@@ -53,6 +53,14 @@ pub enum CoreError {
         /// Height found.
         height: u32,
     },
+    /// A layer's geometry is not usable.
+    #[error("layer {index}: geometry: {reason}")]
+    BadGeometry {
+        /// Layer index.
+        index: usize,
+        /// What is wrong.
+        reason: String,
+    },
     /// A layer's size differs from the camera's.
     #[error(
         "layer {index}: size {width}x{height} differs from the camera's {cam_width}x{cam_height}"

@@ -2,8 +2,11 @@
 
 use crate::camera::Camera;
 use crate::error::CoreError;
+use crate::geometry::Geometry;
+use crate::homography::Homography;
 use crate::image::PremulImage;
 use crate::limits::Limits;
+use crate::pose::Pose;
 use serde::{Deserialize, Serialize};
 
 /// What a layer holds, as decided by the layering stage.
@@ -37,26 +40,91 @@ pub struct LayerMeta {
     pub track: Option<u32>,
 }
 
-/// One CPSL layer `L_k = (C_k, alpha_k, z_k)`: premultiplied colour and alpha plus the depth of
-/// its fronto-parallel plane in the reference camera.
+/// One CPSL layer `L_k = (C_k, alpha_k, z_k)`: premultiplied colour and alpha, the layer's
+/// reference depth and the surface its pixels lie on.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Layer {
     /// Premultiplied RGBA.
     pub image: PremulImage,
-    /// Reference depth `z_k` (scene units along the optical axis).
+    /// Reference depth `z_k` (scene units along the optical axis): the depth of a
+    /// fronto-parallel layer, the median depth of a slanted one. Layers are ordered by it.
     pub depth: f64,
+    /// The layer's surface (the paper's fronto-parallel plane by default).
+    pub geometry: Geometry,
     /// Optional metadata.
     pub meta: LayerMeta,
 }
 
 impl Layer {
-    /// A layer without metadata.
+    /// A fronto-parallel layer without metadata.
     pub fn new(image: PremulImage, depth: f64) -> Self {
         Self {
             image,
             depth,
+            geometry: Geometry::Plane,
             meta: LayerMeta::default(),
         }
+    }
+
+    /// The inverse homography that draws this layer (viewer pixels of `dst` to reference
+    /// pixels of `src`) for the viewer at `pose`; `None` when the layer is not visible.
+    pub fn inverse_homography(
+        &self,
+        src: &Camera,
+        dst: &Camera,
+        pose: &Pose,
+    ) -> Option<Homography> {
+        self.geometry.inverse_homography(self.depth, src, dst, pose)
+    }
+
+    /// Bounding box `[x0, y0, x1, y1]` (inclusive) of the pixels with alpha above zero.
+    pub fn extent(&self) -> Option<[u32; 4]> {
+        let (w, h) = (self.image.width() as usize, self.image.height() as usize);
+        let bytes = self.image.as_bytes();
+        let mut b: Option<[u32; 4]> = None;
+        for y in 0..h {
+            let row = &bytes[y * w * 4..(y + 1) * w * 4];
+            let covered = |p: &[u8]| p[3] != 0;
+            let Some(x0) = row.chunks_exact(4).position(covered) else {
+                continue;
+            };
+            let x1 = row.chunks_exact(4).rposition(covered).unwrap_or(x0);
+            let (x0, x1, y) = (x0 as u32, x1 as u32, y as u32);
+            b = Some(match b {
+                None => [x0, y, x1, y],
+                Some([a, c, d, _]) => [a.min(x0), c, d.max(x1), y],
+            });
+        }
+        b
+    }
+
+    /// Checks the geometry against the camera: finite, and a depth above zero over the
+    /// layer's extent (grown by one pixel for the bilinear footprint).
+    fn check_geometry(&self, index: usize, cam: &Camera) -> Result<(), CoreError> {
+        let Geometry::Slanted(m) = self.geometry else {
+            return Ok(());
+        };
+        let bad = |reason: String| CoreError::BadGeometry { index, reason };
+        if !m.is_finite() {
+            return Err(bad(format!("plane {:?} is not finite", m.0)));
+        }
+        let Some([x0, y0, x1, y1]) = self.extent() else {
+            return Ok(());
+        };
+        let (x0, y0) = (x0 as f64 - 1.0, y0 as f64 - 1.0);
+        let (x1, y1) = (x1 as f64 + 1.0, y1 as f64 + 1.0);
+        // Inverse depth is affine in pixels: its least value over a box is at a corner.
+        for (u, v) in [(x0, y0), (x1, y0), (x0, y1), (x1, y1)] {
+            let inv = self.geometry.inverse_depth_at(self.depth, cam, u, v);
+            if !(inv.is_finite() && inv > 0.0) {
+                return Err(bad(format!(
+                    "plane {:?} puts pixel ({u}, {v}) of the layer's extent at depth {}",
+                    m.0,
+                    1.0 / inv
+                )));
+            }
+        }
+        Ok(())
     }
 }
 
@@ -135,6 +203,7 @@ impl LayerSet {
                 }
             }
             previous = Some(layer.depth);
+            layer.check_geometry(index, &camera)?;
         }
         if !check_premultiplied {
             return Ok(Self { camera, layers });

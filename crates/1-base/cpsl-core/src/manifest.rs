@@ -1,4 +1,4 @@
-//! The layer-set manifest (`manifest.json`), format `cpsl-layerset` version 1.
+//! The layer-set manifest (`manifest.json`), format `cpsl-layerset` versions 1 and 2.
 //!
 //! ```json
 //! {
@@ -11,10 +11,14 @@
 //!   ]
 //! }
 //! ```
+//! Version 2 adds each layer's `geometry` when it is not the fronto-parallel plane, e.g.
+//! `"geometry": { "slanted": [0.0, 0.12, 0.2] }` (the plane `m` of [`crate::Geometry`]);
+//! writers use version 1 when every layer is fronto-parallel, so older readers still read it.
 //! Layers are listed nearest first; each file is an RGBA PNG (straight alpha, 8 bits) of the
 //! camera's size next to the manifest. Unknown fields are rejected so that typos are caught.
 
 use crate::camera::Camera;
+use crate::geometry::Geometry;
 use crate::layer::LayerMeta;
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
@@ -22,7 +26,7 @@ use thiserror::Error;
 /// Format name written in every manifest.
 pub const FORMAT_NAME: &str = "cpsl-layerset";
 /// Newest manifest version this build reads and writes.
-pub const FORMAT_VERSION: u32 = 1;
+pub const FORMAT_VERSION: u32 = 2;
 
 /// Camera as written in a manifest (same fields as [`Camera`]).
 pub type CameraSpec = Camera;
@@ -35,6 +39,9 @@ pub struct LayerEntry {
     pub file: String,
     /// Reference depth `z_k`.
     pub depth: f64,
+    /// The layer's surface (version 2; absent for the fronto-parallel plane).
+    #[serde(default, skip_serializing_if = "Geometry::is_plane")]
+    pub geometry: Geometry,
     /// Optional metadata.
     #[serde(default, skip_serializing_if = "is_default_meta")]
     pub meta: LayerMeta,
@@ -113,6 +120,20 @@ pub enum ManifestError {
     /// The version is newer than this build understands (or zero).
     #[error("field `version`: this build reads versions 1..={FORMAT_VERSION}, found {0}")]
     Version(u32),
+    /// A field that the manifest's version does not have.
+    #[error(
+        "field `layers[{index}].{field}` needs version {needs}, the manifest is version {version}"
+    )]
+    NewerField {
+        /// Layer index.
+        index: usize,
+        /// The field.
+        field: &'static str,
+        /// The version that introduced it.
+        needs: u32,
+        /// The manifest's version.
+        version: u32,
+    },
     /// A layer file name is unsafe or duplicated.
     #[error("field `layers[{index}].file`: {reason}, found \"{file}\"")]
     FileName {
@@ -134,6 +155,14 @@ impl Manifest {
             serde_json::from_slice(bytes).map_err(|e| ManifestError::Json(e.to_string()))?;
         let mut seen = std::collections::HashSet::new();
         for (index, l) in m.layers.iter().enumerate() {
+            if m.version < 2 && !l.geometry.is_plane() {
+                return Err(ManifestError::NewerField {
+                    index,
+                    field: "geometry",
+                    needs: 2,
+                    version: m.version,
+                });
+            }
             if let Some(reason) = unsafe_file_name(&l.file) {
                 return Err(ManifestError::FileName {
                     index,
@@ -150,6 +179,15 @@ impl Manifest {
             }
         }
         Ok(m)
+    }
+
+    /// The oldest version that holds every layer's fields.
+    pub fn needed_version(layers: &[LayerEntry]) -> u32 {
+        if layers.iter().all(|l| l.geometry.is_plane()) {
+            1
+        } else {
+            2
+        }
     }
 
     /// Serialises as pretty JSON.
@@ -205,10 +243,34 @@ mod tests {
     }
 
     #[test]
+    fn geometry_needs_version_2() {
+        let slanted = |v: u32| {
+            doc(v, "a.png").replace(
+                "\"depth\":1.5",
+                "\"depth\":1.5,\"geometry\":{\"slanted\":[0.0,0.1,0.6]}",
+            )
+        };
+        let m = Manifest::parse(slanted(2).as_bytes()).unwrap();
+        assert_eq!(
+            m.layers[0].geometry,
+            Geometry::Slanted(crate::Vec3::new(0.0, 0.1, 0.6))
+        );
+        assert_eq!(Manifest::needed_version(&m.layers), 2);
+        assert_eq!(Manifest::parse(m.to_json().as_bytes()).unwrap(), m);
+        assert!(matches!(
+            Manifest::parse(slanted(1).as_bytes()),
+            Err(ManifestError::NewerField { index: 0, .. })
+        ));
+        let plane = Manifest::parse(doc(2, "a.png").as_bytes()).unwrap();
+        assert_eq!(Manifest::needed_version(&plane.layers), 1);
+        assert!(!plane.to_json().contains("geometry"));
+    }
+
+    #[test]
     fn rejects_bad_headers_and_names() {
         assert_eq!(
-            Manifest::parse(doc(2, "a.png").as_bytes()),
-            Err(ManifestError::Version(2))
+            Manifest::parse(doc(3, "a.png").as_bytes()),
+            Err(ManifestError::Version(3))
         );
         assert_eq!(
             Manifest::parse(doc(0, "a.png").as_bytes()),

@@ -9,9 +9,7 @@
 use crate::atomic::Staged;
 use crate::error::IoError;
 use crate::images;
-use cpsl_core::{
-    Edc, Layer, LayerEntry, LayerSet, Limits, Manifest, PremulImage, FORMAT_NAME, FORMAT_VERSION,
-};
+use cpsl_core::{Edc, Layer, LayerEntry, LayerSet, Limits, Manifest, PremulImage, FORMAT_NAME};
 use std::path::Path;
 
 /// Name of the manifest inside a layer-set folder.
@@ -91,6 +89,7 @@ pub fn read_layer_set(dir: &Path, limits: &Limits) -> Result<LayerSet, IoError> 
         .map(|e| Layer {
             image: PremulImage::new(1, 1),
             depth: e.depth,
+            geometry: e.geometry,
             meta: e.meta.clone(),
         })
         .collect();
@@ -125,6 +124,7 @@ pub fn read_layer_set(dir: &Path, limits: &Limits) -> Result<LayerSet, IoError> 
         layers.push(Layer {
             image,
             depth: entry.depth,
+            geometry: entry.geometry,
             meta: entry.meta.clone(),
         });
     }
@@ -133,20 +133,22 @@ pub fn read_layer_set(dir: &Path, limits: &Limits) -> Result<LayerSet, IoError> 
 
 /// The manifest describing `set` with the standard file names `layer_NN.png`.
 pub fn manifest_for(set: &LayerSet) -> Manifest {
+    let layers: Vec<LayerEntry> = set
+        .layers()
+        .iter()
+        .enumerate()
+        .map(|(i, l)| LayerEntry {
+            file: format!("layer_{i:02}.png"),
+            depth: l.depth,
+            geometry: l.geometry,
+            meta: l.meta.clone(),
+        })
+        .collect();
     Manifest {
         format: FORMAT_NAME.into(),
-        version: FORMAT_VERSION,
+        version: Manifest::needed_version(&layers),
         camera: *set.camera(),
-        layers: set
-            .layers()
-            .iter()
-            .enumerate()
-            .map(|(i, l)| LayerEntry {
-                file: format!("layer_{i:02}.png"),
-                depth: l.depth,
-                meta: l.meta.clone(),
-            })
-            .collect(),
+        layers,
     }
 }
 

@@ -3,13 +3,15 @@
 //! * [`pipeline`]: content-promoted layering (paper §3.2): [`cues`] (depth confidence,
 //!   saliency, instances) -> [`fuse`] (energy of eq. 3 by alpha-expansion over
 //!   [`maxflow`]) -> [`promote`] (instance promotion, background merging to `K`) ->
-//!   [`matte`] (soft alpha, extension behind nearer layers with [`fill`], Edge-Depth Cache).
+//!   [`matte`] (soft alpha, extension behind nearer layers with [`fill`], each layer's
+//!   surface from [`geometry`], Edge-Depth Cache).
 //! * [`slice`]: depth slicing, clustering inverse depth into `K` slices (a baseline).
 
 pub mod cues;
 pub mod error;
 pub mod fill;
 pub mod fuse;
+pub mod geometry;
 pub mod grid;
 pub mod matte;
 pub mod maxflow;
@@ -19,5 +21,6 @@ pub mod slice;
 
 pub use cues::{CueConfig, Cues, Prompt};
 pub use error::LayeringError;
+pub use geometry::GeometryMode;
 pub use pipeline::{layer_cues, layer_frame, Layered, LayeringConfig};
 pub use slice::{slice_by_depth, Bins, SliceConfig};

@@ -23,6 +23,7 @@
 use crate::cues::Cues;
 use crate::error::LayeringError;
 use crate::fill::push_pull;
+use crate::geometry::{fit_geometry, GeometryMode, LayerDepth};
 use crate::grid::distance;
 use crate::promote::{Kind, Plan};
 use cpsl_core::resample::source_coord;
@@ -54,6 +55,8 @@ pub struct MatteConfig {
     pub edc_cell: u32,
     /// Edge-Depth Cache quantisation step of `ln z`.
     pub edc_step: f32,
+    /// Which surfaces layers may have.
+    pub geometry: GeometryMode,
 }
 
 impl Default for MatteConfig {
@@ -67,6 +70,7 @@ impl Default for MatteConfig {
             colour_weight: 4.0,
             edc_cell: 4,
             edc_step: 1.0 / 128.0,
+            geometry: GeometryMode::default(),
         }
     }
 }
@@ -249,7 +253,8 @@ fn fill_half(
 }
 
 /// Builds the layer set: alpha, colour (input where visible, filled behind nearer layers),
-/// premultiplied, with each layer at the median depth of its pixels.
+/// premultiplied, with each layer at the median depth of its pixels and on the surface
+/// [`fit_geometry`] gives it.
 pub fn build_layers(
     cues: &Cues,
     rgb: &[u8],
@@ -359,6 +364,16 @@ pub fn build_layers(
             } else {
                 *zs.select_nth_unstable_by(m, f32::total_cmp).1 as f64
             };
+            let extent =
+                Rect::bounding(w, h, |p| alpha[p] > 0.0).map(|r| [r.x0, r.y0, r.x1 - 1, r.y1 - 1]);
+            let px = LayerDepth {
+                width: w,
+                height: h,
+                depth: &cues.depth,
+                confidence: Some(&cues.confidence),
+                own: &own,
+            };
+            let geometry = fit_geometry(cfg.geometry, &camera, &px, depth, extent);
             let planned = &plan.layers[i];
             let (name, role) = match (planned.kind, back) {
                 (_, true) => (format!("background {i}"), LayerRole::Background),
@@ -368,6 +383,7 @@ pub fn build_layers(
             Ok(Layer {
                 image: PremulImage::from_premul(w as u32, h as u32, data)?,
                 depth,
+                geometry,
                 meta: LayerMeta {
                     name: Some(name),
                     role: Some(role),

@@ -248,6 +248,7 @@ pub fn slice_by_depth(
         layers.push(Layer {
             image: PremulImage::from_premul(camera.width, camera.height, data)?,
             depth: z,
+            geometry: cpsl_core::Geometry::Plane,
             meta: LayerMeta {
                 name: Some(format!("slice {i}")),
                 role: Some(if back {

@@ -505,6 +505,7 @@ impl VideoLayerer {
                 let layer = cpsl_core::Layer {
                     image,
                     depth: key.depth,
+                    geometry: key.geometry,
                     meta: key.meta.clone(),
                 };
                 (layer, hidden)

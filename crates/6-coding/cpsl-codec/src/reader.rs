@@ -127,6 +127,7 @@ impl SegmentReader {
                         reason: format!("stream {} missing or used twice", l.stream),
                     })?;
                 let mut layer = Layer::new(image, l.depth as f64);
+                layer.geometry = l.geometry;
                 layer.meta.track = l.track;
                 Ok(layer)
             })

@@ -1,14 +1,15 @@
 //! The side stream of one segment (`side.bin`): per frame, which layer stream holds each layer,
 //! the layer depths, the temporal confidence, the GOP/refresh flags and the Edge-Depth Cache.
 //!
-//! Layout (little endian), version 1:
+//! Layout (little endian), versions 1 and 2:
 //!
 //! ```text
 //! header   magic "CPSLSIDE" | version u16 | reserved u16 | segment u32 | start u32
 //!          | frames u32 | streams u16 | reserved u16 | width u32 | height u32 | crc32 u32
 //! frame    payload_len u32 | payload | crc32(payload) u32          (repeated `frames` times)
 //! payload  index u32 | flags u8 | refresh u8 | layers u8 | reserved u8
-//!          | layers x (stream u8 | reserved 3 | depth f32 | confidence f32 | track u32)
+//!          | layers x (stream u8 | geometry u8 | reserved 2 | depth f32 | confidence f32
+//!                       | track u32 | version 2: plane 3 x f32)
 //!          | edc_len u32 | compact EDC
 //! compact EDC  layers u16 | step f32 | samples u32 | deflate(planes)
 //! planes   per sample, field by field: y - previous y (u16, wrapping), x - previous x (u16,
@@ -18,24 +19,36 @@
 //! Samples come in scan order, so the position deltas are small and the planes deflate well
 //! (the raw `edc.bin` layout costs 8 bytes per sample).
 //!
+//! `geometry` is 0 for the fronto-parallel plane at `depth` (plane all zero) and 1 for the
+//! slanted plane `m` ([`cpsl_core::Geometry`]); version 1 has neither (every layer
+//! fronto-parallel, `geometry` reserved as 0). Writers use version 1 when every layer of the
+//! segment is fronto-parallel, so older players still read such segments.
+//!
 //! `flags` bit 0 marks an I-frame. `refresh` says why a frame is an I-frame (0 none, 1 first
 //! frame, 2 full GOP, 3 low temporal confidence, 4 crack rate). Layers are listed nearest first;
 //! `track` is `u32::MAX` where the layer has none. Every field is validated on reading, so a
 //! corrupt or truncated stream is an error, never a panic.
 
-use cpsl_core::{Edc, EdcError, RefreshReason};
+use cpsl_core::{Edc, EdcError, Geometry, RefreshReason, Vec3};
 use thiserror::Error;
 
 /// Magic bytes at the start of a side stream.
 pub const SIDE_MAGIC: &[u8; 8] = b"CPSLSIDE";
 /// Newest side-stream version this build reads and writes.
-pub const SIDE_VERSION: u16 = 1;
+pub const SIDE_VERSION: u16 = 2;
 /// Most frames one segment may hold.
 pub const MAX_SEGMENT_FRAMES: u32 = 100_000;
 /// Most layer streams one segment may hold.
 pub const MAX_STREAMS: u16 = 64;
 const HEADER: usize = 40;
-const LAYER: usize = 16;
+/// Bytes of a layer record per version.
+const fn layer_bytes(version: u16) -> usize {
+    if version >= 2 {
+        28
+    } else {
+        16
+    }
+}
 const NO_TRACK: u32 = u32::MAX;
 
 /// Why a side stream was rejected.
@@ -90,8 +103,10 @@ fn refresh_from_code(c: u8) -> Option<Option<RefreshReason>> {
 pub struct SideLayer {
     /// The layer stream (index into the segment's streams) holding its colour and alpha.
     pub stream: u8,
-    /// Depth of its plane in this frame.
+    /// Reference depth in this frame (the plane's for a fronto-parallel layer).
     pub depth: f32,
+    /// Its surface (the plane stored as `f32`).
+    pub geometry: Geometry,
     /// Temporal confidence in [0, 1].
     pub confidence: f32,
     /// Track identity across frames.
@@ -137,9 +152,14 @@ fn crc(bytes: &[u8]) -> u32 {
 impl SideStream {
     /// Serialises to the layout above.
     pub fn encode(&self) -> Vec<u8> {
+        let slanted = self
+            .frames
+            .iter()
+            .any(|f| f.layers.iter().any(|l| !l.geometry.is_plane()));
+        let version: u16 = if slanted { 2 } else { 1 };
         let mut out = Vec::new();
         out.extend_from_slice(SIDE_MAGIC);
-        out.extend_from_slice(&SIDE_VERSION.to_le_bytes());
+        out.extend_from_slice(&version.to_le_bytes());
         out.extend_from_slice(&0u16.to_le_bytes());
         out.extend_from_slice(&self.segment.to_le_bytes());
         out.extend_from_slice(&self.start.to_le_bytes());
@@ -160,10 +180,19 @@ impl SideStream {
                 0,
             ]);
             for l in &f.layers {
-                p.extend_from_slice(&[l.stream, 0, 0, 0]);
+                let (tag, plane) = match l.geometry {
+                    Geometry::Plane => (0, [0.0; 3]),
+                    Geometry::Slanted(m) => (1, m.0),
+                };
+                p.extend_from_slice(&[l.stream, tag, 0, 0]);
                 p.extend_from_slice(&l.depth.to_le_bytes());
                 p.extend_from_slice(&l.confidence.to_le_bytes());
                 p.extend_from_slice(&l.track.unwrap_or(NO_TRACK).to_le_bytes());
+                if version >= 2 {
+                    for v in plane {
+                        p.extend_from_slice(&(v as f32).to_le_bytes());
+                    }
+                }
             }
             let edc = compact_edc(&f.edc);
             p.extend_from_slice(&(edc.len() as u32).to_le_bytes());
@@ -236,7 +265,7 @@ impl SideStream {
             if u32_at(pos + len) != crc(p) {
                 return Err(bad("checksum mismatch".into()));
             }
-            let frame = Self::decode_frame(p, streams, width, height, record)?;
+            let frame = Self::decode_frame(p, version, streams, width, height, record)?;
             let expected = start as u64 + record as u64;
             if frame.index as u64 != expected {
                 return Err(bad(format!(
@@ -272,6 +301,7 @@ impl SideStream {
 
     fn decode_frame(
         p: &[u8],
+        version: u16,
         streams: u16,
         width: u32,
         height: u32,
@@ -297,14 +327,14 @@ impl SideStream {
                 "{n} layers, the segment has {streams} streams"
             )));
         }
-        let edc_at = 8 + n * LAYER;
+        let edc_at = 8 + n * layer_bytes(version);
         if p.len() < edc_at + 4 {
             return Err(bad("truncated layer table".into()));
         }
         let mut layers = Vec::with_capacity(n);
         let mut used = vec![false; streams as usize];
         for i in 0..n {
-            let o = 8 + i * LAYER;
+            let o = 8 + i * layer_bytes(version);
             let stream = p[o];
             if stream as usize >= streams as usize || used[stream as usize] {
                 return Err(bad(format!(
@@ -328,9 +358,31 @@ impl SideStream {
             if !(0.0..=1.0).contains(&confidence) {
                 return Err(bad(format!("layer {i}: confidence {confidence}")));
             }
+            let plane = if version >= 2 {
+                Vec3::new(
+                    f32_at(o + 16) as f64,
+                    f32_at(o + 20) as f64,
+                    f32_at(o + 24) as f64,
+                )
+            } else {
+                Vec3::ZERO
+            };
+            let geometry = match p[o + 1] {
+                0 if plane == Vec3::ZERO => Geometry::Plane,
+                1 if version >= 2 && plane.is_finite() && plane != Vec3::ZERO => {
+                    Geometry::Slanted(plane)
+                }
+                tag => {
+                    return Err(bad(format!(
+                        "layer {i}: geometry {tag} with plane {:?}",
+                        plane.0
+                    )))
+                }
+            };
             layers.push(SideLayer {
                 stream,
                 depth,
+                geometry,
                 confidence,
                 track: (track != NO_TRACK).then_some(track),
             });

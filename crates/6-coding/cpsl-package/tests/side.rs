@@ -1,10 +1,10 @@
 //! Side streams and manifests: round trips, and every damaged or truncated input is an error,
 //! never a panic.
 
-use cpsl_core::{Camera, Edc, EdcSample, RefreshReason};
+use cpsl_core::{Camera, Edc, EdcSample, Geometry, RefreshReason, Vec3};
 use cpsl_package::*;
 
-fn side() -> SideStream {
+fn side(slanted: bool) -> SideStream {
     let edc = |n: u16| Edc {
         width: 64,
         height: 48,
@@ -24,6 +24,11 @@ fn side() -> SideStream {
     let layer = |stream, depth| SideLayer {
         stream,
         depth,
+        geometry: if slanted && stream == 1 {
+            Geometry::Slanted(Vec3::new(0.0, 0.125, 0.25))
+        } else {
+            Geometry::Plane
+        },
         confidence: 0.75,
         track: Some(stream as u32 + 10),
     };
@@ -47,7 +52,30 @@ fn side() -> SideStream {
 
 #[test]
 fn side_stream_round_trips_and_rejects_damage() {
-    let s = side();
+    for slanted in [false, true] {
+        round_trip_and_damage(side(slanted));
+    }
+}
+
+#[test]
+fn fronto_parallel_segments_stay_version_1() {
+    let version = |s: SideStream| u16::from_le_bytes(s.encode()[8..10].try_into().unwrap());
+    assert_eq!(version(side(false)), 1);
+    assert_eq!(version(side(true)), 2);
+}
+
+#[test]
+fn non_finite_planes_are_rejected() {
+    let mut s = side(true);
+    s.frames[1].layers[1].geometry = Geometry::Slanted(Vec3::new(f64::NAN, 0.0, 0.25));
+    let e = SideStream::decode(&s.encode()).unwrap_err().to_string();
+    assert!(
+        e.contains("record 1") && e.contains("layer 1: geometry"),
+        "{e}"
+    );
+}
+
+fn round_trip_and_damage(s: SideStream) {
     let bytes = s.encode();
     assert_eq!(SideStream::decode(&bytes).unwrap(), s);
     // The compact EDC is far below 8 bytes per sample.

@@ -1,5 +1,5 @@
 //! The wgpu renderer of CPSL layers, with the semantics of the CPU reference (`cpsl-render`):
-//! per layer the inverse plane-induced homography ([`cpsl_core::Homography::plane_inverse`]),
+//! per layer the inverse plane-induced homography of its surface ([`cpsl_core::Geometry`]),
 //! bilinear premultiplied sampling at positions rounded to 1/256 px with a transparent border,
 //! front-to-back compositing (paper eq. 2), then the Dynamic Pixel Strip (paper eq. 4) guided
 //! by the Edge-Depth Cache. The shaders are `common.wgsl` + `composite.wgsl` and `common.wgsl`
@@ -14,7 +14,7 @@ pub use wgpu;
 mod blit;
 pub use blit::Blit;
 
-use cpsl_core::{Camera, Edc, Homography, LayerSet, Pose, PremulImage};
+use cpsl_core::{Camera, Edc, Geometry, LayerSet, Pose, PremulImage};
 use cpsl_render::{strip_width, DpsConfig, EdgeOffsets};
 use std::time::Duration;
 use thiserror::Error;
@@ -67,6 +67,7 @@ pub struct GpuLayers {
     texture: wgpu::TextureView,
     camera: Camera,
     depths: Vec<f64>,
+    geometries: Vec<Geometry>,
     offsets: EdgeOffsets,
 }
 
@@ -251,6 +252,7 @@ impl GpuRenderer {
             }),
             camera: cam,
             depths: set.layers().iter().map(|l| l.depth).collect(),
+            geometries: set.layers().iter().map(|l| l.geometry).collect(),
             offsets: edc.map(EdgeOffsets::from_edc).unwrap_or_default(),
         })
     }
@@ -262,9 +264,10 @@ impl GpuRenderer {
         put(&mut b, 4, (target.height as i32).to_le_bytes());
         put(&mut b, 8, (layers.depths.len() as i32).to_le_bytes());
         put(&mut b, 12, (reach as i32).to_le_bytes());
-        for (k, &d) in layers.depths.iter().enumerate() {
+        for (k, (&d, g)) in layers.depths.iter().zip(&layers.geometries).enumerate() {
             // A plane the viewer has reached maps nothing (w = -1 everywhere).
-            let m = Homography::plane_inverse(&layers.camera, target, pose, d)
+            let m = g
+                .inverse_homography(d, &layers.camera, target, pose)
                 .map(|h| h.0 .0)
                 .unwrap_or([[0.0; 3], [0.0; 3], [0.0, 0.0, -1.0]]);
             // Column-major, each column padded to 16 bytes (WGSL mat3x3).

@@ -10,6 +10,8 @@ pub(crate) const BLOCK: usize = 16;
 pub(crate) struct PreparedLayer {
     /// Reference depth.
     pub depth: f64,
+    /// The layer's surface.
+    pub geometry: cpsl_core::Geometry,
     /// Premultiplied RGBA texels as little-endian `u32` (R in the low byte), with a one-texel
     /// transparent border: texel `(x, y)` lives at `(y + 1) * pitch + x + 1`.
     pub texels: Vec<u32>,
@@ -145,6 +147,7 @@ impl PreparedLayers {
                 }
                 PreparedLayer {
                     depth: layer.depth,
+                    geometry: layer.geometry,
                     texels,
                     pitch,
                     bw,

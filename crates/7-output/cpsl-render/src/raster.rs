@@ -2,7 +2,7 @@
 
 use crate::prepared::{PreparedLayer, PreparedLayers};
 use cpsl_core::resample::bilerp;
-use cpsl_core::{Camera, Homography, Pose, PremulImage};
+use cpsl_core::{Camera, Pose, PremulImage};
 use rayon::prelude::*;
 
 /// Output tile width in pixels.
@@ -445,7 +445,8 @@ impl PreparedLayers {
         self.layers
             .iter()
             .map(|l| {
-                Homography::plane_inverse(&self.camera, target, pose, l.depth)
+                l.geometry
+                    .inverse_homography(l.depth, &self.camera, target, pose)
                     .filter(|h| h.0.is_finite())
                     .map(|h| Warp { h: h.0 .0 })
             })

@@ -1,0 +1,212 @@
+//! Each layer's surface, chosen at layering time (see [`cpsl_core::Geometry`]).
+//!
+//! A slanted plane is a robust fit of the layer's inverse depth, affine in normalised image
+//! coordinates, over its own pixels weighted by depth confidence
+//! ([`cpsl_core::fit_plane`]). It replaces the fronto-parallel plane when it removes a clear
+//! part of the geometric error (the mean truncated `|ln z_fit - ln z|` over the layer's own
+//! pixels) and keeps every pixel of the layer's extent at a depth between zero and
+//! [`MAX_EXTRAPOLATION`] times the layer's deepest own pixel; otherwise the layer stays
+//! fronto-parallel. Three numbers per layer cost nothing against the layer's video, so no
+//! rate term is needed.
+
+use cpsl_core::{fit_plane, Camera, Geometry};
+use serde::{Deserialize, Serialize};
+
+/// Which surfaces the layering may give its layers.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum GeometryMode {
+    /// Every layer fronto-parallel: the paper's representation.
+    Plane,
+    /// A slanted plane wherever it fits the layer's depth clearly better.
+    #[default]
+    Slanted,
+}
+
+impl GeometryMode {
+    /// The mode's name as the command line writes it.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Plane => "plane",
+            Self::Slanted => "slanted",
+        }
+    }
+}
+
+/// Samples fitted per layer at most (a regular subset of its pixels beyond that).
+const MAX_SAMPLES: usize = 16_384;
+/// Largest `|ln z_fit - ln z|` a pixel contributes to the geometric error.
+const TRUNCATION: f64 = 0.25;
+/// How far beyond its own pixels a slanted layer may recede: the depth anywhere over its
+/// extent at most this many times its deepest own pixel.
+pub const MAX_EXTRAPOLATION: f64 = 4.0;
+/// A slanted plane must remove at least this share of the fronto-parallel plane's error...
+const MIN_GAIN: f64 = 0.2;
+/// ...and at least this much of it in absolute terms (mean `|ln z|` error).
+const MIN_ABS_GAIN: f64 = 0.002;
+
+/// A layer's pixels as the fit sees them.
+pub struct LayerDepth<'a> {
+    /// Frame size.
+    pub width: usize,
+    /// Frame height.
+    pub height: usize,
+    /// z-depth per pixel.
+    pub depth: &'a [f32],
+    /// Confidence per pixel in `[0, 1]` (`None`: all 1).
+    pub confidence: Option<&'a [f32]>,
+    /// Whether pixel `p` is the layer's own.
+    pub own: &'a (dyn Fn(usize) -> bool + Sync),
+}
+
+/// Mean truncated `|ln z_fit - ln z|` of `geometry` over `samples` (`x_n, y_n, 1/z, w`).
+fn error(samples: &[[f64; 4]], m: cpsl_core::Vec3) -> f64 {
+    let (mut e, mut wsum) = (0.0, 0.0);
+    for s in samples {
+        let inv = m.x() * s[0] + m.y() * s[1] + m.z();
+        let d = if inv > 0.0 {
+            (inv / s[2]).ln().abs().min(TRUNCATION)
+        } else {
+            TRUNCATION
+        };
+        e += s[3] * d;
+        wsum += s[3];
+    }
+    if wsum > 0.0 {
+        e / wsum
+    } else {
+        0.0
+    }
+}
+
+/// The layer's surface under `mode`: its reference depth is `depth` (the median of its own
+/// pixels) and `extent` the inclusive bounding box `[x0, y0, x1, y1]` of its alpha.
+pub fn fit_geometry(
+    mode: GeometryMode,
+    cam: &Camera,
+    px: &LayerDepth<'_>,
+    depth: f64,
+    extent: Option<[usize; 4]>,
+) -> Geometry {
+    if mode == GeometryMode::Plane {
+        return Geometry::Plane;
+    }
+    let Some([ex0, ey0, ex1, ey1]) = extent else {
+        return Geometry::Plane;
+    };
+    let (w, h) = (px.width, px.height);
+    // A regular subset of the layer's own pixels.
+    let count = (0..w * h).filter(|&p| (px.own)(p)).count();
+    if count < 64 {
+        return Geometry::Plane;
+    }
+    let stride = ((count as f64 / MAX_SAMPLES as f64).sqrt().ceil() as usize).max(1);
+    let mut samples = Vec::with_capacity(count.min(MAX_SAMPLES * 2));
+    let mut deepest = 0f64;
+    let (sx, sy) = (cam.width as f64 / w as f64, cam.height as f64 / h as f64);
+    for y in (0..h).step_by(stride) {
+        for x in (0..w).step_by(stride) {
+            let p = y * w + x;
+            let z = px.depth[p] as f64;
+            if !(px.own)(p) || !(z.is_finite() && z > 0.0) {
+                continue;
+            }
+            let c = px.confidence.map_or(1.0, |c| c[p] as f64).max(0.05);
+            let (u, v) = ((x as f64 + 0.5) * sx - 0.5, (y as f64 + 0.5) * sy - 0.5);
+            samples.push([(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, 1.0 / z, c]);
+            deepest = deepest.max(z);
+        }
+    }
+    let Some(m) = fit_plane(&samples, 5) else {
+        return Geometry::Plane;
+    };
+    let fronto = Geometry::Plane.plane(depth);
+    let (e_plane, e_slant) = (error(&samples, fronto), error(&samples, m));
+    if !(e_slant <= (1.0 - MIN_GAIN) * e_plane && e_plane - e_slant >= MIN_ABS_GAIN) {
+        return Geometry::Plane;
+    }
+    // Over the extent (one pixel wider), the least inverse depth is at a corner.
+    let g = Geometry::Slanted(m);
+    let least = 1.0 / (MAX_EXTRAPOLATION * deepest);
+    let corner = |x: usize, y: usize, grow: f64| {
+        let (u, v) = ((x as f64 + 0.5) * sx - 0.5, (y as f64 + 0.5) * sy - 0.5);
+        g.inverse_depth_at(depth, cam, u + grow, v + grow)
+    };
+    let ok = [
+        corner(ex0, ey0, -1.0),
+        corner(ex1, ey0, 1.0),
+        corner(ex0, ey1, -1.0),
+        corner(ex1, ey1, 1.0),
+    ]
+    .iter()
+    .all(|&inv| inv.is_finite() && inv >= least);
+    if ok {
+        g
+    } else {
+        Geometry::Plane
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_floor_gets_its_slant_and_a_wall_stays_flat() {
+        let cam = Camera::from_fov(64, 48, 60.0);
+        let truth = cpsl_core::Vec3::new(0.0, 0.4, 0.3);
+        let floor: Vec<f32> = (0..64 * 48)
+            .map(|p| {
+                let g = Geometry::Slanted(truth);
+                (1.0 / g.inverse_depth_at(1.0, &cam, (p % 64) as f64, (p / 64) as f64)) as f32
+            })
+            .collect();
+        let own = |_p: usize| true;
+        let px = LayerDepth {
+            width: 64,
+            height: 48,
+            depth: &floor,
+            confidence: None,
+            own: &own,
+        };
+        let g = fit_geometry(GeometryMode::Slanted, &cam, &px, 3.3, Some([0, 0, 63, 47]));
+        let Geometry::Slanted(m) = g else {
+            panic!("{g:?}")
+        };
+        assert!((m - truth).norm() < 1e-4, "{m:?}");
+        assert_eq!(
+            fit_geometry(GeometryMode::Plane, &cam, &px, 3.3, Some([0, 0, 63, 47])),
+            Geometry::Plane
+        );
+        let wall = vec![2.0f32; 64 * 48];
+        let px = LayerDepth { depth: &wall, ..px };
+        assert_eq!(
+            fit_geometry(GeometryMode::Slanted, &cam, &px, 2.0, Some([0, 0, 63, 47])),
+            Geometry::Plane
+        );
+    }
+
+    #[test]
+    fn a_slant_that_recedes_past_the_horizon_over_the_extent_is_refused() {
+        // The plane's horizon lies just above the layer's pixels; its extent reaches above it.
+        let cam = Camera::from_fov(64, 48, 60.0);
+        let g = Geometry::Slanted(cpsl_core::Vec3::new(0.0, 1.0, 0.05));
+        let depth: Vec<f32> = (0..64 * 48)
+            .map(|p| (1.0 / g.inverse_depth_at(1.0, &cam, (p % 64) as f64, (p / 64) as f64)) as f32)
+            .collect();
+        let own = |p: usize| p / 64 >= 24;
+        let px = LayerDepth {
+            width: 64,
+            height: 48,
+            depth: &depth,
+            confidence: None,
+            own: &own,
+        };
+        assert!(
+            !fit_geometry(GeometryMode::Slanted, &cam, &px, 5.0, Some([0, 24, 63, 47])).is_plane()
+        );
+        assert!(
+            fit_geometry(GeometryMode::Slanted, &cam, &px, 5.0, Some([0, 0, 63, 47])).is_plane()
+        );
+    }
+}

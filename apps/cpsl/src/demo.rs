@@ -13,6 +13,7 @@ use cpsl_core::{FixedDepth, Pose, Progress, ProgressEvent, Vec3};
 use cpsl_eval::metrics::psnr;
 use cpsl_io::images::write_png;
 use cpsl_io::pfm::{write_pfm, FloatImage};
+use cpsl_layering::GeometryMode;
 use cpsl_package::Package;
 use cpsl_pipeline::encode::{encode, EncodeJob, EncodeTarget};
 use cpsl_pipeline::image::{layer_image, write_image_layers};
@@ -43,6 +44,10 @@ pub struct DemoArgs {
     /// Number of layers K.
     #[arg(long, default_value_t = 6, value_parser = clap::value_parser!(u32).range(2..=16))]
     pub layers: u32,
+    /// Layer surfaces: `plane` (the paper's fronto-parallel planes) or `slanted` (a plane fitted
+    /// to each layer's depth where it fits clearly better; the default).
+    #[arg(long)]
+    pub geometry: Option<GeometryMode>,
     /// Layering configuration as JSON (as for `cpsl layer --config`).
     #[arg(long)]
     pub config: Option<PathBuf>,
@@ -100,7 +105,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
     );
 
     let layer_dir = a.output.join("layers");
-    let config = layering_config(a.config.as_deref(), a.layers)?;
+    let config = layering_config(a.config.as_deref(), a.layers, a.geometry)?;
     let (depth, source) = match &a.depth_model {
         None => (synth.depth.clone(), "ray-cast ground truth".to_string()),
         Some(model) => {
@@ -272,7 +277,7 @@ fn clip(a: &DemoArgs, scene: &Scene, bars: &Bars) -> Result<()> {
         video: VideoJob {
             input: frames_dir.clone(),
             camera: CameraChoice::File(camera_json),
-            layering: layering_config(a.config.as_deref(), a.layers)?,
+            layering: layering_config(a.config.as_deref(), a.layers, a.geometry)?,
             gop: GopConfig::default(),
             motion: MotionSource::Auto,
             depth_every_frame: false,

@@ -7,6 +7,7 @@ use crate::progress::Bars;
 use anyhow::Result;
 use clap::{Args, ValueEnum};
 use cpsl_eval::views::{evaluate_views, Method, Row, ViewsOptions};
+use cpsl_layering::GeometryMode;
 use std::path::PathBuf;
 
 /// Methods `cpsl eval` compares.
@@ -68,6 +69,10 @@ pub struct EvalArgs {
     /// Number of layers K for CPSL, depth slicing and `mpi-k`.
     #[arg(long, default_value_t = 6, value_parser = clap::value_parser!(u32).range(2..=16))]
     pub layers: u32,
+    /// Layer surfaces: `plane` (the paper's fronto-parallel planes) or `slanted` (a plane fitted
+    /// to each layer's depth where it fits clearly better; the default).
+    #[arg(long)]
+    pub geometry: Option<GeometryMode>,
     /// Number of planes of the `mpi` baseline.
     #[arg(long, default_value_t = 32, value_parser = clap::value_parser!(u32).range(1..=64))]
     pub mpi_planes: u32,
@@ -115,6 +120,7 @@ pub fn run(a: EvalArgs) -> Result<()> {
         data: a.data,
         method: a.method.into(),
         layers: a.layers,
+        geometry: a.geometry,
         mpi_planes: a.mpi_planes,
         config: a.config,
         instances: a.instances.into(),

@@ -7,6 +7,7 @@ use crate::progress::Bars;
 use anyhow::Result;
 use clap::{Args, ValueEnum};
 use cpsl_eval::rd::{evaluate_rd, Curve, Ratio, RdClip, RdOptions, Summary};
+use cpsl_layering::GeometryMode;
 use cpsl_package::Codec;
 use std::path::PathBuf;
 
@@ -51,6 +52,10 @@ pub struct EvalRdArgs {
     /// Number of CPSL layers K.
     #[arg(long, default_value_t = 6, value_parser = clap::value_parser!(u32).range(2..=16))]
     pub layers: u32,
+    /// Layer surfaces: `plane` (the paper's fronto-parallel planes) or `slanted` (a plane fitted
+    /// to each layer's depth where it fits clearly better; the default).
+    #[arg(long)]
+    pub geometry: Option<GeometryMode>,
     /// Planes of the MPI baseline.
     #[arg(long, default_value_t = 32, value_parser = clap::value_parser!(u32).range(2..=64))]
     pub mpi_planes: u32,
@@ -84,6 +89,7 @@ pub fn run(a: EvalRdArgs) -> Result<()> {
         height: a.height,
         frames: a.frames,
         layers: a.layers,
+        geometry: a.geometry,
         mpi_planes: a.mpi_planes,
         codec,
         bitrates: a.bitrates,

@@ -5,6 +5,7 @@
 use anyhow::Result;
 use clap::{Args, ValueEnum};
 use cpsl_eval::video::{evaluate_video, Clip, VideoOptions, VideoRow};
+use cpsl_layering::GeometryMode;
 use std::path::PathBuf;
 
 /// The clips.
@@ -52,6 +53,10 @@ pub struct EvalVideoArgs {
     /// Number of layers K.
     #[arg(long, default_value_t = 6)]
     pub layers: usize,
+    /// Layer surfaces: `plane` (the paper's fronto-parallel planes) or `slanted` (a plane fitted
+    /// to each layer's depth where it fits clearly better; the default).
+    #[arg(long)]
+    pub geometry: Option<GeometryMode>,
     /// Skip the flicker score (it needs the LPIPS model of scripts/setup-models.sh).
     #[arg(long)]
     pub no_lpips: bool,
@@ -71,6 +76,7 @@ pub fn run(a: EvalVideoArgs) -> Result<()> {
         data: a.data,
         gop: a.gop,
         layers: a.layers,
+        geometry: a.geometry,
         lpips: !a.no_lpips,
         true_motion: a.true_motion,
     };

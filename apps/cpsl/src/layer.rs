@@ -5,6 +5,7 @@ use crate::progress::Bars;
 use anyhow::{Context, Result};
 use clap::{Args, ValueEnum};
 use cpsl_core::{Camera, DepthSource, Limits};
+use cpsl_layering::GeometryMode;
 use cpsl_pipeline::image::{layer_image, write_image_layers, InstanceMode};
 use cpsl_pipeline::sources::{layering_config, CameraChoice, DepthChoice};
 use std::path::PathBuf;
@@ -103,6 +104,10 @@ pub struct LayerArgs {
     /// Target number of layers K.
     #[arg(long, default_value_t = 6, value_parser = clap::value_parser!(u32).range(2..=16))]
     pub layers: u32,
+    /// Layer surfaces: `plane` (the paper's fronto-parallel planes) or `slanted` (a plane fitted
+    /// to each layer's depth where it fits clearly better; the default).
+    #[arg(long)]
+    pub geometry: Option<GeometryMode>,
     #[command(flatten)]
     pub depth: DepthArgs,
     #[command(flatten)]
@@ -128,7 +133,7 @@ pub fn run(a: LayerArgs) -> Result<()> {
     let img = cpsl_io::images::read_rgb8(&a.image, &Limits::default())
         .with_context(|| format!("reading image {}", a.image.display()))?;
     let camera = a.camera.camera(img.width, img.height)?;
-    let mut cfg = layering_config(a.config.as_deref(), a.layers)?;
+    let mut cfg = layering_config(a.config.as_deref(), a.layers, a.geometry)?;
     if a.depth_only {
         cfg = cfg.depth_only();
     }

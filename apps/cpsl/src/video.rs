@@ -5,6 +5,7 @@ use crate::layer::CameraArgs;
 use crate::progress::Bars;
 use anyhow::Result;
 use clap::{Args, ValueEnum};
+use cpsl_layering::GeometryMode;
 use cpsl_pipeline::sources::{layering_config, VideoDepth};
 use cpsl_pipeline::video::{write_layered_video, MotionSource, VideoJob};
 use cpsl_temporal::GopConfig;
@@ -77,6 +78,10 @@ pub struct VideoLayeringArgs {
     /// Target number of layers K.
     #[arg(long, default_value_t = 6, value_parser = clap::value_parser!(u32).range(2..=16))]
     pub layers: u32,
+    /// Layer surfaces: `plane` (the paper's fronto-parallel planes) or `slanted` (a plane fitted
+    /// to each layer's depth where it fits clearly better; the default).
+    #[arg(long)]
+    pub geometry: Option<GeometryMode>,
     /// Depth model: `fastdepth` (default) or an .onnx file described by `<model>.json`.
     #[arg(long, default_value = "fastdepth")]
     pub depth_model: String,
@@ -119,7 +124,7 @@ impl VideoLayeringArgs {
         let job = VideoJob {
             input: input.to_path_buf(),
             camera: self.camera.choice(),
-            layering: layering_config(self.config.as_deref(), self.layers)?,
+            layering: layering_config(self.config.as_deref(), self.layers, self.geometry)?,
             gop: self.temporal.config(self.gop as usize),
             motion: self.motion.into(),
             depth_every_frame: self.depth_every_frame,

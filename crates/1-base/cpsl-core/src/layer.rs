@@ -98,6 +98,29 @@ impl Layer {
         b
     }
 
+    /// Makes transparent every pixel where the layer's surface is not in front of the
+    /// reference camera with a pixel to spare, so that the layer passes the check of
+    /// [`LayerSet::new`]. Lossy coding spreads faint alpha beyond a layer's extent; beyond a
+    /// slanted plane's horizon such texels are noise.
+    pub fn clip_to_geometry(&mut self, cam: &Camera) {
+        let Geometry::Slanted(m) = self.geometry else {
+            return;
+        };
+        // Inverse depth a x + b y + c in pixels.
+        let (a, b) = (m.x() / cam.fx, m.y() / cam.fy);
+        let c = m.z() - a * cam.cx - b * cam.cy;
+        let margin = a.abs() + b.abs();
+        let w = self.image.width() as usize;
+        for (y, row) in self.image.as_bytes_mut().chunks_exact_mut(w * 4).enumerate() {
+            let base = b * y as f64 + c;
+            for (x, p) in row.chunks_exact_mut(4).enumerate() {
+                if p[3] != 0 && a * x as f64 + base <= margin {
+                    p.fill(0);
+                }
+            }
+        }
+    }
+
     /// Checks the geometry against the camera: finite, and a depth above zero over the
     /// layer's extent (grown by one pixel for the bilinear footprint).
     fn check_geometry(&self, index: usize, cam: &Camera) -> Result<(), CoreError> {

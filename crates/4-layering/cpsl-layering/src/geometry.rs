@@ -33,6 +33,16 @@ impl GeometryMode {
     }
 }
 
+impl std::str::FromStr for GeometryMode {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        [Self::Plane, Self::Slanted]
+            .into_iter()
+            .find(|m| m.name() == s)
+            .ok_or_else(|| format!("unknown geometry `{s}`: expected plane or slanted"))
+    }
+}
+
 /// Samples fitted per layer at most (a regular subset of its pixels beyond that).
 const MAX_SAMPLES: usize = 16_384;
 /// Largest `|ln z_fit - ln z|` a pixel contributes to the geometric error.
@@ -41,7 +51,9 @@ const TRUNCATION: f64 = 0.25;
 /// extent at most this many times its deepest own pixel.
 pub const MAX_EXTRAPOLATION: f64 = 4.0;
 /// A slanted plane must remove at least this share of the fronto-parallel plane's error...
-const MIN_GAIN: f64 = 0.2;
+/// (measured with ground-truth depth, `cpsl eval all`: 0.05 gives the best mean PSNR over the
+/// five Middlebury scenes; 0.2 and above keep layers flat that gain from a slant)
+const MIN_GAIN: f64 = 0.05;
 /// ...and at least this much of it in absolute terms (mean `|ln z|` error).
 const MIN_ABS_GAIN: f64 = 0.002;
 

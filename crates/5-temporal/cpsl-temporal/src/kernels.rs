@@ -452,18 +452,18 @@ pub(crate) fn ln_depth_quantiles<const N: usize>(
 }
 
 /// Per layer, the mask overlap and boundary similarity of the layer's pixels (`owner`) with
-/// the region whose depth fits the layer (`|ln z - lz[l]| <= tolerance`, `ln` the log depth;
+/// the region whose depth fits the layer (`|ln z - lz[l](x, y)| <= tolerance`, `ln` the log depth;
 /// see the crate documentation). One row-parallel pass for all layers.
 pub(crate) fn agreements(
     owner: &[u8],
     ln: &[f32],
-    lz: &[f32],
+    lz: &[LogDepth],
     tolerance: f32,
     w: usize,
     h: usize,
 ) -> Vec<(f32, f32)> {
     let k = lz.len();
-    let fits = |p: usize, l: usize| (ln[p] - lz[l]).abs() <= tolerance;
+    let fits = |p: usize, l: usize| (ln[p] - lz[l].at(p % w, p / w)).abs() <= tolerance;
     // Whether p lies on the boundary of the region whose depth fits layer l (4-neighbourhood).
     let depth_edge = |l: usize, p: usize| {
         let (x, y) = (p % w, p / w);
@@ -715,5 +715,50 @@ mod tests {
         assert!(hidden.iter().all(|&h| !h));
         let (_, hidden) = warp_layer(&key, &map, gw, gh, &owner, 2);
         assert!(hidden[10 * w + 10]);
+    }
+}
+
+/// A layer's log depth as the agreement test sees it: its reference depth's, or its slanted
+/// plane's at each pixel.
+#[derive(Clone, Copy, Debug)]
+pub(crate) struct LogDepth {
+    /// `ln z_k`.
+    lz: f32,
+    /// Inverse depth `a x + b y + c` in pixels, for a slanted layer.
+    plane: Option<[f32; 3]>,
+}
+
+impl LogDepth {
+    /// Every layer's log depth in `set`.
+    pub(crate) fn of(set: &cpsl_core::LayerSet) -> Vec<Self> {
+        let cam = set.camera();
+        set.layers()
+            .iter()
+            .map(|l| Self {
+                lz: l.depth.ln() as f32,
+                plane: match l.geometry {
+                    cpsl_core::Geometry::Plane => None,
+                    cpsl_core::Geometry::Slanted(m) => Some([
+                        (m.x() / cam.fx) as f32,
+                        (m.y() / cam.fy) as f32,
+                        (m.z() - m.x() * cam.cx / cam.fx - m.y() * cam.cy / cam.fy) as f32,
+                    ]),
+                },
+            })
+            .collect()
+    }
+
+    /// `ln z_k` of the layer's reference depth.
+    pub(crate) fn reference(&self) -> f32 {
+        self.lz
+    }
+
+    /// `ln z` of the layer's surface at pixel `(x, y)`.
+    #[inline]
+    pub(crate) fn at(&self, x: usize, y: usize) -> f32 {
+        match self.plane {
+            None => self.lz,
+            Some([a, b, c]) => -(a * x as f32 + b * y as f32 + c).max(1e-12).ln(),
+        }
     }
 }

@@ -43,8 +43,9 @@
 
 use cpsl_core::{Camera, LayerSet, LayeredFrame, Limits, NoProgress, PremulImage, RefreshReason};
 use cpsl_flow::{Flow, FlowConfig, Grey};
+use cpsl_layering::geometry::{fit_geometry, LayerDepth};
 use cpsl_layering::matte::edge_depth_cache_from;
-use cpsl_layering::{layer_frame, LayeringConfig, LayeringError};
+use cpsl_layering::{layer_frame, GeometryMode, LayeringConfig, LayeringError};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 use std::time::Instant;
@@ -397,7 +398,7 @@ impl VideoLayerer {
             self.next_track += 1;
         }
         let set = with_tracks(layered.set, &tracks)?;
-        let lz = layer_log_depths(&set);
+        let lz = kernels::LogDepth::of(&set);
         let ln_depth: Vec<f32> = cues.depth.par_iter().map(|z| z.ln()).collect();
         let base = kernels::agreements(
             &layered.owner,
@@ -411,7 +412,10 @@ impl VideoLayerer {
         let spans = kernels::ln_depth_quantiles(&layered.owner, &ln_depth, k, [0.05, 0.95])
             .into_iter()
             .zip(&lz)
-            .map(|(q, &z)| q.map_or((z, z), |[lo, hi]| (lo, hi)))
+            .map(|(q, z)| {
+                let z = z.reference();
+                q.map_or((z, z), |[lo, hi]| (lo, hi))
+            })
             .collect();
         timings.push(("association", ms(t)));
         let maps = vec![identity_map(w, h, grey.width, grey.height); k];
@@ -540,6 +544,26 @@ impl VideoLayerer {
             layer.depth = z.max(prev * (1.0 + 1e-6));
             prev = layer.depth;
         }
+        // A slanted layer's plane follows the new depth: refitted over the layer's pixels (a
+        // fronto-parallel layer stays so, as the I-frame chose).
+        let cam = *s.key.camera();
+        layers
+            .par_iter_mut()
+            .enumerate()
+            .filter(|(_, l)| !l.geometry.is_plane())
+            .for_each(|(l, layer)| {
+                let own = |p: usize| owner[p] as usize == l;
+                let px = LayerDepth {
+                    width: w,
+                    height: h,
+                    depth: &depth,
+                    confidence: None,
+                    own: &own,
+                };
+                let extent = layer.extent().map(|e| e.map(|v| v as usize));
+                layer.geometry =
+                    fit_geometry(GeometryMode::Slanted, &cam, &px, layer.depth, extent);
+            });
         // The warp blends premultiplied texels alike in every channel, and the refresh only
         // recolours opaque pixels: the layers are premultiplied by construction.
         let set = LayerSet::new_premultiplied(*s.key.camera(), layers, &Limits::default())?;
@@ -547,7 +571,7 @@ impl VideoLayerer {
         timings.push(("depths", ms(t)));
         // Temporal confidence and crack rate.
         let t = Instant::now();
-        let lz = layer_log_depths(&set);
+        let lz = kernels::LogDepth::of(&set);
         let now = kernels::agreements(&owner, &ln_depth, &lz, g.depth_tolerance, w, h);
         for (l, &(o, b)) in now.iter().enumerate() {
             let (o0, b0) = s.base[l];
@@ -605,8 +629,4 @@ fn with_tracks(set: LayerSet, tracks: &[u32]) -> Result<LayerSet, VideoError> {
         l.meta.track = Some(t);
     }
     Ok(LayerSet::new(camera, layers, &Limits::default())?)
-}
-
-fn layer_log_depths(set: &LayerSet) -> Vec<f32> {
-    set.layers().iter().map(|l| l.depth.ln() as f32).collect()
 }

@@ -128,6 +128,7 @@ impl SegmentReader {
                     })?;
                 let mut layer = Layer::new(image, l.depth as f64);
                 layer.geometry = l.geometry;
+                layer.clip_to_geometry(&self.camera);
                 layer.meta.track = l.track;
                 Ok(layer)
             })

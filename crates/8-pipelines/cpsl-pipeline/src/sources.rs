@@ -2,7 +2,7 @@
 
 use crate::error::{Context, PipelineError};
 use cpsl_core::{Camera, DepthSource, Limits};
-use cpsl_layering::LayeringConfig;
+use cpsl_layering::{GeometryMode, LayeringConfig};
 use std::path::{Path, PathBuf};
 
 /// Where an image's depth comes from.
@@ -184,15 +184,19 @@ pub fn read_config(path: &Path) -> Result<LayeringConfig, PipelineError> {
 }
 
 /// A layering configuration: `config` read with [`read_config`] (or the default), with `K`
-/// set to `layers`.
+/// set to `layers` and the layers' surfaces to `geometry` where given.
 pub fn layering_config(
     config: Option<&Path>,
     layers: u32,
+    geometry: Option<GeometryMode>,
 ) -> Result<LayeringConfig, PipelineError> {
     let mut cfg = match config {
         Some(p) => read_config(p)?,
         None => LayeringConfig::default(),
     };
     cfg.layers = layers as usize;
+    if let Some(g) = geometry {
+        cfg.matte.geometry = g;
+    }
     Ok(cfg)
 }

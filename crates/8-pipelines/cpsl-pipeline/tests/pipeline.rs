@@ -44,7 +44,7 @@ fn clip(dir: &Path) -> VideoJob {
     VideoJob {
         input: dir.join("frames"),
         camera: CameraChoice::File(camera),
-        layering: cpsl_pipeline::sources::layering_config(None, 4).unwrap(),
+        layering: cpsl_pipeline::sources::layering_config(None, 4, None).unwrap(),
         gop: GopConfig {
             gop: 4,
             ..GopConfig::default()

@@ -23,6 +23,7 @@ use cpsl_core::{
     Camera, Edc, Layer, LayerSet, LayeredFrame, Limits, Pose, PremulImage, Progress, ProgressEvent,
     RefreshReason,
 };
+use cpsl_layering::GeometryMode;
 use cpsl_package::Codec;
 use cpsl_render::{CpuRenderer, DpsConfig, FrameLayers};
 use cpsl_temporal::{GopConfig, VideoLayerer};
@@ -57,6 +58,8 @@ pub struct RdOptions {
     pub frames: u32,
     /// Number of CPSL layers K.
     pub layers: u32,
+    /// Layer surfaces for CPSL (`None`: the configuration's, by default the best).
+    pub geometry: Option<GeometryMode>,
     /// Planes of the MPI baseline.
     pub mpi_planes: u32,
     /// Codec of every method's streams.
@@ -361,10 +364,13 @@ type Segments = Vec<Vec<LayeredFrame>>;
 
 /// CPSL: I/P propagation with exact depth on I-frames.
 fn cpsl_layers(clip: &Clip, a: &RdOptions, bars: &dyn Progress) -> Result<Segments> {
-    let cfg = cpsl_layering::LayeringConfig {
+    let mut cfg = cpsl_layering::LayeringConfig {
         layers: a.layers as usize,
         ..Default::default()
     };
+    if let Some(g) = a.geometry {
+        cfg.matte.geometry = g;
+    }
     let mut layerer = VideoLayerer::new(clip.camera, cfg, GopConfig::default())?;
     let stage = "layer clip";
     bars.event(ProgressEvent::Start {

@@ -8,6 +8,7 @@ use crate::metrics::psnr_masked;
 use crate::temporal::{alpha_owner, boundary_variance, f_ssim, flicker, warping_error, ClipMotion};
 use cpsl_core::resample::downscale_rgb;
 use cpsl_core::{Camera, DepthSource, Flow, LayerSet, Limits, Pose, Vec3};
+use cpsl_layering::GeometryMode;
 use cpsl_layering::{slice_by_depth, LayeringConfig, SliceConfig};
 use cpsl_pipeline::sources::open_depth_model;
 use cpsl_render::{CpuRenderer, DpsConfig, FrameLayers};
@@ -46,6 +47,8 @@ pub struct VideoOptions {
     pub gop: usize,
     /// Number of layers K.
     pub layers: usize,
+    /// Layer surfaces for CPSL (`None`: the configuration's, by default the best).
+    pub geometry: Option<GeometryMode>,
     /// Score flicker (it needs the LPIPS model).
     pub lpips: bool,
     /// Give the I/P methods the clip's true motion (only the synthetic clip has one).
@@ -469,10 +472,13 @@ pub fn evaluate_video(
             })?,
         )
     };
-    let cfg = LayeringConfig {
+    let mut cfg = LayeringConfig {
         layers: a.layers,
         ..LayeringConfig::default()
     };
+    if let Some(g) = a.geometry {
+        cfg.matte.geometry = g;
+    }
     let mut rows: Vec<StabilityScore> = Vec::new();
     for clip in clips {
         let c = match clip {

@@ -12,6 +12,7 @@ use cpsl_codec::{CodingOptions, PackageWriter, RateControl};
 use cpsl_core::{
     Edc, FixedDepth, LayerSet, LayeredFrame, NoProgress, Progress, ProgressEvent, RefreshReason,
 };
+use cpsl_layering::GeometryMode;
 use cpsl_layering::{slice_by_depth, Bins, LayeringConfig, SliceConfig};
 use cpsl_package::Codec;
 use cpsl_pipeline::image::{layer_image, InstanceMode};
@@ -91,6 +92,8 @@ pub struct ViewsOptions {
     pub method: Method,
     /// Number of layers K for CPSL, depth slicing and `mpi-k`.
     pub layers: u32,
+    /// Layer surfaces for CPSL (`None`: the configuration's, by default the best).
+    pub geometry: Option<GeometryMode>,
     /// Number of planes of the `mpi` baseline.
     pub mpi_planes: u32,
     /// Layering configuration for CPSL (a file as for `cpsl layer --config`).
@@ -511,6 +514,9 @@ pub fn evaluate_views(
                     };
                     if method == Method::CpslDepthOnly {
                         cfg = cfg.depth_only();
+                    }
+                    if let Some(g) = a.geometry {
+                        cfg.matte.geometry = g;
                     }
                     let mut source = FixedDepth {
                         name: depth_name.clone(),

@@ -1,4 +1,3 @@
-// The package format (crates/6-coding/cpsl-package): the manifest and the per-segment side stream.
 /** The downscale factors a stream may have in a package of `version` (as cpsl-package's
  * `scales_of`). */
 function scalesOf(version) {
@@ -40,7 +39,7 @@ async function inflateRaw(bytes, expected) {
         throw new Error("side stream: edge-depth cache inflates to the wrong length");
     return out;
 }
-/** Parses a side stream (`side.bin`, version 1; see crates/6-coding/cpsl-package/src/side.rs). */
+/** Parses a side stream (`side.bin`, versions 1 and 2; see crates/6-coding/cpsl-package/src/side.rs). */
 export async function parseSide(buf) {
     const b = new Uint8Array(buf);
     const v = new DataView(buf);
@@ -48,8 +47,9 @@ export async function parseSide(buf) {
     if (b.length < 40 || magic !== "CPSLSIDE")
         throw new Error("not a cpsl side stream");
     const version = v.getUint16(8, true);
-    if (version !== 1)
-        throw new Error(`side stream version ${version}: this player reads version 1`);
+    if (version !== 1 && version !== 2)
+        throw new Error(`side stream version ${version}: this player reads versions 1 and 2`);
+    const recordBytes = version >= 2 ? 28 : 16;
     const frames = v.getUint32(20, true);
     const streams = v.getUint16(24, true);
     let pos = 40;
@@ -67,10 +67,20 @@ export async function parseSide(buf) {
             throw new Error(`side stream record ${r}: ${n} layers`);
         const layers = [];
         for (let i = 0; i < n; i++) {
-            const o = p + 8 + i * 16;
-            layers.push({ stream: b[o], depth: v.getFloat32(o + 4, true) });
+            const o = p + 8 + i * recordBytes;
+            let geometry = { kind: "plane" };
+            if (b[o + 1] === 1 && version >= 2) {
+                const m = [0, 1, 2].map((j) => v.getFloat32(o + 16 + 4 * j, true));
+                if (!m.every(Number.isFinite))
+                    throw new Error(`side stream record ${r}: layer ${i} has a non-finite plane`);
+                geometry = { kind: "slanted", m };
+            }
+            else if (b[o + 1] !== 0) {
+                throw new Error(`side stream record ${r}: layer ${i} has unknown geometry ${b[o + 1]}`);
+            }
+            layers.push({ stream: b[o], depth: v.getFloat32(o + 4, true), geometry });
         }
-        const e = p + 8 + n * 16;
+        const e = p + 8 + n * recordBytes;
         const edcLen = v.getUint32(e, true);
         const c = e + 4;
         const step = v.getFloat32(c + 2, true);

@@ -65,6 +65,33 @@ export function planeInverse(src, dst, pose, depth) {
     const h = mul(mul(mul(K(src), m), pose.rotation), Kinv(dst));
     return h.map((row) => row.map((v) => v / depth));
 }
+/**
+ * `Geometry::inverse_homography`: the inverse homography of a layer at reference depth `depth`
+ * on `geometry`; null when the viewer is not on the reference camera's side of its plane.
+ */
+export function layerInverse(src, dst, pose, depth, geometry) {
+    if (geometry.kind === "plane")
+        return planeInverse(src, dst, pose, depth);
+    const m = geometry.m;
+    const t = pose.translation;
+    const gap = 1 - (m[0] * t[0] + m[1] * t[1] + m[2] * t[2]);
+    if (!(gap > 1e-6 * Math.hypot(m[0], m[1], m[2])))
+        return null;
+    const a = [0, 1, 2].map((r) => [0, 1, 2].map((c) => (r === c ? gap : 0) + t[r] * m[c]));
+    return mul(mul(mul(K(src), a), pose.rotation), Kinv(dst));
+}
+/**
+ * Inverse depth `a x + b y + c` in reference pixels of a slanted layer, and the margin below
+ * which `Layer::clip_to_geometry` clears its texels (`[0, 0, 1, 0]`: nothing cleared).
+ */
+export function horizonClip(cam, geometry) {
+    if (geometry.kind === "plane")
+        return [0, 0, 1, 0];
+    const [mx, my, mz] = geometry.m;
+    const a = mx / cam.fx;
+    const b = my / cam.fy;
+    return [a, b, mz - a * cam.cx - b * cam.cy, Math.abs(a) + Math.abs(b)];
+}
 /** `Pose::ref_to_view`. */
 function refToView(pose, p) {
     const d = [p[0] - pose.translation[0], p[1] - pose.translation[1], p[2] - pose.translation[2]];

@@ -1,3 +1,4 @@
+import type { Geometry } from "./pose.js";
 // The package format (crates/6-coding/cpsl-package): the manifest and the per-segment side stream.
 
 import type { Camera } from "./pose.js";
@@ -70,6 +71,7 @@ export function packageBitrate(m: Manifest): number {
 export interface SideLayer {
   stream: number;
   depth: number;
+  geometry: Geometry;
 }
 
 export interface SideFrame {
@@ -86,14 +88,15 @@ async function inflateRaw(bytes: Uint8Array, expected: number): Promise<Uint8Arr
   return out;
 }
 
-/** Parses a side stream (`side.bin`, version 1; see crates/6-coding/cpsl-package/src/side.rs). */
+/** Parses a side stream (`side.bin`, versions 1 and 2; see crates/6-coding/cpsl-package/src/side.rs). */
 export async function parseSide(buf: ArrayBuffer): Promise<SideFrame[]> {
   const b = new Uint8Array(buf);
   const v = new DataView(buf);
   const magic = String.fromCharCode(...b.subarray(0, 8));
   if (b.length < 40 || magic !== "CPSLSIDE") throw new Error("not a cpsl side stream");
   const version = v.getUint16(8, true);
-  if (version !== 1) throw new Error(`side stream version ${version}: this player reads version 1`);
+  if (version !== 1 && version !== 2) throw new Error(`side stream version ${version}: this player reads versions 1 and 2`);
+  const recordBytes = version >= 2 ? 28 : 16;
   const frames = v.getUint32(20, true);
   const streams = v.getUint16(24, true);
   let pos = 40;
@@ -108,10 +111,18 @@ export async function parseSide(buf: ArrayBuffer): Promise<SideFrame[]> {
     if (n === 0 || n > streams) throw new Error(`side stream record ${r}: ${n} layers`);
     const layers: SideLayer[] = [];
     for (let i = 0; i < n; i++) {
-      const o = p + 8 + i * 16;
-      layers.push({ stream: b[o], depth: v.getFloat32(o + 4, true) });
+      const o = p + 8 + i * recordBytes;
+      let geometry: Geometry = { kind: "plane" };
+      if (b[o + 1] === 1 && version >= 2) {
+        const m: [number, number, number] = [0, 1, 2].map((j) => v.getFloat32(o + 16 + 4 * j, true)) as [number, number, number];
+        if (!m.every(Number.isFinite)) throw new Error(`side stream record ${r}: layer ${i} has a non-finite plane`);
+        geometry = { kind: "slanted", m };
+      } else if (b[o + 1] !== 0) {
+        throw new Error(`side stream record ${r}: layer ${i} has unknown geometry ${b[o + 1]}`);
+      }
+      layers.push({ stream: b[o], depth: v.getFloat32(o + 4, true), geometry });
     }
-    const e = p + 8 + n * 16;
+    const e = p + 8 + n * recordBytes;
     const edcLen = v.getUint32(e, true);
     const c = e + 4;
     const step = v.getFloat32(c + 2, true);

@@ -88,6 +88,35 @@ export function planeInverse(src: Camera, dst: Camera, pose: Pose, depth: number
   return h.map((row) => row.map((v) => v / depth));
 }
 
+/** A layer's surface: the fronto-parallel plane at its depth, or the slanted plane `m . X = 1`. */
+export type Geometry = { kind: "plane" } | { kind: "slanted"; m: [number, number, number] };
+
+/**
+ * `Geometry::inverse_homography`: the inverse homography of a layer at reference depth `depth`
+ * on `geometry`; null when the viewer is not on the reference camera's side of its plane.
+ */
+export function layerInverse(src: Camera, dst: Camera, pose: Pose, depth: number, geometry: Geometry): Mat3 | null {
+  if (geometry.kind === "plane") return planeInverse(src, dst, pose, depth);
+  const m = geometry.m;
+  const t = pose.translation;
+  const gap = 1 - (m[0] * t[0] + m[1] * t[1] + m[2] * t[2]);
+  if (!(gap > 1e-6 * Math.hypot(m[0], m[1], m[2]))) return null;
+  const a: Mat3 = [0, 1, 2].map((r) => [0, 1, 2].map((c) => (r === c ? gap : 0) + t[r] * m[c])) as Mat3;
+  return mul(mul(mul(K(src), a), pose.rotation), Kinv(dst));
+}
+
+/**
+ * Inverse depth `a x + b y + c` in reference pixels of a slanted layer, and the margin below
+ * which `Layer::clip_to_geometry` clears its texels (`[0, 0, 1, 0]`: nothing cleared).
+ */
+export function horizonClip(cam: Camera, geometry: Geometry): [number, number, number, number] {
+  if (geometry.kind === "plane") return [0, 0, 1, 0];
+  const [mx, my, mz] = geometry.m;
+  const a = mx / cam.fx;
+  const b = my / cam.fy;
+  return [a, b, mz - a * cam.cx - b * cam.cy, Math.abs(a) + Math.abs(b)];
+}
+
 /** `Pose::ref_to_view`. */
 function refToView(pose: Pose, p: [number, number, number]): [number, number, number] {
   const d = [p[0] - pose.translation[0], p[1] - pose.translation[1], p[2] - pose.translation[2]];

@@ -5,7 +5,7 @@
 // Y'CbCr (BT.709, limited range, colour over alpha) in the shader exactly as cpsl-codec's
 // `unstack` does, so the browser's own colour conversion never enters.
 
-import { type Camera, type Pose, planeInverse, stripWidth } from "./pose.js";
+import { type Camera, type Pose, horizonClip, layerInverse, stripWidth } from "./pose.js";
 import type { SideFrame } from "./package.js";
 
 /** Most layers per frame. */
@@ -31,6 +31,7 @@ uniform mat3 uH[${MAX_LAYERS}];
 uniform int uStream[${MAX_LAYERS}];
 uniform int uScale[${MAX_LAYERS}];  // downscale factor of layer k's stream
 uniform int uLayers;
+uniform vec4 uPlane[${MAX_LAYERS}];  // inverse depth a x + b y + c of slanted layer k, clip margin
 
 float q8(float v) { return clamp(floor(v + 0.5), 0.0, 255.0); }
 
@@ -54,6 +55,9 @@ vec4 coded(int s, ivec2 t, int rows) {
 // as cpsl-codec's scale::upscale does: pixel x reads (x + 0.5) / f - 0.5, clamped.
 vec4 texel(int k, ivec2 t) {
   if (t.x < 0 || t.y < 0 || t.x >= uSize.x || t.y >= uSize.y) return vec4(0.0);
+  // Beyond a slanted plane's horizon coded texels are noise (Layer::clip_to_geometry).
+  vec4 p = uPlane[k];
+  if (p.x * float(t.x) + p.y * float(t.y) + p.z <= p.w) return vec4(0.0);
   int s = uStream[k];
   int f = uScale[k];
   if (f == 1) return coded(s, t, uHalf);
@@ -355,11 +359,13 @@ export class Renderer {
     const side = this.frame!;
     const cam = this.camera;
     const hs = new Float32Array(MAX_LAYERS * 9);
+    const planes = new Float32Array(MAX_LAYERS * 4);
     const streams = new Int32Array(MAX_LAYERS);
     const scales = new Int32Array(MAX_LAYERS);
     let n = 0;
     for (const l of side.layers.slice(0, MAX_LAYERS)) {
-      const h = planeInverse(cam, cam, pose, l.depth);
+      const h = layerInverse(cam, cam, pose, l.depth, l.geometry);
+      planes.set(horizonClip(cam, l.geometry), n * 4);
       // A layer the viewer has passed is skipped, as the CPU renderer does.
       const m = h ?? [
         [0, 0, 0],
@@ -375,6 +381,7 @@ export class Renderer {
     gl.useProgram(p);
     const u = (name: string) => gl.getUniformLocation(p, name);
     gl.uniformMatrix3fv(u("uH"), false, hs);
+    gl.uniform4fv(u("uPlane"), planes);
     gl.uniform1iv(u("uStream"), streams);
     gl.uniform1iv(u("uScale"), scales);
     gl.uniform1i(u("uLayers"), n);

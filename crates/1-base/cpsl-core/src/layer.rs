@@ -111,7 +111,12 @@ impl Layer {
         let c = m.z() - a * cam.cx - b * cam.cy;
         let margin = a.abs() + b.abs();
         let w = self.image.width() as usize;
-        for (y, row) in self.image.as_bytes_mut().chunks_exact_mut(w * 4).enumerate() {
+        for (y, row) in self
+            .image
+            .as_bytes_mut()
+            .chunks_exact_mut(w * 4)
+            .enumerate()
+        {
             let base = b * y as f64 + c;
             for (x, p) in row.chunks_exact_mut(4).enumerate() {
                 if p[3] != 0 && a * x as f64 + base <= margin {

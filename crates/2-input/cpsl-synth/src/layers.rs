@@ -100,3 +100,22 @@ pub fn synthetic_layer_set(
     }
     LayerSet::new(cam, layers, &Limits::default()).expect("valid by construction")
 }
+
+/// `set` with every layer on a slanted plane through its depth at the image centre, tilted
+/// like a floor (depth growing upwards) and turned a little about the vertical axis, each
+/// layer's inverse depth changing by a third over the frame height: the renderers' test and
+/// benchmark case for [`cpsl_core::Geometry::Slanted`].
+pub fn slanted(set: LayerSet) -> LayerSet {
+    let (cam, mut layers) = set.into_parts();
+    let half_h = cam.height as f64 / 2.0 / cam.fy;
+    for (i, l) in layers.iter_mut().enumerate() {
+        let inv = 1.0 / l.depth;
+        let turn = if i % 2 == 0 { 0.1 } else { -0.1 };
+        l.geometry = cpsl_core::Geometry::Slanted(cpsl_core::Vec3::new(
+            turn * inv,
+            inv / (3.0 * half_h),
+            inv,
+        ));
+    }
+    LayerSet::new(cam, layers, &Limits::default()).expect("slanted planes stay in front")
+}

@@ -6,7 +6,7 @@
 use cpsl_core::{Camera, Layer, LayerSet, Limits, Pose, PremulImage, Vec3};
 use cpsl_render::{CpuRenderer, DpsConfig, FrameLayers, PreparedLayers, Renderer};
 use cpsl_render_gpu::{GpuRenderer, BLIT_WGSL, COMMON_WGSL, COMPOSITE_WGSL, DPS_WGSL};
-use cpsl_synth::layers::{synthetic_layer_set, Coverage};
+use cpsl_synth::layers::{slanted, synthetic_layer_set, Coverage};
 
 const MIN_PSNR: f64 = 45.0;
 
@@ -86,6 +86,10 @@ fn gpu_matches_the_cpu_reference() {
             synthetic_layer_set(256, 144, 4, Coverage::Dense, 3),
         ),
         ("gapped 96x48 K=2", gapped(3)),
+        (
+            "slanted 320x240 K=6",
+            slanted(synthetic_layer_set(320, 240, 6, Coverage::Typical, 5)),
+        ),
     ];
     let poses = [
         Pose::IDENTITY,

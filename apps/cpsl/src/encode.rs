@@ -6,6 +6,7 @@ use crate::video::VideoLayeringArgs;
 use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
 use cpsl_codec::RateControl;
+use cpsl_core::Geometry;
 use cpsl_package::{Codec, Package};
 use cpsl_pipeline::encode::{encode, EncodeJob, EncodeTarget};
 use std::path::PathBuf;
@@ -239,6 +240,35 @@ pub fn info(a: PackageArgs) -> Result<()> {
             s.streams.len(),
             q.join(" ")
         );
+    }
+    // Each layer's surface in every segment's first frame, and what the side stream spends
+    // on it (a slanted plane: 12 bytes per layer and frame).
+    println!("  segment  layers of its first frame (geometry, depth, stream kbit/s); side stream geometry bits/s");
+    for (i, s) in m.segments.iter().enumerate() {
+        let side = pkg.side_stream(i)?;
+        let layers: Vec<String> = side.frames[0]
+            .layers
+            .iter()
+            .map(|l| {
+                let kbps = s.streams.get(l.stream as usize).map_or(0, |t| t.bitrate) as f64 / 1e3;
+                let g = match l.geometry {
+                    Geometry::Plane => "plane".to_string(),
+                    Geometry::Slanted(m) => {
+                        // The plane's tilt from fronto-parallel.
+                        let tilt = (m.x().hypot(m.y()) / m.z().abs()).atan().to_degrees();
+                        format!("slanted {tilt:.0}deg")
+                    }
+                };
+                format!("{g} z {:.2} {kbps:.0}", l.depth)
+            })
+            .collect();
+        let slanted: usize = side
+            .frames
+            .iter()
+            .map(|f| f.layers.iter().filter(|l| !l.geometry.is_plane()).count())
+            .sum();
+        let bps = slanted as f64 * 12.0 * 8.0 * m.frame_rate / s.frames as f64;
+        println!("  {i:>7}  {} ; {bps:.0}", layers.join(" | "));
     }
     Ok(())
 }

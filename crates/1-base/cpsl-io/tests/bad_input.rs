@@ -208,3 +208,36 @@ fn bad_camera_intrinsics() {
     edit_manifest(&p, |v| v["camera"]["fx"] = (-3.0).into());
     rejects(&p, &["manifest.json", "fx", "-3"]);
 }
+
+#[test]
+fn slanted_layers_round_trip_and_bad_planes_are_rejected() {
+    let d = tempfile::tempdir().unwrap();
+    let p = valid(d.path());
+    // A gentle slant: read back as written, in a version 2 manifest.
+    edit_manifest(&p, |v| {
+        v["version"] = 2.into();
+        v["layers"][1]["geometry"] = serde_json::json!({ "slanted": [0.0, 0.1, 0.5] });
+    });
+    let set = read_layer_set(&p, &Limits::default()).unwrap();
+    assert_eq!(
+        set.layers()[1].geometry,
+        cpsl_core::Geometry::Slanted(cpsl_core::Vec3::new(0.0, 0.1, 0.5))
+    );
+    let again = d.path().join("again");
+    write_layer_set(&again, &set, &[]).unwrap();
+    assert_eq!(read_layer_set(&again, &Limits::default()).unwrap(), set);
+    // A plane whose horizon crosses the layer: depth <= 0 over part of its extent.
+    edit_manifest(&p, |v| {
+        v["layers"][1]["geometry"] = serde_json::json!({ "slanted": [0.0, 4.0, 0.5] })
+    });
+    rejects(&p, &["manifest.json", "layer 1", "geometry", "depth"]);
+    // Geometry in a version 1 manifest.
+    edit_manifest(&p, |v| v["version"] = 1.into());
+    rejects(&p, &["manifest.json", "layers[1].geometry", "version 2"]);
+    // Wrong shape.
+    edit_manifest(&p, |v| {
+        v["version"] = 2.into();
+        v["layers"][1]["geometry"] = serde_json::json!({ "slanted": [0.0, 0.1] })
+    });
+    rejects(&p, &["manifest.json", "invalid JSON"]);
+}

@@ -242,8 +242,10 @@ pub fn info(a: PackageArgs) -> Result<()> {
         );
     }
     // Each layer's surface in every segment's first frame, and what the side stream spends
-    // on it (a slanted plane: 12 bytes per layer and frame).
-    println!("  segment  layers of its first frame (geometry, depth, stream kbit/s); side stream geometry bits/s");
+    // on the segment's geometry.
+    println!(
+        "  segment  layers of its first frame (geometry, depth, stream kbit/s); geometry kbit/s"
+    );
     for (i, s) in m.segments.iter().enumerate() {
         let side = pkg.side_stream(i)?;
         let layers: Vec<String> = side.frames[0]
@@ -251,24 +253,26 @@ pub fn info(a: PackageArgs) -> Result<()> {
             .iter()
             .map(|l| {
                 let kbps = s.streams.get(l.stream as usize).map_or(0, |t| t.bitrate) as f64 / 1e3;
-                let g = match l.geometry {
+                let g = match &l.geometry {
                     Geometry::Plane => "plane".to_string(),
                     Geometry::Slanted(m) => {
                         // The plane's tilt from fronto-parallel.
                         let tilt = (m.x().hypot(m.y()) / m.z().abs()).atan().to_degrees();
                         format!("slanted {tilt:.0}deg")
                     }
+                    Geometry::Mesh(g) => format!("mesh {}px", g.step),
                 };
                 format!("{g} z {:.2} {kbps:.0}", l.depth)
             })
             .collect();
-        let slanted: usize = side
+        let bytes: usize = side
             .frames
             .iter()
-            .map(|f| f.layers.iter().filter(|l| !l.geometry.is_plane()).count())
+            .flat_map(|f| &f.layers)
+            .map(|l| cpsl_package::geometry_bytes(&l.geometry))
             .sum();
-        let bps = slanted as f64 * 12.0 * 8.0 * m.frame_rate / s.frames as f64;
-        println!("  {i:>7}  {} ; {bps:.0}", layers.join(" | "));
+        let kbps = bytes as f64 * 8.0 * m.frame_rate / s.frames as f64 / 1e3;
+        println!("  {i:>7}  {} ; {kbps:.1}", layers.join(" | "));
     }
     Ok(())
 }

@@ -7,15 +7,24 @@
 //! `1 / z = m_x x_n + m_y y_n + m_z` with `x_n = (u - c_x) / f_x`, `y_n = (v - c_y) / f_y`, so
 //! the same three numbers serve every resolution of the layer. Both are drawn with one
 //! plane-induced homography ([`Geometry::inverse_homography`]).
+//!
+//! A [`Geometry::Mesh`] layer lies on a coarse grid of inverse depths ([`DepthGrid`]): vertex
+//! `(i, j)` sits at reference pixel `(min(i s, w) - 1/2, min(j s, h) - 1/2)` for a step `s`,
+//! so the grid spans the whole image; each cell is cut along its diagonal from the top-left
+//! to the bottom-right vertex into two triangles. Inverse depth is affine over each triangle,
+//! so each triangle is a planar patch drawn with its own homography
+//! ([`DepthGrid::triangle_plane`]); neighbouring triangles share vertices, so the surface has
+//! no cracks.
 
 use crate::camera::Camera;
 use crate::homography::{Homography, MIN_PLANE_DISTANCE};
 use crate::math::{Mat3, Vec3};
 use crate::pose::Pose;
 use serde::{Deserialize, Serialize};
+use std::sync::Arc;
 
 /// A layer's surface in the reference camera; see the [module docs](self).
-#[derive(Debug, Clone, Copy, PartialEq, Default, Serialize, Deserialize)]
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case", deny_unknown_fields)]
 pub enum Geometry {
     /// The fronto-parallel plane at the layer's depth (the paper's equation 1).
@@ -23,6 +32,190 @@ pub enum Geometry {
     Plane,
     /// The plane `m . X = 1` (reference camera frame), given as `m`.
     Slanted(#[serde(with = "vec3_array")] Vec3),
+    /// A grid of inverse depths, one planar triangle per half cell.
+    Mesh(Arc<DepthGrid>),
+}
+
+/// Inverse depths on a regular grid over the reference image; see the [module docs](self).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DepthGrid {
+    /// Vertex spacing `s` in reference pixels.
+    pub step: u32,
+    /// Vertices per row: `ceil(w / s) + 1`.
+    pub cols: u32,
+    /// Vertex rows: `ceil(h / s) + 1`.
+    pub rows: u32,
+    /// Inverse depth at each vertex, row by row: finite and above zero.
+    pub inverse_depth: Vec<f32>,
+}
+
+/// Why a depth grid does not fit its layer.
+#[derive(Debug, Clone, PartialEq)]
+pub enum GridError {
+    /// Step zero or too large for the image, or a vertex count that does not match.
+    Size(String),
+    /// A vertex's inverse depth is not finite or not above zero.
+    Value {
+        /// Vertex column.
+        col: u32,
+        /// Vertex row.
+        row: u32,
+        /// The value.
+        value: f32,
+    },
+}
+
+impl std::fmt::Display for GridError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Size(s) => f.write_str(s),
+            Self::Value { col, row, value } => write!(
+                f,
+                "vertex ({col}, {row}) has inverse depth {value}, finite and above 0 required"
+            ),
+        }
+    }
+}
+
+impl DepthGrid {
+    /// Largest vertex spacing.
+    pub const MAX_STEP: u32 = 256;
+
+    /// Vertex columns and rows of a grid of step `step` over a `width x height` image.
+    pub fn dims(width: u32, height: u32, step: u32) -> (u32, u32) {
+        (width.div_ceil(step) + 1, height.div_ceil(step) + 1)
+    }
+
+    /// Checks the grid against a `width x height` layer.
+    pub fn check(&self, width: u32, height: u32) -> Result<(), GridError> {
+        if self.step == 0 || self.step > Self::MAX_STEP {
+            return Err(GridError::Size(format!(
+                "step {} outside 1..={}",
+                self.step,
+                Self::MAX_STEP
+            )));
+        }
+        let (c, r) = Self::dims(width, height, self.step);
+        if (self.cols, self.rows) != (c, r) || self.inverse_depth.len() != (c * r) as usize {
+            return Err(GridError::Size(format!(
+                "{}x{} vertices ({} values), a {width}x{height} layer at step {} needs {c}x{r}",
+                self.cols,
+                self.rows,
+                self.inverse_depth.len(),
+                self.step
+            )));
+        }
+        match self
+            .inverse_depth
+            .iter()
+            .position(|v| !(v.is_finite() && *v > 0.0))
+        {
+            Some(i) => Err(GridError::Value {
+                col: i as u32 % c,
+                row: i as u32 / c,
+                value: self.inverse_depth[i],
+            }),
+            None => Ok(()),
+        }
+    }
+
+    /// Reference pixel position of vertex `(i, j)` in a `width x height` image.
+    #[inline]
+    pub fn vertex(&self, i: u32, j: u32, width: u32, height: u32) -> (f64, f64) {
+        (
+            (i * self.step).min(width) as f64 - 0.5,
+            (j * self.step).min(height) as f64 - 0.5,
+        )
+    }
+
+    /// Inverse depth at vertex `(i, j)`.
+    #[inline]
+    pub fn at(&self, i: u32, j: u32) -> f64 {
+        self.inverse_depth[(j * self.cols + i) as usize] as f64
+    }
+
+    /// The three vertices `(i, j)` of triangle `t` (0: upper right, 1: lower left) of cell
+    /// `(ci, cj)`, in the same winding for both.
+    #[inline]
+    pub fn triangle(ci: u32, cj: u32, t: u32) -> [(u32, u32); 3] {
+        if t == 0 {
+            [(ci, cj), (ci + 1, cj), (ci + 1, cj + 1)]
+        } else {
+            [(ci, cj), (ci + 1, cj + 1), (ci, cj + 1)]
+        }
+    }
+
+    /// The reference-frame point of vertex `(i, j)` seen by `cam`.
+    pub fn point(&self, cam: &Camera, i: u32, j: u32) -> Vec3 {
+        let (u, v) = self.vertex(i, j, cam.width, cam.height);
+        cam.unproject(u, v, 1.0 / self.at(i, j))
+    }
+
+    /// The plane `m` (with `m . X = 1`) of triangle `t` of cell `(ci, cj)`; `None` when its
+    /// vertices are collinear in space.
+    pub fn triangle_plane(&self, cam: &Camera, ci: u32, cj: u32, t: u32) -> Option<Vec3> {
+        let p = Self::triangle(ci, cj, t).map(|(i, j)| self.point(cam, i, j));
+        let rows = Mat3([p[0].0, p[1].0, p[2].0]);
+        let m = rows.inverse()? * Vec3::new(1.0, 1.0, 1.0);
+        m.is_finite().then_some(m)
+    }
+
+    /// Inverse depth at every pixel of a `width x height` image, row by row (as
+    /// [`DepthGrid::inverse_depth_at`] gives at pixel centres).
+    pub fn inverse_depth_map(&self, width: u32, height: u32) -> Vec<f32> {
+        let s = self.step;
+        // Per column: cell and position across it.
+        let along = |n: u32, v: u32| {
+            let c = ((v + 1) / s).min(n.div_ceil(s) - 1);
+            let (a, b) = ((c * s) as f32, ((c + 1) * s).min(n) as f32);
+            (c, (v as f32 + 0.5 - a) / (b - a))
+        };
+        let cols: Vec<(u32, f32)> = (0..width).map(|x| along(width, x)).collect();
+        let mut out = Vec::with_capacity(width as usize * height as usize);
+        for y in 0..height {
+            let (cj, fy) = along(height, y);
+            for &(ci, fx) in &cols {
+                let at = |i: u32, j: u32| self.inverse_depth[(j * self.cols + i) as usize];
+                let (a, b, c, d) = (
+                    at(ci, cj),
+                    at(ci + 1, cj),
+                    at(ci, cj + 1),
+                    at(ci + 1, cj + 1),
+                );
+                out.push(if fx >= fy {
+                    a + (b - a) * fx + (d - b) * fy
+                } else {
+                    a + (c - a) * fy + (d - c) * fx
+                });
+            }
+        }
+        out
+    }
+
+    /// Inverse depth at reference pixel `(u, v)`: affine over the triangle that holds it.
+    pub fn inverse_depth_at(&self, cam: &Camera, u: f64, v: f64) -> f64 {
+        let s = self.step as f64;
+        let (gx, gy) = ((u + 0.5) / s, (v + 0.5) / s);
+        let ci = (gx.floor().max(0.0) as u32).min(self.cols.saturating_sub(2));
+        let cj = (gy.floor().max(0.0) as u32).min(self.rows.saturating_sub(2));
+        let (x0, y0) = self.vertex(ci, cj, cam.width, cam.height);
+        let (x1, y1) = self.vertex(ci + 1, cj + 1, cam.width, cam.height);
+        let fx = ((u - x0) / (x1 - x0).max(1e-9)).clamp(0.0, 1.0);
+        let fy = ((v - y0) / (y1 - y0).max(1e-9)).clamp(0.0, 1.0);
+        let (a, b, c, d) = (
+            self.at(ci, cj),
+            self.at(ci + 1, cj),
+            self.at(ci, cj + 1),
+            self.at(ci + 1, cj + 1),
+        );
+        if fx >= fy {
+            // Upper right triangle (a, b, d).
+            a + (b - a) * fx + (d - b) * fy
+        } else {
+            a + (c - a) * fy + (d - c) * fx
+        }
+    }
 }
 
 mod vec3_array {
@@ -43,17 +236,30 @@ impl Geometry {
         matches!(self, Self::Plane)
     }
 
-    /// The plane `m` (with `m . X = 1`) of a layer at reference depth `depth`.
+    /// The name the command line and reports use.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Self::Plane => "plane",
+            Self::Slanted(_) => "slanted",
+            Self::Mesh(_) => "mesh",
+        }
+    }
+
+    /// The plane `m` (with `m . X = 1`) of a layer at reference depth `depth`: its own for a
+    /// plane, the fronto-parallel plane at `depth` for a mesh.
     pub fn plane(&self, depth: f64) -> Vec3 {
-        match *self {
-            Self::Plane => Vec3::new(0.0, 0.0, 1.0 / depth),
-            Self::Slanted(m) => m,
+        match self {
+            Self::Slanted(m) => *m,
+            Self::Plane | Self::Mesh(_) => Vec3::new(0.0, 0.0, 1.0 / depth),
         }
     }
 
     /// Inverse depth at reference pixel `(u, v)` of a layer at reference depth `depth` seen by
     /// `cam` (may be zero or negative off the layer's extent for a slanted plane).
     pub fn inverse_depth_at(&self, depth: f64, cam: &Camera, u: f64, v: f64) -> f64 {
+        if let Self::Mesh(g) = self {
+            return g.inverse_depth_at(cam, u, v);
+        }
         let m = self.plane(depth);
         m.x() * (u - cam.cx) / cam.fx + m.y() * (v - cam.cy) / cam.fy + m.z()
     }
@@ -61,7 +267,8 @@ impl Geometry {
     /// The inverse plane-induced homography (viewer pixels of `dst` to reference pixels of
     /// `src`) of a layer at reference depth `depth`, for the viewer at `pose`; `None` when the
     /// viewer is not on the reference camera's side of the plane. A [`Geometry::Plane`] gives
-    /// exactly [`Homography::plane_inverse`].
+    /// exactly [`Homography::plane_inverse`]; a mesh has one per triangle
+    /// ([`plane_inverse`]).
     pub fn inverse_homography(
         &self,
         depth: f64,
@@ -69,22 +276,31 @@ impl Geometry {
         dst: &Camera,
         pose: &Pose,
     ) -> Option<Homography> {
-        let m = match *self {
-            Self::Plane => return Homography::plane_inverse(src, dst, pose, depth),
-            Self::Slanted(m) => m,
-        };
-        // Viewer ray r = R K_t^-1 q meets m . (l r + t) = 1 at l = (1 - m.t) / (m . r), so the
-        // reference point is proportional to ((1 - m.t) I + t m^T) r; positive w where the
-        // ray meets the plane in front of the viewer and in front of the reference camera.
-        let gap = 1.0 - m.dot(pose.translation);
-        if gap.partial_cmp(&(MIN_PLANE_DISTANCE * m.norm())) != Some(std::cmp::Ordering::Greater) {
-            return None;
+        match self {
+            Self::Plane => Homography::plane_inverse(src, dst, pose, depth),
+            Self::Slanted(m) => plane_inverse(*m, src, dst, pose),
+            Self::Mesh(_) => None,
         }
-        let a = Mat3::IDENTITY
-            .scale(gap)
-            .add(&Mat3::outer(pose.translation, m));
-        Some(Homography(src.k() * a * pose.rotation * dst.k_inv()))
     }
+}
+
+/// The inverse homography of the plane `m . X = 1` (see [`Geometry::inverse_homography`]).
+pub fn plane_inverse(m: Vec3, src: &Camera, dst: &Camera, pose: &Pose) -> Option<Homography> {
+    // Viewer ray r = R K_t^-1 q meets m . (l r + t) = 1 at l = (1 - m.t) / (m . r), so the
+    // reference point is proportional to ((1 - m.t) I + t m^T) r; positive w where the
+    // ray meets the plane in front of the viewer and in front of the reference camera.
+    let gap = 1.0 - m.dot(pose.translation);
+    if gap.partial_cmp(&(MIN_PLANE_DISTANCE * m.norm())) != Some(std::cmp::Ordering::Greater) {
+        return None;
+    }
+    if pose.rotation == Mat3::IDENTITY && pose.translation == Vec3::ZERO && src == dst {
+        // Exact identity: no rounding from K * K^-1.
+        return Some(Homography::IDENTITY);
+    }
+    let a = Mat3::IDENTITY
+        .scale(gap)
+        .add(&Mat3::outer(pose.translation, m));
+    Some(Homography(src.k() * a * pose.rotation * dst.k_inv()))
 }
 
 /// Robust fit of a slanted plane to samples `(x_n, y_n, inverse depth, weight)` in normalised
@@ -165,6 +381,43 @@ mod tests {
         // Crossing the plane hides it.
         let through = Pose::from_translation(Vec3::new(0.0, 0.0, 5.0));
         assert!(g.inverse_homography(4.0, &c, &c, &through).is_none());
+    }
+
+    #[test]
+    fn mesh_triangles_are_planes_through_their_vertices() {
+        let c = cam();
+        let (cols, rows) = DepthGrid::dims(c.width, c.height, 32);
+        let grid = DepthGrid {
+            step: 32,
+            cols,
+            rows,
+            inverse_depth: (0..cols * rows)
+                .map(|k| 0.2 + 0.01 * (k % 7) as f32 + 0.003 * (k / cols) as f32)
+                .collect(),
+        };
+        grid.check(c.width, c.height).unwrap();
+        assert!(grid.check(c.width + 40, c.height).is_err());
+        let map = grid.inverse_depth_map(c.width, c.height);
+        for (ci, cj, t) in [(0, 0, 0), (3, 2, 1), (9, 7, 0), (9, 7, 1)] {
+            let m = grid.triangle_plane(&c, ci, cj, t).unwrap();
+            for (i, j) in DepthGrid::triangle(ci, cj, t) {
+                assert!((m.dot(grid.point(&c, i, j)) - 1.0).abs() < 1e-9);
+            }
+            // Inside the triangle the plane and the map agree.
+            let (x0, y0) = grid.vertex(ci, cj, c.width, c.height);
+            let (u, v) = if t == 0 {
+                (x0 + 20.5, y0 + 8.5)
+            } else {
+                (x0 + 8.5, y0 + 20.5)
+            };
+            let on_plane = Geometry::Slanted(m).inverse_depth_at(1.0, &c, u, v);
+            let at = grid.inverse_depth_at(&c, u, v);
+            let px = map[(v as usize) * c.width as usize + u as usize] as f64;
+            assert!(
+                (on_plane - at).abs() < 1e-6 && (at - px).abs() < 1e-5,
+                "{on_plane} {at} {px}"
+            );
+        }
     }
 
     #[test]

@@ -129,10 +129,16 @@ impl Layer {
     /// Checks the geometry against the camera: finite, and a depth above zero over the
     /// layer's extent (grown by one pixel for the bilinear footprint).
     fn check_geometry(&self, index: usize, cam: &Camera) -> Result<(), CoreError> {
-        let Geometry::Slanted(m) = self.geometry else {
-            return Ok(());
-        };
         let bad = |reason: String| CoreError::BadGeometry { index, reason };
+        let m = match &self.geometry {
+            Geometry::Plane => return Ok(()),
+            Geometry::Mesh(g) => {
+                return g
+                    .check(cam.width, cam.height)
+                    .map_err(|e| bad(format!("mesh: {e}")))
+            }
+            Geometry::Slanted(m) => *m,
+        };
         if !m.is_finite() {
             return Err(bad(format!("plane {:?} is not finite", m.0)));
         }

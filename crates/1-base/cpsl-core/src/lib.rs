@@ -36,7 +36,7 @@ pub use depth::{DepthSource, DepthSourceError, FixedDepth};
 pub use edc::{Edc, EdcError, EdcSample};
 pub use error::CoreError;
 pub use frame::{LayeredFrame, RefreshReason};
-pub use geometry::{fit_plane, Geometry};
+pub use geometry::{fit_plane, DepthGrid, Geometry, GridError};
 pub use homography::Homography;
 pub use image::PremulImage;
 pub use layer::{Layer, LayerMeta, LayerRole, LayerSet};

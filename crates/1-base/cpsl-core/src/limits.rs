@@ -12,7 +12,7 @@ pub struct Limits {
     pub max_pixels: u64,
     /// Largest accepted number of layers in one layer set (default 64).
     pub max_layers: usize,
-    /// Largest accepted manifest file, in bytes (default 1 MiB).
+    /// Largest accepted manifest file, in bytes (default 16 MiB: mesh layers' grids are inline).
     pub max_manifest_bytes: u64,
     /// Largest accepted single file (an encoded layer image), in bytes (default 512 MiB).
     pub max_file_bytes: u64,
@@ -24,7 +24,7 @@ impl Default for Limits {
             max_side: 16_384,
             max_pixels: 64 * 1024 * 1024,
             max_layers: 64,
-            max_manifest_bytes: 1 << 20,
+            max_manifest_bytes: 16 << 20,
             max_file_bytes: 512 << 20,
         }
     }

@@ -9,7 +9,9 @@
 use crate::atomic::Staged;
 use crate::error::IoError;
 use crate::images;
-use cpsl_core::{Edc, Layer, LayerEntry, LayerSet, Limits, Manifest, PremulImage, FORMAT_NAME};
+use cpsl_core::{
+    Edc, Geometry, Layer, LayerEntry, LayerSet, Limits, Manifest, PremulImage, FORMAT_NAME,
+};
 use std::path::Path;
 
 /// Name of the manifest inside a layer-set folder.
@@ -89,7 +91,11 @@ pub fn read_layer_set(dir: &Path, limits: &Limits) -> Result<LayerSet, IoError> 
         .map(|e| Layer {
             image: PremulImage::new(1, 1),
             depth: e.depth,
-            geometry: e.geometry,
+            // A mesh is checked against the real camera below.
+            geometry: match &e.geometry {
+                Geometry::Mesh(_) => Geometry::Plane,
+                g => g.clone(),
+            },
             meta: e.meta.clone(),
         })
         .collect();
@@ -124,7 +130,7 @@ pub fn read_layer_set(dir: &Path, limits: &Limits) -> Result<LayerSet, IoError> 
         layers.push(Layer {
             image,
             depth: entry.depth,
-            geometry: entry.geometry,
+            geometry: entry.geometry.clone(),
             meta: entry.meta.clone(),
         });
     }
@@ -140,7 +146,7 @@ pub fn manifest_for(set: &LayerSet) -> Manifest {
         .map(|(i, l)| LayerEntry {
             file: format!("layer_{i:02}.png"),
             depth: l.depth,
-            geometry: l.geometry,
+            geometry: l.geometry.clone(),
             meta: l.meta.clone(),
         })
         .collect();

@@ -9,7 +9,8 @@
 //! fronto-parallel. Three numbers per layer cost nothing against the layer's video, so no
 //! rate term is needed.
 
-use cpsl_core::{fit_plane, Camera, Geometry};
+use crate::fill::push_pull;
+use cpsl_core::{fit_plane, Camera, DepthGrid, Geometry};
 use serde::{Deserialize, Serialize};
 
 /// Which surfaces the layering may give its layers.
@@ -21,6 +22,8 @@ pub enum GeometryMode {
     /// A slanted plane wherever it fits the layer's depth clearly better.
     #[default]
     Slanted,
+    /// A depth mesh, or a slanted plane, wherever either fits clearly better.
+    Mesh,
 }
 
 impl GeometryMode {
@@ -29,6 +32,7 @@ impl GeometryMode {
         match self {
             Self::Plane => "plane",
             Self::Slanted => "slanted",
+            Self::Mesh => "mesh",
         }
     }
 }
@@ -36,10 +40,10 @@ impl GeometryMode {
 impl std::str::FromStr for GeometryMode {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, String> {
-        [Self::Plane, Self::Slanted]
+        [Self::Plane, Self::Slanted, Self::Mesh]
             .into_iter()
             .find(|m| m.name() == s)
-            .ok_or_else(|| format!("unknown geometry `{s}`: expected plane or slanted"))
+            .ok_or_else(|| format!("unknown geometry `{s}`: expected plane, slanted or mesh"))
     }
 }
 
@@ -71,11 +75,12 @@ pub struct LayerDepth<'a> {
     pub own: &'a (dyn Fn(usize) -> bool + Sync),
 }
 
-/// Mean truncated `|ln z_fit - ln z|` of `geometry` over `samples` (`x_n, y_n, 1/z, w`).
-fn error(samples: &[[f64; 4]], m: cpsl_core::Vec3) -> f64 {
+/// Mean truncated `|ln z_fit - ln z|` over `samples` (`x_n, y_n, 1/z, w`) of a surface whose
+/// inverse depth at a sample is `inv`.
+fn error(samples: &[[f64; 4]], inv: impl Fn(&[f64; 4]) -> f64) -> f64 {
     let (mut e, mut wsum) = (0.0, 0.0);
     for s in samples {
-        let inv = m.x() * s[0] + m.y() * s[1] + m.z();
+        let inv = inv(s);
         let d = if inv > 0.0 {
             (inv / s[2]).ln().abs().min(TRUNCATION)
         } else {
@@ -92,18 +97,20 @@ fn error(samples: &[[f64; 4]], m: cpsl_core::Vec3) -> f64 {
 }
 
 /// The layer's surface under `mode`: its reference depth is `depth` (the median of its own
-/// pixels) and `extent` the inclusive bounding box `[x0, y0, x1, y1]` of its alpha.
+/// pixels) and `extent` the inclusive bounding box `[x0, y0, x1, y1]` of its alpha; a mesh has
+/// a vertex every `mesh_step` pixels.
 pub fn fit_geometry(
     mode: GeometryMode,
     cam: &Camera,
     px: &LayerDepth<'_>,
     depth: f64,
     extent: Option<[usize; 4]>,
+    mesh_step: u32,
 ) -> Geometry {
     if mode == GeometryMode::Plane {
         return Geometry::Plane;
     }
-    let Some([ex0, ey0, ex1, ey1]) = extent else {
+    let Some(extent) = extent else {
         return Geometry::Plane;
     };
     let (w, h) = (px.width, px.height);
@@ -129,34 +136,112 @@ pub fn fit_geometry(
             deepest = deepest.max(z);
         }
     }
-    let Some(m) = fit_plane(&samples, 5) else {
-        return Geometry::Plane;
-    };
-    let fronto = Geometry::Plane.plane(depth);
-    let (e_plane, e_slant) = (error(&samples, fronto), error(&samples, m));
-    if !(e_slant <= (1.0 - MIN_GAIN) * e_plane && e_plane - e_slant >= MIN_ABS_GAIN) {
-        return Geometry::Plane;
+    let mut best = Geometry::Plane;
+    let mut e_best = error(&samples, |s| {
+        Geometry::Plane
+            .plane(depth)
+            .dot(cpsl_core::Vec3([s[0], s[1], 1.0]))
+    });
+    let better = |e: f64, than: f64| e <= (1.0 - MIN_GAIN) * than && than - e >= MIN_ABS_GAIN;
+    if let Some(m) = fit_plane(&samples, 5) {
+        let e = error(&samples, |s| m.x() * s[0] + m.y() * s[1] + m.z());
+        let g = Geometry::Slanted(m);
+        if better(e, e_best) && in_front(&g, cam, depth, extent, (sx, sy), deepest) {
+            (best, e_best) = (g, e);
+        }
     }
-    // Over the extent (one pixel wider), the least inverse depth is at a corner.
-    let g = Geometry::Slanted(m);
+    if mode == GeometryMode::Mesh {
+        if let Some(grid) = fit_grid(cam, px, mesh_step) {
+            let e = error(&samples, |s| {
+                grid.inverse_depth_at(cam, s[0] * cam.fx + cam.cx, s[1] * cam.fy + cam.cy)
+            });
+            if better(e, e_best) {
+                best = Geometry::Mesh(std::sync::Arc::new(grid));
+            }
+        }
+    }
+    best
+}
+
+/// Whether a slanted plane keeps the layer's extent (one pixel wider) in front of the camera,
+/// no deeper than [`MAX_EXTRAPOLATION`] times its deepest own pixel.
+fn in_front(
+    g: &Geometry,
+    cam: &Camera,
+    depth: f64,
+    [ex0, ey0, ex1, ey1]: [usize; 4],
+    (sx, sy): (f64, f64),
+    deepest: f64,
+) -> bool {
     let least = 1.0 / (MAX_EXTRAPOLATION * deepest);
+    // Inverse depth is affine: its least value over the box is at a corner.
     let corner = |x: usize, y: usize, grow: f64| {
         let (u, v) = ((x as f64 + 0.5) * sx - 0.5, (y as f64 + 0.5) * sy - 0.5);
         g.inverse_depth_at(depth, cam, u + grow, v + grow)
     };
-    let ok = [
+    [
         corner(ex0, ey0, -1.0),
         corner(ex1, ey0, 1.0),
         corner(ex0, ey1, -1.0),
         corner(ex1, ey1, 1.0),
     ]
     .iter()
-    .all(|&inv| inv.is_finite() && inv >= least);
-    if ok {
-        g
-    } else {
-        Geometry::Plane
+    .all(|&inv| inv.is_finite() && inv >= least)
+}
+
+/// A depth grid of step `step` over the layer: each vertex takes the confidence-weighted mean
+/// inverse depth of the layer's own pixels in the cells around it (bilinear weights); vertices
+/// with none are filled from their neighbours by push-pull, so the surface continues smoothly
+/// behind nearer layers and over the layer's extension.
+pub fn fit_grid(cam: &Camera, px: &LayerDepth<'_>, step: u32) -> Option<DepthGrid> {
+    let (w, h) = (px.width, px.height);
+    let (cols, rows) = DepthGrid::dims(cam.width, cam.height, step);
+    let (cw, ch) = (cols as usize, rows as usize);
+    let mut sum = vec![0f32; cw * ch];
+    let mut wsum = vec![0f32; cw * ch];
+    let s = step as f32 * w as f32 / cam.width as f32;
+    let t = step as f32 * h as f32 / cam.height as f32;
+    for y in 0..h {
+        let gy = (y as f32 + 0.5) / t;
+        let (j, fy) = (gy.floor() as usize, gy.fract());
+        for x in 0..w {
+            let p = y * w + x;
+            let z = px.depth[p];
+            if !(px.own)(p) || !(z.is_finite() && z > 0.0) {
+                continue;
+            }
+            let c = px.confidence.map_or(1.0, |c| c[p]).max(0.05);
+            let gx = (x as f32 + 0.5) / s;
+            let (i, fx) = (gx.floor() as usize, gx.fract());
+            for (di, dj, wt) in [
+                (0, 0, (1.0 - fx) * (1.0 - fy)),
+                (1, 0, fx * (1.0 - fy)),
+                (0, 1, (1.0 - fx) * fy),
+                (1, 1, fx * fy),
+            ] {
+                let (ii, jj) = ((i + di).min(cw - 1), (j + dj).min(ch - 1));
+                let q = jj * cw + ii;
+                sum[q] += wt * c / z;
+                wsum[q] += wt * c;
+            }
+        }
     }
+    let known: Vec<f32> = wsum.iter().map(|&v| (v > 1e-3) as u8 as f32).collect();
+    let mut inv: Vec<f32> = sum
+        .iter()
+        .zip(&wsum)
+        .map(|(&a, &b)| if b > 1e-3 { a / b } else { 0.0 })
+        .collect();
+    if !push_pull(&mut inv, &known, cw, ch, 1) {
+        return None;
+    }
+    let grid = DepthGrid {
+        step,
+        cols,
+        rows,
+        inverse_depth: inv,
+    };
+    grid.check(cam.width, cam.height).ok().map(|()| grid)
 }
 
 #[cfg(test)]
@@ -181,19 +266,40 @@ mod tests {
             confidence: None,
             own: &own,
         };
-        let g = fit_geometry(GeometryMode::Slanted, &cam, &px, 3.3, Some([0, 0, 63, 47]));
+        let g = fit_geometry(
+            GeometryMode::Slanted,
+            &cam,
+            &px,
+            3.3,
+            Some([0, 0, 63, 47]),
+            16,
+        );
         let Geometry::Slanted(m) = g else {
             panic!("{g:?}")
         };
         assert!((m - truth).norm() < 1e-4, "{m:?}");
         assert_eq!(
-            fit_geometry(GeometryMode::Plane, &cam, &px, 3.3, Some([0, 0, 63, 47])),
+            fit_geometry(
+                GeometryMode::Plane,
+                &cam,
+                &px,
+                3.3,
+                Some([0, 0, 63, 47]),
+                16
+            ),
             Geometry::Plane
         );
         let wall = vec![2.0f32; 64 * 48];
         let px = LayerDepth { depth: &wall, ..px };
         assert_eq!(
-            fit_geometry(GeometryMode::Slanted, &cam, &px, 2.0, Some([0, 0, 63, 47])),
+            fit_geometry(
+                GeometryMode::Slanted,
+                &cam,
+                &px,
+                2.0,
+                Some([0, 0, 63, 47]),
+                16
+            ),
             Geometry::Plane
         );
     }
@@ -214,11 +320,23 @@ mod tests {
             confidence: None,
             own: &own,
         };
-        assert!(
-            !fit_geometry(GeometryMode::Slanted, &cam, &px, 5.0, Some([0, 24, 63, 47])).is_plane()
-        );
-        assert!(
-            fit_geometry(GeometryMode::Slanted, &cam, &px, 5.0, Some([0, 0, 63, 47])).is_plane()
-        );
+        assert!(!fit_geometry(
+            GeometryMode::Slanted,
+            &cam,
+            &px,
+            5.0,
+            Some([0, 24, 63, 47]),
+            16
+        )
+        .is_plane());
+        assert!(fit_geometry(
+            GeometryMode::Slanted,
+            &cam,
+            &px,
+            5.0,
+            Some([0, 0, 63, 47]),
+            16
+        )
+        .is_plane());
     }
 }

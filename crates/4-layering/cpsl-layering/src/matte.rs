@@ -57,6 +57,8 @@ pub struct MatteConfig {
     pub edc_step: f32,
     /// Which surfaces layers may have.
     pub geometry: GeometryMode,
+    /// Vertex spacing of mesh layers, in pixels.
+    pub mesh_step: u32,
 }
 
 impl Default for MatteConfig {
@@ -71,6 +73,7 @@ impl Default for MatteConfig {
             edc_cell: 4,
             edc_step: 1.0 / 128.0,
             geometry: GeometryMode::default(),
+            mesh_step: 16,
         }
     }
 }
@@ -373,7 +376,7 @@ pub fn build_layers(
                 confidence: Some(&cues.confidence),
                 own: &own,
             };
-            let geometry = fit_geometry(cfg.geometry, &camera, &px, depth, extent);
+            let geometry = fit_geometry(cfg.geometry, &camera, &px, depth, extent, cfg.mesh_step);
             let planned = &plan.layers[i];
             let (name, role) = match (planned.kind, back) {
                 (_, true) => (format!("background {i}"), LayerRole::Background),

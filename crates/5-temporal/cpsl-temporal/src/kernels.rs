@@ -718,31 +718,47 @@ mod tests {
     }
 }
 
-/// A layer's log depth as the agreement test sees it: its reference depth's, or its slanted
-/// plane's at each pixel.
-#[derive(Clone, Copy, Debug)]
+/// A layer's log depth as the agreement test sees it: its reference depth's, its slanted
+/// plane's or its mesh's at each pixel.
+#[derive(Clone, Debug)]
 pub(crate) struct LogDepth {
     /// `ln z_k`.
     lz: f32,
-    /// Inverse depth `a x + b y + c` in pixels, for a slanted layer.
-    plane: Option<[f32; 3]>,
+    /// The surface's log depth per pixel, for a slanted or mesh layer.
+    map: Option<Vec<f32>>,
+    width: usize,
 }
 
 impl LogDepth {
     /// Every layer's log depth in `set`.
     pub(crate) fn of(set: &cpsl_core::LayerSet) -> Vec<Self> {
         let cam = set.camera();
+        let (w, h) = (cam.width, cam.height);
         set.layers()
-            .iter()
+            .par_iter()
             .map(|l| Self {
                 lz: l.depth.ln() as f32,
-                plane: match l.geometry {
+                width: w as usize,
+                map: match &l.geometry {
                     cpsl_core::Geometry::Plane => None,
-                    cpsl_core::Geometry::Slanted(m) => Some([
-                        (m.x() / cam.fx) as f32,
-                        (m.y() / cam.fy) as f32,
-                        (m.z() - m.x() * cam.cx / cam.fx - m.y() * cam.cy / cam.fy) as f32,
-                    ]),
+                    cpsl_core::Geometry::Slanted(m) => {
+                        let (a, b) = (m.x() / cam.fx, m.y() / cam.fy);
+                        let c = m.z() - a * cam.cx - b * cam.cy;
+                        Some(
+                            (0..h)
+                                .flat_map(|y| (0..w).map(move |x| (x, y)))
+                                .map(|(x, y)| {
+                                    -((a * x as f64 + b * y as f64 + c).max(1e-12) as f32).ln()
+                                })
+                                .collect(),
+                        )
+                    }
+                    cpsl_core::Geometry::Mesh(g) => Some(
+                        g.inverse_depth_map(w, h)
+                            .into_iter()
+                            .map(|v| -v.max(1e-12).ln())
+                            .collect(),
+                    ),
                 },
             })
             .collect()
@@ -756,9 +772,9 @@ impl LogDepth {
     /// `ln z` of the layer's surface at pixel `(x, y)`.
     #[inline]
     pub(crate) fn at(&self, x: usize, y: usize) -> f32 {
-        match self.plane {
+        match &self.map {
             None => self.lz,
-            Some([a, b, c]) => -(a * x as f32 + b * y as f32 + c).max(1e-12).ln(),
+            Some(m) => m[y * self.width + x],
         }
     }
 }

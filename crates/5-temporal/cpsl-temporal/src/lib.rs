@@ -509,7 +509,7 @@ impl VideoLayerer {
                 let layer = cpsl_core::Layer {
                     image,
                     depth: key.depth,
-                    geometry: key.geometry,
+                    geometry: key.geometry.clone(),
                     meta: key.meta.clone(),
                 };
                 (layer, hidden)
@@ -561,8 +561,11 @@ impl VideoLayerer {
                     own: &own,
                 };
                 let extent = layer.extent().map(|e| e.map(|v| v as usize));
-                layer.geometry =
-                    fit_geometry(GeometryMode::Slanted, &cam, &px, layer.depth, extent);
+                let (mode, step) = match &layer.geometry {
+                    cpsl_core::Geometry::Mesh(g) => (GeometryMode::Mesh, g.step),
+                    _ => (GeometryMode::Slanted, 0),
+                };
+                layer.geometry = fit_geometry(mode, &cam, &px, layer.depth, extent, step);
             });
         // The warp blends premultiplied texels alike in every channel, and the refresh only
         // recolours opaque pixels: the layers are premultiplied by construction.

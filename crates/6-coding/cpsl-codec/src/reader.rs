@@ -127,7 +127,7 @@ impl SegmentReader {
                         reason: format!("stream {} missing or used twice", l.stream),
                     })?;
                 let mut layer = Layer::new(image, l.depth as f64);
-                layer.geometry = l.geometry;
+                layer.geometry = l.geometry.clone();
                 layer.clip_to_geometry(&self.camera);
                 layer.meta.track = l.track;
                 Ok(layer)

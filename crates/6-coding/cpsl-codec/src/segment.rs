@@ -124,7 +124,7 @@ fn side_stream(
                     .map(|(k, (l, &s))| SideLayer {
                         stream: s,
                         depth: l.depth as f32,
-                        geometry: l.geometry,
+                        geometry: l.geometry.clone(),
                         confidence: f.confidence.get(k).copied().unwrap_or(1.0).clamp(0.0, 1.0),
                         track: l.meta.track,
                     })

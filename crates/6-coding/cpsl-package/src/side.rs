@@ -10,7 +10,12 @@
 //! payload  index u32 | flags u8 | refresh u8 | layers u8 | reserved u8
 //!          | layers x (stream u8 | geometry u8 | reserved 2 | depth f32 | confidence f32
 //!                       | track u32 | version 2: plane 3 x f32)
+//!          | version 2: per mesh layer, in layer order, a grid
 //!          | edc_len u32 | compact EDC
+//! grid     step u16 | cols u16 | rows u16 | reserved u16 | len u32 | deflate(planes)
+//! planes   per vertex (row by row) q - prediction as i16, low bytes then high bytes; q is
+//!          round(ln(inverse depth) / GRID_STEP), the prediction the vertex to the left (the
+//!          one above for the first column, 0 for the first vertex)
 //! compact EDC  layers u16 | step f32 | samples u32 | deflate(planes)
 //! planes   per sample, field by field: y - previous y (u16, wrapping), x - previous x (u16,
 //!          wrapping), front u8, back u8, front offset i8, back offset i8
@@ -19,8 +24,10 @@
 //! Samples come in scan order, so the position deltas are small and the planes deflate well
 //! (the raw `edc.bin` layout costs 8 bytes per sample).
 //!
-//! `geometry` is 0 for the fronto-parallel plane at `depth` (plane all zero) and 1 for the
-//! slanted plane `m` ([`cpsl_core::Geometry`]); version 1 has neither (every layer
+//! `geometry` is 0 for the fronto-parallel plane at `depth` (plane all zero), 1 for the
+//! slanted plane `m` and 2 for a mesh (plane all zero, its grid after the layer table)
+//! ([`cpsl_core::Geometry`]); grids are quantised to [`GRID_STEP`] in log inverse depth
+//! (0.05 % of depth). Version 1 has neither (every layer
 //! fronto-parallel, `geometry` reserved as 0). Writers use version 1 when every layer of the
 //! segment is fronto-parallel, so older players still read such segments.
 //!
@@ -29,13 +36,15 @@
 //! `track` is `u32::MAX` where the layer has none. Every field is validated on reading, so a
 //! corrupt or truncated stream is an error, never a panic.
 
-use cpsl_core::{Edc, EdcError, Geometry, RefreshReason, Vec3};
+use cpsl_core::{DepthGrid, Edc, EdcError, Geometry, RefreshReason, Vec3};
 use thiserror::Error;
 
 /// Magic bytes at the start of a side stream.
 pub const SIDE_MAGIC: &[u8; 8] = b"CPSLSIDE";
 /// Newest side-stream version this build reads and writes.
 pub const SIDE_VERSION: u16 = 2;
+/// Quantisation step of a mesh grid's log inverse depth.
+pub const GRID_STEP: f64 = 1.0 / 2048.0;
 /// Most frames one segment may hold.
 pub const MAX_SEGMENT_FRAMES: u32 = 100_000;
 /// Most layer streams one segment may hold.
@@ -99,7 +108,7 @@ fn refresh_from_code(c: u8) -> Option<Option<RefreshReason>> {
 }
 
 /// One layer of one frame.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, PartialEq)]
 pub struct SideLayer {
     /// The layer stream (index into the segment's streams) holding its colour and alpha.
     pub stream: u8,
@@ -180,9 +189,10 @@ impl SideStream {
                 0,
             ]);
             for l in &f.layers {
-                let (tag, plane) = match l.geometry {
+                let (tag, plane) = match &l.geometry {
                     Geometry::Plane => (0, [0.0; 3]),
                     Geometry::Slanted(m) => (1, m.0),
+                    Geometry::Mesh(_) => (2, [0.0; 3]),
                 };
                 p.extend_from_slice(&[l.stream, tag, 0, 0]);
                 p.extend_from_slice(&l.depth.to_le_bytes());
@@ -192,6 +202,11 @@ impl SideStream {
                     for v in plane {
                         p.extend_from_slice(&(v as f32).to_le_bytes());
                     }
+                }
+            }
+            for l in &f.layers {
+                if let Geometry::Mesh(g) = &l.geometry {
+                    compact_grid(g, &mut p);
                 }
             }
             let edc = compact_edc(&f.edc);
@@ -333,6 +348,7 @@ impl SideStream {
         }
         let mut layers = Vec::with_capacity(n);
         let mut used = vec![false; streams as usize];
+        let mut meshes = Vec::new();
         for i in 0..n {
             let o = 8 + i * layer_bytes(version);
             let stream = p[o];
@@ -372,6 +388,11 @@ impl SideStream {
                 1 if version >= 2 && plane.is_finite() && plane != Vec3::ZERO => {
                     Geometry::Slanted(plane)
                 }
+                // Its grid follows the layer table.
+                2 if version >= 2 && plane == Vec3::ZERO => {
+                    meshes.push(i);
+                    Geometry::Plane
+                }
                 tag => {
                     return Err(bad(format!(
                         "layer {i}: geometry {tag} with plane {:?}",
@@ -386,6 +407,16 @@ impl SideStream {
                 confidence,
                 track: (track != NO_TRACK).then_some(track),
             });
+        }
+        let mut edc_at = edc_at;
+        for i in meshes {
+            let (grid, used) = expand_grid(&p[edc_at..], width, height)
+                .map_err(|e| bad(format!("layer {i}: mesh grid: {e}")))?;
+            layers[i].geometry = Geometry::Mesh(std::sync::Arc::new(grid));
+            edc_at += used;
+        }
+        if p.len() < edc_at + 4 {
+            return Err(bad("truncated before the edge-depth cache".into()));
         }
         let edc_len = u32_at(edc_at) as usize;
         if p.len() != edc_at + 4 + edc_len {
@@ -409,6 +440,101 @@ impl SideStream {
             edc,
         })
     }
+}
+
+/// Appends the compact grid of a mesh layer (see the module documentation).
+fn compact_grid(g: &DepthGrid, out: &mut Vec<u8>) {
+    let q: Vec<i16> = g
+        .inverse_depth
+        .iter()
+        .map(|&v| {
+            ((v as f64).ln() / GRID_STEP)
+                .round()
+                .clamp(-32768.0, 32767.0) as i16
+        })
+        .collect();
+    let n = q.len();
+    let cols = g.cols as usize;
+    let mut planes = vec![0u8; 2 * n];
+    for (k, &v) in q.iter().enumerate() {
+        let pred = match (k % cols, k / cols) {
+            (0, 0) => 0,
+            (0, _) => q[k - cols],
+            _ => q[k - 1],
+        };
+        let [lo, hi] = v.wrapping_sub(pred).to_le_bytes();
+        planes[k] = lo;
+        planes[n + k] = hi;
+    }
+    let packed = miniz_oxide::deflate::compress_to_vec(&planes, 6);
+    for v in [g.step as u16, g.cols as u16, g.rows as u16, 0] {
+        out.extend_from_slice(&v.to_le_bytes());
+    }
+    out.extend_from_slice(&(packed.len() as u32).to_le_bytes());
+    out.extend_from_slice(&packed);
+}
+
+/// Bytes a layer's geometry takes in a version 2 side stream beyond the fronto-parallel
+/// plane's record: 12 for a slanted plane's coefficients, the compact grid of a mesh.
+pub fn geometry_bytes(g: &Geometry) -> usize {
+    match g {
+        Geometry::Plane => 0,
+        Geometry::Slanted(_) => 12,
+        Geometry::Mesh(grid) => {
+            let mut out = Vec::new();
+            compact_grid(grid, &mut out);
+            out.len()
+        }
+    }
+}
+
+/// Reads a compact grid for a `width x height` frame; returns it and the bytes it took.
+fn expand_grid(b: &[u8], width: u32, height: u32) -> Result<(DepthGrid, usize), String> {
+    if b.len() < 12 {
+        return Err("truncated header".into());
+    }
+    let u16_at = |o: usize| u16::from_le_bytes([b[o], b[o + 1]]) as u32;
+    let (step, cols, rows) = (u16_at(0), u16_at(2), u16_at(4));
+    let len = u32::from_le_bytes([b[8], b[9], b[10], b[11]]) as usize;
+    if step == 0 || step > DepthGrid::MAX_STEP {
+        return Err(format!("step {step}"));
+    }
+    if (cols, rows) != DepthGrid::dims(width, height, step) {
+        return Err(format!(
+            "{cols}x{rows} vertices, a {width}x{height} frame at step {step} has {:?}",
+            DepthGrid::dims(width, height, step)
+        ));
+    }
+    if b.len() - 12 < len {
+        return Err(format!("{len} bytes of values, {} left", b.len() - 12));
+    }
+    let n = (cols * rows) as usize;
+    let planes = miniz_oxide::inflate::decompress_to_vec_with_limit(&b[12..12 + len], 2 * n)
+        .map_err(|_| "values do not inflate".to_string())?;
+    if planes.len() != 2 * n {
+        return Err("inflated values have the wrong length".into());
+    }
+    let c = cols as usize;
+    let mut q = vec![0i16; n];
+    for k in 0..n {
+        let pred = match (k % c, k / c) {
+            (0, 0) => 0,
+            (0, _) => q[k - c],
+            _ => q[k - 1],
+        };
+        q[k] = pred.wrapping_add(i16::from_le_bytes([planes[k], planes[n + k]]));
+    }
+    let grid = DepthGrid {
+        step,
+        cols,
+        rows,
+        inverse_depth: q
+            .iter()
+            .map(|&v| (v as f64 * GRID_STEP).exp() as f32)
+            .collect(),
+    };
+    grid.check(width, height).map_err(|e| e.to_string())?;
+    Ok((grid, 12 + len))
 }
 
 /// The compact EDC of a side-stream record (see the module documentation).

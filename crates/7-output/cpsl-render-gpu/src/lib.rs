@@ -252,7 +252,7 @@ impl GpuRenderer {
             }),
             camera: cam,
             depths: set.layers().iter().map(|l| l.depth).collect(),
-            geometries: set.layers().iter().map(|l| l.geometry).collect(),
+            geometries: set.layers().iter().map(|l| l.geometry.clone()).collect(),
             offsets: edc.map(EdgeOffsets::from_edc).unwrap_or_default(),
         })
     }

@@ -122,14 +122,7 @@ impl PreparedLayers {
     fn visible_layer(&self, warps: &[Option<Warp>], x: usize, y: usize) -> Option<usize> {
         let (sw, sh) = (self.camera.width as f64, self.camera.height as f64);
         warps.iter().enumerate().find_map(|(k, wp)| {
-            let h = &wp.as_ref()?.h;
-            let (u, v) = (x as f64, y as f64);
-            let d = h[2][0] * u + h[2][1] * v + h[2][2];
-            if d <= 0.0 {
-                return None;
-            }
-            let sx = (h[0][0] * u + h[0][1] * v + h[0][2]) / d;
-            let sy = (h[1][0] * u + h[1][1] * v + h[1][2]) / d;
+            let (sx, sy) = wp.as_ref()?.source(x, y)?;
             if !(sx > -1.0 && sy > -1.0 && sx < sw && sy < sh) {
                 return None;
             }

@@ -147,7 +147,7 @@ impl PreparedLayers {
                 }
                 PreparedLayer {
                     depth: layer.depth,
-                    geometry: layer.geometry,
+                    geometry: layer.geometry.clone(),
                     texels,
                     pitch,
                     bw,

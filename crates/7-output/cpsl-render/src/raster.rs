@@ -1,8 +1,9 @@
 //! Tiled warp-and-composite kernel.
 
+use crate::mesh::MeshWarp;
 use crate::prepared::{PreparedLayer, PreparedLayers};
 use cpsl_core::resample::bilerp;
-use cpsl_core::{Camera, Pose, PremulImage};
+use cpsl_core::{Camera, Geometry, Pose, PremulImage};
 use rayon::prelude::*;
 
 /// Output tile width in pixels.
@@ -47,10 +48,31 @@ impl std::ops::Add for RenderStats {
     }
 }
 
-#[derive(Clone, Copy)]
-pub(crate) struct Warp {
-    /// Inverse homography: target pixel to source pixel.
-    pub(crate) h: [[f64; 3]; 3],
+/// How one layer maps target pixels to source pixels for a pose.
+pub(crate) enum Warp {
+    /// One inverse homography for the whole layer (fronto-parallel or slanted plane).
+    Plane([[f64; 3]; 3]),
+    /// One per triangle of a mesh.
+    Mesh(MeshWarp),
+}
+
+impl Warp {
+    /// Source position of target pixel `(x, y)`, if the layer's surface is there.
+    pub(crate) fn source(&self, x: usize, y: usize) -> Option<(f64, f64)> {
+        match self {
+            Self::Plane(h) => {
+                let (u, v) = (x as f64, y as f64);
+                let d = h[2][0] * u + h[2][1] * v + h[2][2];
+                (d > 0.0).then(|| {
+                    (
+                        (h[0][0] * u + h[0][1] * v + h[0][2]) / d,
+                        (h[1][0] * u + h[1][1] * v + h[1][2]) / d,
+                    )
+                })
+            }
+            Self::Mesh(m) => m.source(x, y),
+        }
+    }
 }
 
 enum Class {
@@ -58,75 +80,78 @@ enum Class {
     Draw { check_w: bool, opaque: bool },
 }
 
-impl Warp {
-    /// Decides how the output tile `[x0, x0 + tw) x [y0, y0 + th)` meets `layer`, whose size
-    /// is `sw x sh`.
-    fn classify(&self, layer: &PreparedLayer, tile: [usize; 4], sw: usize, sh: usize) -> Class {
-        let [x0, y0, tw, th] = tile;
-        let h = &self.h;
-        let (xa, xb, ya, yb) = (
-            x0 as f64,
-            (x0 + tw - 1) as f64,
-            y0 as f64,
-            (y0 + th - 1) as f64,
-        );
-        let mut bad = 0;
-        let (mut minx, mut maxx, mut miny, mut maxy) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
-        for (x, y) in [(xa, ya), (xb, ya), (xa, yb), (xb, yb)] {
-            let w = h[2][0] * x + h[2][1] * y + h[2][2];
-            if w <= 0.0 {
-                bad += 1;
-                continue;
-            }
-            let sx = (h[0][0] * x + h[0][1] * y + h[0][2]) / w;
-            let sy = (h[1][0] * x + h[1][1] * y + h[1][2]) / w;
-            minx = minx.min(sx);
-            maxx = maxx.max(sx);
-            miny = miny.min(sy);
-            maxy = maxy.max(sy);
+/// Decides how the output tile `[x0, x0 + tw) x [y0, y0 + th)` meets `layer` (of size
+/// `sw x sh`) warped by the inverse homography `h`.
+fn classify(
+    h: &[[f64; 3]; 3],
+    layer: &PreparedLayer,
+    tile: [usize; 4],
+    sw: usize,
+    sh: usize,
+) -> Class {
+    let [x0, y0, tw, th] = tile;
+    let (xa, xb, ya, yb) = (
+        x0 as f64,
+        (x0 + tw - 1) as f64,
+        y0 as f64,
+        (y0 + th - 1) as f64,
+    );
+    let mut bad = 0;
+    let (mut minx, mut maxx, mut miny, mut maxy) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+    for (x, y) in [(xa, ya), (xb, ya), (xa, yb), (xb, yb)] {
+        let w = h[2][0] * x + h[2][1] * y + h[2][2];
+        if w <= 0.0 {
+            bad += 1;
+            continue;
         }
-        match bad {
-            4 => return Class::Skip,
-            1..=3 => {
-                return Class::Draw {
-                    check_w: true,
-                    opaque: false,
-                }
-            }
-            _ => {}
-        }
-        // Bilinear taps of the footprint, with a margin for rounding to 1/256 px.
-        const M: f64 = 0.01;
-        if !(minx.is_finite() && maxx.is_finite() && miny.is_finite() && maxy.is_finite()) {
+        let sx = (h[0][0] * x + h[0][1] * y + h[0][2]) / w;
+        let sy = (h[1][0] * x + h[1][1] * y + h[1][2]) / w;
+        minx = minx.min(sx);
+        maxx = maxx.max(sx);
+        miny = miny.min(sy);
+        maxy = maxy.max(sy);
+    }
+    match bad {
+        4 => return Class::Skip,
+        1..=3 => {
             return Class::Draw {
                 check_w: true,
                 opaque: false,
-            };
+            }
         }
-        // Far-off footprints (beyond 2^40 px) are clamped before the integer floor.
-        const FAR: f64 = (1u64 << 40) as f64;
-        let fl = |v: f64| floor(v.clamp(-FAR, FAR));
-        let ix0 = fl(minx - M);
-        let ix1 = fl(maxx + M) + 1.0;
-        let iy0 = fl(miny - M);
-        let iy1 = fl(maxy + M) + 1.0;
-        let (swf, shf) = (sw as f64, sh as f64);
-        if ix1 < 0.0 || iy1 < 0.0 || ix0 > swf - 1.0 || iy0 > shf - 1.0 {
-            return Class::Skip;
-        }
-        let cx0 = ix0.max(0.0) as usize;
-        let cy0 = iy0.max(0.0) as usize;
-        let cx1 = ix1.min(swf - 1.0) as usize;
-        let cy1 = iy1.min(shf - 1.0) as usize;
-        let (nonempty, translucent) = layer.counts(cx0, cy0, cx1, cy1);
-        if nonempty == 0 {
-            return Class::Skip;
-        }
-        let inside = ix0 >= 0.0 && iy0 >= 0.0 && ix1 <= swf - 1.0 && iy1 <= shf - 1.0;
-        Class::Draw {
-            check_w: false,
-            opaque: inside && translucent == 0,
-        }
+        _ => {}
+    }
+    // Bilinear taps of the footprint, with a margin for rounding to 1/256 px.
+    const M: f64 = 0.01;
+    if !(minx.is_finite() && maxx.is_finite() && miny.is_finite() && maxy.is_finite()) {
+        return Class::Draw {
+            check_w: true,
+            opaque: false,
+        };
+    }
+    // Far-off footprints (beyond 2^40 px) are clamped before the integer floor.
+    const FAR: f64 = (1u64 << 40) as f64;
+    let fl = |v: f64| floor(v.clamp(-FAR, FAR));
+    let ix0 = fl(minx - M);
+    let ix1 = fl(maxx + M) + 1.0;
+    let iy0 = fl(miny - M);
+    let iy1 = fl(maxy + M) + 1.0;
+    let (swf, shf) = (sw as f64, sh as f64);
+    if ix1 < 0.0 || iy1 < 0.0 || ix0 > swf - 1.0 || iy0 > shf - 1.0 {
+        return Class::Skip;
+    }
+    let cx0 = ix0.max(0.0) as usize;
+    let cy0 = iy0.max(0.0) as usize;
+    let cx1 = ix1.min(swf - 1.0) as usize;
+    let cy1 = iy1.min(shf - 1.0) as usize;
+    let (nonempty, translucent) = layer.counts(cx0, cy0, cx1, cy1);
+    if nonempty == 0 {
+        return Class::Skip;
+    }
+    let inside = ix0 >= 0.0 && iy0 >= 0.0 && ix1 <= swf - 1.0 && iy1 <= shf - 1.0;
+    Class::Draw {
+        check_w: false,
+        opaque: inside && translucent == 0,
     }
 }
 
@@ -443,12 +468,19 @@ fn span_misses_layer(
 impl PreparedLayers {
     pub(crate) fn warps(&self, pose: &Pose, target: &Camera) -> Vec<Option<Warp>> {
         self.layers
-            .iter()
-            .map(|l| {
-                l.geometry
+            .par_iter()
+            .map(|l| match &l.geometry {
+                Geometry::Mesh(grid) => Some(Warp::Mesh(MeshWarp::new(
+                    l,
+                    grid,
+                    &self.camera,
+                    target,
+                    pose,
+                ))),
+                g => g
                     .inverse_homography(l.depth, &self.camera, target, pose)
                     .filter(|h| h.0.is_finite())
-                    .map(|h| Warp { h: h.0 .0 })
+                    .map(|h| Warp::Plane(h.0 .0)),
             })
             .collect()
     }
@@ -475,14 +507,6 @@ impl PreparedLayers {
             let mut alive = [tw as u32; TILE_H];
             for (layer, warp) in self.layers.iter().zip(warps) {
                 let Some(warp) = warp else { continue };
-                let (check_w, opaque) = match warp.classify(layer, [x0, y0, tw, th], sw, sh) {
-                    Class::Skip => {
-                        stats.skipped += 1;
-                        continue;
-                    }
-                    Class::Draw { check_w, opaque } => (check_w, opaque),
-                };
-                stats.drawn += 1;
                 let tex = Tex {
                     texels: &layer.texels,
                     pitch: layer.pitch,
@@ -490,19 +514,72 @@ impl PreparedLayers {
                     sh: sh as u64,
                     simd: self.simd,
                 };
-                for (r, alive_r) in alive[..th].iter_mut().enumerate() {
-                    if *alive_r == 0 {
-                        continue;
+                let opaque = match warp {
+                    Warp::Plane(h) => {
+                        let (check_w, opaque) = match classify(h, layer, [x0, y0, tw, th], sw, sh) {
+                            Class::Skip => {
+                                stats.skipped += 1;
+                                continue;
+                            }
+                            Class::Draw { check_w, opaque } => (check_w, opaque),
+                        };
+                        for (r, alive_r) in alive[..th].iter_mut().enumerate() {
+                            if *alive_r == 0 {
+                                continue;
+                            }
+                            let row = r * TILE_W..r * TILE_W + tw;
+                            let mut span = Span {
+                                acc: &mut acc[row.clone()],
+                                trans: &mut trans[row],
+                                opaqued: 0,
+                            };
+                            draw_layer_row(&tex, layer, h, x0, y0 + r, check_w, &mut span);
+                            *alive_r -= span.opaqued;
+                        }
+                        opaque
                     }
-                    let row = r * TILE_W..r * TILE_W + tw;
-                    let mut span = Span {
-                        acc: &mut acc[row.clone()],
-                        trans: &mut trans[row],
-                        opaqued: 0,
-                    };
-                    draw_layer_row(&tex, layer, &warp.h, x0, y0 + r, check_w, &mut span);
-                    *alive_r -= span.opaqued;
-                }
+                    Warp::Mesh(mesh) => {
+                        let bin = mesh.bin(x0, y0);
+                        if bin.is_empty() {
+                            stats.skipped += 1;
+                            continue;
+                        }
+                        for &i in bin {
+                            let tri = &mesh.tris[i as usize];
+                            let (r0, r1) = tri.rows();
+                            for (r, alive_r) in alive[..th].iter_mut().enumerate() {
+                                let y = (y0 + r) as i64;
+                                if *alive_r == 0 || y < r0 || y >= r1 {
+                                    continue;
+                                }
+                                let (a, b) = tri.span(y);
+                                let (a, b) = (a.max(x0 as i64), b.min((x0 + tw) as i64));
+                                if a >= b {
+                                    continue;
+                                }
+                                let (a, b) = (a as usize - x0, b as usize - x0);
+                                let row = r * TILE_W + a..r * TILE_W + b;
+                                let mut span = Span {
+                                    acc: &mut acc[row.clone()],
+                                    trans: &mut trans[row],
+                                    opaqued: 0,
+                                };
+                                draw_layer_row(
+                                    &tex,
+                                    layer,
+                                    &tri.h,
+                                    x0 + a,
+                                    y as usize,
+                                    false,
+                                    &mut span,
+                                );
+                                *alive_r -= span.opaqued;
+                            }
+                        }
+                        false
+                    }
+                };
+                stats.drawn += 1;
                 if opaque || alive[..th].iter().all(|&n| n == 0) {
                     stats.opaque_stops += 1;
                     break;

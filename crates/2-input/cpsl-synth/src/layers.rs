@@ -119,3 +119,28 @@ pub fn slanted(set: LayerSet) -> LayerSet {
     }
     LayerSet::new(cam, layers, &Limits::default()).expect("slanted planes stay in front")
 }
+
+/// `set` with every layer on a depth mesh of step `step`: inverse depth undulating by 5 %
+/// around the layer's depth in both directions, like a curved surface: the renderers' test
+/// and benchmark case for [`cpsl_core::Geometry::Mesh`].
+pub fn meshed(set: LayerSet, step: u32) -> LayerSet {
+    let (cam, mut layers) = set.into_parts();
+    let (cols, rows) = cpsl_core::DepthGrid::dims(cam.width, cam.height, step);
+    for (k, l) in layers.iter_mut().enumerate() {
+        let inv = 1.0 / l.depth;
+        let inverse_depth = (0..rows)
+            .flat_map(|j| (0..cols).map(move |i| (i, j)))
+            .map(|(i, j)| {
+                let (x, y) = (i as f64 * 0.9 + k as f64, j as f64 * 0.7);
+                (inv * (1.0 + 0.05 * (x.sin() * y.cos()))) as f32
+            })
+            .collect();
+        l.geometry = cpsl_core::Geometry::Mesh(std::sync::Arc::new(cpsl_core::DepthGrid {
+            step,
+            cols,
+            rows,
+            inverse_depth,
+        }));
+    }
+    LayerSet::new(cam, layers, &Limits::default()).expect("meshes stay in front")
+}

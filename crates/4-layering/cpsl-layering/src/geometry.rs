@@ -61,6 +61,14 @@ const MIN_GAIN: f64 = 0.05;
 /// ...and at least this much of it in absolute terms (mean `|ln z|` error).
 const MIN_ABS_GAIN: f64 = 0.002;
 
+/// The default vertex spacing of mesh layers: a 64th of the frame's long side, 8 to 32 px
+/// (8 px at Middlebury's 463x370, 20 at 720p, 30 at 1080p). Measured with ground-truth depth
+/// (`cpsl eval all`, mean over the five Middlebury scenes): 8 px 28.26 dB, 12 px 27.82,
+/// 16 px 27.28.
+pub fn auto_mesh_step(width: u32, height: u32) -> u32 {
+    (width.max(height) as f64 / 64.0).round().clamp(8.0, 32.0) as u32
+}
+
 /// A layer's pixels as the fit sees them.
 pub struct LayerDepth<'a> {
     /// Frame size.

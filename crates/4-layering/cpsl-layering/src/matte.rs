@@ -57,7 +57,8 @@ pub struct MatteConfig {
     pub edc_step: f32,
     /// Which surfaces layers may have.
     pub geometry: GeometryMode,
-    /// Vertex spacing of mesh layers, in pixels.
+    /// Vertex spacing of mesh layers in pixels; 0 picks it from the frame size
+    /// ([`crate::geometry::auto_mesh_step`]).
     pub mesh_step: u32,
 }
 
@@ -73,7 +74,7 @@ impl Default for MatteConfig {
             edc_cell: 4,
             edc_step: 1.0 / 128.0,
             geometry: GeometryMode::default(),
-            mesh_step: 16,
+            mesh_step: 0,
         }
     }
 }
@@ -376,7 +377,11 @@ pub fn build_layers(
                 confidence: Some(&cues.confidence),
                 own: &own,
             };
-            let geometry = fit_geometry(cfg.geometry, &camera, &px, depth, extent, cfg.mesh_step);
+            let step = match cfg.mesh_step {
+                0 => crate::geometry::auto_mesh_step(camera.width, camera.height),
+                s => s,
+            };
+            let geometry = fit_geometry(cfg.geometry, &camera, &px, depth, extent, step);
             let planned = &plan.layers[i];
             let (name, role) = match (planned.kind, back) {
                 (_, true) => (format!("background {i}"), LayerRole::Background),

@@ -92,6 +92,13 @@ impl LayeringConfig {
                 });
             }
         }
+        if self.matte.mesh_step > cpsl_core::DepthGrid::MAX_STEP {
+            return Err(LayeringError::Config {
+                field: "matte.mesh_step",
+                range: "0 (automatic) or 1..=256",
+                found: self.matte.mesh_step.to_string(),
+            });
+        }
         if !(self.matte.edc_step.is_finite() && self.matte.edc_step > 0.0) {
             return Err(LayeringError::Config {
                 field: "matte.edc_step",

@@ -7,10 +7,12 @@ struct Params {
     h: array<mat3x3<f32>, 16>,    // per layer: target pixel -> source pixel
     log_depth: array<vec4<f32>, 4>,
     offsets: array<vec4<f32>, 128>, // EDC mean offsets of pair (f, b) at b * 16 + f: (front, back)
+    mesh: array<vec4<i32>, 4>,    // per layer: its slice of the mesh source maps, -1 for a plane
 };
 
 @group(0) @binding(0) var layers: texture_2d_array<f32>;
 @group(0) @binding(1) var<uniform> P: Params;
+@group(0) @binding(3) var maps: texture_2d_array<f32>;
 
 @vertex
 fn vs(@builtin(vertex_index) i: u32) -> @builtin(position) vec4<f32> {
@@ -30,8 +32,16 @@ fn texel(k: i32, t: vec2<i32>) -> vec4<f32> {
     return floor(textureLoad(layers, t, k, 0) * 255.0 + 0.5);
 }
 
-// Source position of target pixel px on layer k; w <= 0 where the plane is not visible.
+// Source position of target pixel px on layer k; w <= 0 where its surface is not visible.
 fn warp(k: i32, px: vec2<f32>) -> vec3<f32> {
+    let slice = P.mesh[k / 4][k % 4];
+    if (slice >= 0) {
+        let m = textureLoad(maps, vec2<i32>(px), slice, 0);
+        if (m.z <= 0.0) {
+            return vec3<f32>(0.0, 0.0, -1.0);
+        }
+        return vec3<f32>(m.xy, 1.0);
+    }
     let h = P.h[k] * vec3<f32>(px, 1.0);
     if (h.z <= 0.0) {
         return vec3<f32>(0.0, 0.0, -1.0);

@@ -12,6 +12,7 @@
 pub use wgpu;
 
 mod blit;
+mod mesh;
 pub use blit::Blit;
 
 use cpsl_core::{Camera, Edc, Geometry, LayerSet, Pose, PremulImage};
@@ -25,11 +26,15 @@ pub const COMMON_WGSL: &str = include_str!("common.wgsl");
 pub const COMPOSITE_WGSL: &str = include_str!("composite.wgsl");
 /// The Dynamic Pixel Strip pass.
 pub const DPS_WGSL: &str = include_str!("dps.wgsl");
+/// The mesh pass: triangles into source maps.
+pub const MESH_WGSL: &str = include_str!("mesh.wgsl");
 /// The blit onto a window's surface.
 pub const BLIT_WGSL: &str = include_str!("blit.wgsl");
 /// Most layers per frame.
 pub const MAX_LAYERS: usize = 16;
-const PARAMS_BYTES: usize = 16 + MAX_LAYERS * 48 + 64 + 128 * 16;
+const PARAMS_BYTES: usize = 16 + MAX_LAYERS * 48 + 64 + 128 * 16 + MAX_LAYERS * 4;
+/// Where the per-layer mesh slices start in the parameters.
+const MESH_AT: usize = 16 + MAX_LAYERS * 48 + 64 + 128 * 16;
 const FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8Unorm;
 
 /// Errors of the GPU renderer.
@@ -56,6 +61,7 @@ pub struct GpuRenderer {
     layout: wgpu::BindGroupLayout,
     composite: wgpu::RenderPipeline,
     dps: wgpu::RenderPipeline,
+    mesh: wgpu::RenderPipeline,
     /// Bound as the composite where the composite pass itself runs (it reads nothing there).
     dummy: wgpu::TextureView,
     adapter: String,
@@ -68,6 +74,8 @@ pub struct GpuLayers {
     camera: Camera,
     depths: Vec<f64>,
     geometries: Vec<Geometry>,
+    /// Per layer, its grid and occupied cells where it is a mesh.
+    meshes: Vec<Option<mesh::MeshLayer>>,
     offsets: EdgeOffsets,
 }
 
@@ -130,6 +138,7 @@ impl GpuRenderer {
                     },
                 ),
                 entry(2, tex(wgpu::TextureViewDimension::D2)),
+                entry(3, tex(wgpu::TextureViewDimension::D2Array)),
             ],
         });
         let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
@@ -149,6 +158,7 @@ impl GpuRenderer {
         // The composite pass declares no binding 2; a layout may hold more than a shader uses.
         let composite = pipeline("cpsl composite", COMPOSITE_WGSL);
         let dps = pipeline("cpsl dps", DPS_WGSL);
+        let mesh = mesh::pipeline(&device);
         let dummy = device
             .create_texture(&wgpu::TextureDescriptor {
                 label: Some("cpsl dummy"),
@@ -171,6 +181,7 @@ impl GpuRenderer {
             layout,
             composite,
             dps,
+            mesh,
             dummy,
             adapter: format!("{} ({:?}, {:?})", info.name, info.backend, info.device_type),
             handle: adapter,
@@ -253,6 +264,17 @@ impl GpuRenderer {
             camera: cam,
             depths: set.layers().iter().map(|l| l.depth).collect(),
             geometries: set.layers().iter().map(|l| l.geometry.clone()).collect(),
+            meshes: set
+                .layers()
+                .iter()
+                .map(|l| match &l.geometry {
+                    Geometry::Mesh(g) => Some(mesh::MeshLayer {
+                        grid: g.clone(),
+                        cells: cpsl_render::mesh::occupied_cells(&l.image, g),
+                    }),
+                    _ => None,
+                })
+                .collect(),
             offsets: edc.map(EdgeOffsets::from_edc).unwrap_or_default(),
         })
     }
@@ -279,6 +301,17 @@ impl GpuRenderer {
             }
             let at = 16 + MAX_LAYERS * 48 + k * 4;
             put(&mut b, at, (d.ln() as f32).to_le_bytes());
+        }
+        let mut slice = 0i32;
+        for (k, m) in layers.meshes.iter().enumerate() {
+            let v = match m {
+                Some(_) => {
+                    slice += 1;
+                    slice - 1
+                }
+                None => -1,
+            };
+            put(&mut b, MESH_AT + k * 4, v.to_le_bytes());
         }
         let n = layers.depths.len();
         for f in 0..n {
@@ -361,6 +394,23 @@ impl GpuRenderer {
         });
         self.queue
             .write_buffer(&params, 0, &self.params(layers, pose, target, 2 * s));
+        // Mesh layers' source maps, drawn first.
+        let meshes: Vec<&mesh::MeshLayer> = layers.meshes.iter().flatten().collect();
+        let maps = mesh::maps(&self.device, target, meshes.len());
+        mesh::draw_maps(
+            &self.device,
+            encoder,
+            &self.mesh,
+            &maps,
+            &meshes,
+            &layers.camera,
+            target,
+            pose,
+        );
+        let maps = maps.create_view(&wgpu::TextureViewDescriptor {
+            dimension: Some(wgpu::TextureViewDimension::D2Array),
+            ..Default::default()
+        });
         let first_view = first.create_view(&Default::default());
         let bind = |image: &wgpu::TextureView| {
             self.device.create_bind_group(&wgpu::BindGroupDescriptor {
@@ -378,6 +428,10 @@ impl GpuRenderer {
                     wgpu::BindGroupEntry {
                         binding: 2,
                         resource: wgpu::BindingResource::TextureView(image),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 3,
+                        resource: wgpu::BindingResource::TextureView(&maps),
                     },
                 ],
             })

@@ -5,8 +5,8 @@
 
 use cpsl_core::{Camera, Layer, LayerSet, Limits, Pose, PremulImage, Vec3};
 use cpsl_render::{CpuRenderer, DpsConfig, FrameLayers, PreparedLayers, Renderer};
-use cpsl_render_gpu::{GpuRenderer, BLIT_WGSL, COMMON_WGSL, COMPOSITE_WGSL, DPS_WGSL};
-use cpsl_synth::layers::{slanted, synthetic_layer_set, Coverage};
+use cpsl_render_gpu::{GpuRenderer, BLIT_WGSL, COMMON_WGSL, COMPOSITE_WGSL, DPS_WGSL, MESH_WGSL};
+use cpsl_synth::layers::{meshed, slanted, synthetic_layer_set, Coverage};
 
 const MIN_PSNR: f64 = 45.0;
 
@@ -90,6 +90,10 @@ fn gpu_matches_the_cpu_reference() {
             "slanted 320x240 K=6",
             slanted(synthetic_layer_set(320, 240, 6, Coverage::Typical, 5)),
         ),
+        (
+            "mesh 320x240 K=6",
+            meshed(synthetic_layer_set(320, 240, 6, Coverage::Typical, 11), 16),
+        ),
     ];
     let poses = [
         Pose::IDENTITY,
@@ -168,6 +172,7 @@ fn shaders_validate() {
         ("composite", format!("{COMMON_WGSL}\n{COMPOSITE_WGSL}")),
         ("dps", format!("{COMMON_WGSL}\n{DPS_WGSL}")),
         ("blit", BLIT_WGSL.to_string()),
+        ("mesh", MESH_WGSL.to_string()),
     ] {
         let module = naga::front::wgsl::parse_str(&src)
             .unwrap_or_else(|e| panic!("{name}: {}", e.emit_to_string(&src)));

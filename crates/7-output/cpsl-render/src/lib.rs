@@ -26,7 +26,7 @@
 //! ([`cpsl_core::LayerSet::composite_reference`]) up to `f32` rounding.
 
 mod dps;
-mod mesh;
+pub mod mesh;
 mod prepared;
 mod raster;
 mod renderer;

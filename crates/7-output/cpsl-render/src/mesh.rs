@@ -10,10 +10,9 @@
 //! the same way by both triangles of an edge, so the triangles of a grid cover every pixel
 //! once: no cracks, no double blending.
 
-use crate::prepared::PreparedLayer;
 use crate::raster::{TILE_H, TILE_W};
 use cpsl_core::geometry::plane_inverse;
-use cpsl_core::{Camera, DepthGrid, Pose};
+use cpsl_core::{Camera, DepthGrid, Pose, PremulImage};
 
 /// One visible triangle.
 pub(crate) struct Triangle {
@@ -65,78 +64,124 @@ pub(crate) struct MeshWarp {
 /// Whether the vertex positions are far enough from overflow for the integer span maths.
 const FAR: f64 = (1u64 << 30) as f64;
 
+/// Which cells of `grid` (over an image of `image`'s size) hold a texel with alpha above zero,
+/// one texel wider on each side for the bilinear taps; cell `(ci, cj)` at `cj * (cols - 1) + ci`.
+pub fn occupied_cells(image: &PremulImage, grid: &DepthGrid) -> Vec<bool> {
+    let (w, h) = (image.width(), image.height());
+    let (cw, ch) = (grid.cols - 1, grid.rows - 1);
+    let mut cells = vec![false; (cw * ch) as usize];
+    let bytes = image.as_bytes();
+    let s = grid.step;
+    for y in 0..h {
+        // Texel rows reach the cells whose span, one texel wider, holds them.
+        let (j0, j1) = ((y.saturating_sub(1) / s), ((y + 1) / s).min(ch - 1));
+        let row = &bytes[(y * w * 4) as usize..((y + 1) * w * 4) as usize];
+        for (x, p) in row.chunks_exact(4).enumerate() {
+            if p[3] == 0 {
+                continue;
+            }
+            let x = x as u32;
+            let (i0, i1) = ((x.saturating_sub(1) / s), ((x + 1) / s).min(cw - 1));
+            for j in j0..=j1 {
+                for i in i0..=i1 {
+                    cells[(j * cw + i) as usize] = true;
+                }
+            }
+        }
+    }
+    cells
+}
+
+/// One triangle of a mesh layer as a viewer sees it.
+#[derive(Debug, Clone, Copy)]
+pub struct ProjectedTriangle {
+    /// Cell column, row and half (see [`DepthGrid::triangle`]).
+    pub cell: (u32, u32, u32),
+    /// Target pixel position and viewer depth of each vertex.
+    pub target: [(f64, f64, f64); 3],
+    /// Source (reference) pixel position of each vertex.
+    pub source: [(f64, f64); 3],
+}
+
+/// The triangles of a mesh layer (`grid`, with `occupied` from [`occupied_cells`]) that the
+/// viewer `target` at `pose` sees: over occupied cells, every vertex in front of the viewer,
+/// facing it (a triangle whose winding flips shows its back: the viewer has crossed its
+/// plane). Both renderers draw exactly these.
+pub fn visible_triangles(
+    grid: &DepthGrid,
+    occupied: &[bool],
+    cam: &Camera,
+    target: &Camera,
+    pose: &Pose,
+) -> Vec<ProjectedTriangle> {
+    let verts: Vec<Option<(f64, f64, f64)>> = (0..grid.rows)
+        .flat_map(|j| (0..grid.cols).map(move |i| (i, j)))
+        .map(|(i, j)| {
+            let p = pose.ref_to_view(grid.point(cam, i, j));
+            if p.z() <= 1e-9 {
+                return None;
+            }
+            let (x, y) = target.project(p)?;
+            (x.abs() < FAR && y.abs() < FAR).then_some((x, y, p.z()))
+        })
+        .collect();
+    let mut out = Vec::new();
+    let cw = grid.cols - 1;
+    for cj in 0..grid.rows - 1 {
+        for ci in 0..cw {
+            if !occupied[(cj * cw + ci) as usize] {
+                continue;
+            }
+            for t in 0..2 {
+                let ids = DepthGrid::triangle(ci, cj, t);
+                let [Some(a), Some(b), Some(c)] =
+                    ids.map(|(i, j)| verts[(j * grid.cols + i) as usize])
+                else {
+                    continue;
+                };
+                // Same winding as in the reference image, or the triangle shows its back.
+                let area = (b.0 - a.0) * (c.1 - a.1) - (b.1 - a.1) * (c.0 - a.0);
+                if !(area > 0.0) {
+                    continue;
+                }
+                out.push(ProjectedTriangle {
+                    cell: (ci, cj, t),
+                    target: [a, b, c],
+                    source: ids.map(|(i, j)| grid.vertex(i, j, cam.width, cam.height)),
+                });
+            }
+        }
+    }
+    out
+}
+
 impl MeshWarp {
-    /// Projects `grid` (of `layer`, seen by `cam`) for the viewer `target` at `pose`.
+    /// Projects `grid` (of a layer seen by `cam` whose occupied cells are `occupied`) for the
+    /// viewer `target` at `pose`.
     pub fn new(
-        layer: &PreparedLayer,
         grid: &DepthGrid,
+        occupied: &[bool],
         cam: &Camera,
         target: &Camera,
         pose: &Pose,
     ) -> Self {
-        let (sw, sh) = (cam.width, cam.height);
         let (tw, th) = (target.width as usize, target.height as usize);
         let tiles_x = tw.div_ceil(TILE_W);
         let tiles = tiles_x * th.div_ceil(TILE_H);
-        // Target position and depth of every vertex (None behind the viewer).
-        let verts: Vec<Option<(f64, f64, f64)>> = (0..grid.rows)
-            .flat_map(|j| (0..grid.cols).map(move |i| (i, j)))
-            .map(|(i, j)| {
-                let p = pose.ref_to_view(grid.point(cam, i, j));
-                if p.z() <= 1e-9 {
-                    return None;
-                }
-                let (x, y) = target.project(p)?;
-                (x.abs() < FAR && y.abs() < FAR).then_some((x, y, p.z()))
+        let mut tris: Vec<(f64, Triangle)> = visible_triangles(grid, occupied, cam, target, pose)
+            .into_iter()
+            .filter_map(|p| {
+                let (ci, cj, t) = p.cell;
+                let h = grid
+                    .triangle_plane(cam, ci, cj, t)
+                    .and_then(|m| plane_inverse(m, cam, target, pose))
+                    .filter(|h| h.0.is_finite())?;
+                let mut v = p.target.map(|q| (q.0, q.1));
+                v.sort_by(|a, b| a.1.total_cmp(&b.1).then(a.0.total_cmp(&b.0)));
+                let z = p.target.iter().map(|q| q.2).sum::<f64>();
+                Some((z, Triangle { h: h.0 .0, v }))
             })
             .collect();
-        let mut tris: Vec<(f64, Triangle)> = Vec::new();
-        for cj in 0..grid.rows - 1 {
-            for ci in 0..grid.cols - 1 {
-                // Skip cells whose source footprint (one texel wider for the bilinear taps)
-                // holds nothing.
-                let (x0, y0) = grid.vertex(ci, cj, sw, sh);
-                let (x1, y1) = grid.vertex(ci + 1, cj + 1, sw, sh);
-                let clip = |v: f64, n: u32| (v.max(0.0) as usize).min(n as usize - 1);
-                let (nonempty, _) = layer.counts(
-                    clip(x0 - 1.0, sw),
-                    clip(y0 - 1.0, sh),
-                    clip(x1 + 1.0, sw),
-                    clip(y1 + 1.0, sh),
-                );
-                if nonempty == 0 {
-                    continue;
-                }
-                for t in 0..2 {
-                    let ids = DepthGrid::triangle(ci, cj, t);
-                    let Some(p) = ids
-                        .iter()
-                        .map(|&(i, j)| verts[(j * grid.cols + i) as usize])
-                        .collect::<Option<Vec<_>>>()
-                    else {
-                        continue;
-                    };
-                    // Same winding as in the reference image (y down: clockwise on screen),
-                    // or the triangle shows its back.
-                    let area = (p[1].0 - p[0].0) * (p[2].1 - p[0].1)
-                        - (p[1].1 - p[0].1) * (p[2].0 - p[0].0);
-                    if !(area > 0.0) {
-                        continue;
-                    }
-                    let Some(h) = grid
-                        .triangle_plane(cam, ci, cj, t)
-                        .and_then(|m| plane_inverse(m, cam, target, pose))
-                        .filter(|h| h.0.is_finite())
-                    else {
-                        continue;
-                    };
-                    let mut v = [(p[0].0, p[0].1), (p[1].0, p[1].1), (p[2].0, p[2].1)];
-                    v.sort_by(|a, b| a.1.total_cmp(&b.1).then(a.0.total_cmp(&b.0)));
-                    let z = p[0].2 + p[1].2 + p[2].2;
-                    tris.push((z, Triangle { h: h.0 .0, v }));
-                }
-            }
-        }
         // Nearest first, so that where a fold overlaps itself the near side composites first.
         tris.sort_by(|a, b| a.0.total_cmp(&b.0));
         let tris: Vec<Triangle> = tris.into_iter().map(|t| t.1).collect();

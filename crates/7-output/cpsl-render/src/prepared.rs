@@ -12,6 +12,8 @@ pub(crate) struct PreparedLayer {
     pub depth: f64,
     /// The layer's surface.
     pub geometry: cpsl_core::Geometry,
+    /// For a mesh layer, which of its grid's cells hold any texel.
+    pub cells: Vec<bool>,
     /// Premultiplied RGBA texels as little-endian `u32` (R in the low byte), with a one-texel
     /// transparent border: texel `(x, y)` lives at `(y + 1) * pitch + x + 1`.
     pub texels: Vec<u32>,
@@ -148,6 +150,12 @@ impl PreparedLayers {
                 PreparedLayer {
                     depth: layer.depth,
                     geometry: layer.geometry.clone(),
+                    cells: match &layer.geometry {
+                        cpsl_core::Geometry::Mesh(g) => {
+                            crate::mesh::occupied_cells(&layer.image, g)
+                        }
+                        _ => Vec::new(),
+                    },
                     texels,
                     pitch,
                     bw,

@@ -471,8 +471,8 @@ impl PreparedLayers {
             .par_iter()
             .map(|l| match &l.geometry {
                 Geometry::Mesh(grid) => Some(Warp::Mesh(MeshWarp::new(
-                    l,
                     grid,
+                    &l.cells,
                     &self.camera,
                     target,
                     pose,

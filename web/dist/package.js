@@ -36,7 +36,7 @@ async function inflateRaw(bytes, expected) {
     const ds = new DecompressionStream("deflate-raw");
     const out = new Uint8Array(await new Response(new Blob([bytes]).stream().pipeThrough(ds)).arrayBuffer());
     if (out.length !== expected)
-        throw new Error("side stream: edge-depth cache inflates to the wrong length");
+        throw new Error("side stream: compressed data inflates to the wrong length");
     return out;
 }
 /** Parses a side stream (`side.bin`, versions 1 and 2; see crates/6-coding/cpsl-package/src/side.rs). */
@@ -66,10 +66,14 @@ export async function parseSide(buf) {
         if (n === 0 || n > streams)
             throw new Error(`side stream record ${r}: ${n} layers`);
         const layers = [];
+        const meshes = [];
         for (let i = 0; i < n; i++) {
             const o = p + 8 + i * recordBytes;
             let geometry = { kind: "plane" };
-            if (b[o + 1] === 1 && version >= 2) {
+            if (b[o + 1] === 2 && version >= 2) {
+                meshes.push(i);
+            }
+            else if (b[o + 1] === 1 && version >= 2) {
                 const m = [0, 1, 2].map((j) => v.getFloat32(o + 16 + 4 * j, true));
                 if (!m.every(Number.isFinite))
                     throw new Error(`side stream record ${r}: layer ${i} has a non-finite plane`);
@@ -80,7 +84,24 @@ export async function parseSide(buf) {
             }
             layers.push({ stream: b[o], depth: v.getFloat32(o + 4, true), geometry });
         }
-        const e = p + 8 + n * recordBytes;
+        let e = p + 8 + n * recordBytes;
+        // Mesh layers' grids follow the layer table (see side.rs: quantised log inverse depth,
+        // each vertex predicted from its left neighbour, the first column's from above).
+        for (const i of meshes) {
+            const [step, cols, rows] = [0, 2, 4].map((d) => v.getUint16(e + d, true));
+            const glen = v.getUint32(e + 8, true);
+            const count = cols * rows;
+            const planes = await inflateRaw(b.subarray(e + 12, e + 12 + glen), 2 * count);
+            const inv = new Float32Array(count);
+            const q = new Int16Array(count);
+            for (let k = 0; k < count; k++) {
+                const pred = k === 0 ? 0 : k % cols === 0 ? q[k - cols] : q[k - 1];
+                q[k] = pred + (planes[k] | (planes[count + k] << 8));
+                inv[k] = Math.exp(q[k] / 2048);
+            }
+            layers[i].geometry = { kind: "mesh", grid: { step, cols, rows, inv } };
+            e += 12 + glen;
+        }
         const edcLen = v.getUint32(e, true);
         const c = e + 4;
         const step = v.getFloat32(c + 2, true);

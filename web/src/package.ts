@@ -84,7 +84,7 @@ export interface SideFrame {
 async function inflateRaw(bytes: Uint8Array, expected: number): Promise<Uint8Array> {
   const ds = new DecompressionStream("deflate-raw");
   const out = new Uint8Array(await new Response(new Blob([bytes as BlobPart]).stream().pipeThrough(ds)).arrayBuffer());
-  if (out.length !== expected) throw new Error("side stream: edge-depth cache inflates to the wrong length");
+  if (out.length !== expected) throw new Error("side stream: compressed data inflates to the wrong length");
   return out;
 }
 
@@ -110,10 +110,13 @@ export async function parseSide(buf: ArrayBuffer): Promise<SideFrame[]> {
     const n = b[p + 6];
     if (n === 0 || n > streams) throw new Error(`side stream record ${r}: ${n} layers`);
     const layers: SideLayer[] = [];
+    const meshes: number[] = [];
     for (let i = 0; i < n; i++) {
       const o = p + 8 + i * recordBytes;
       let geometry: Geometry = { kind: "plane" };
-      if (b[o + 1] === 1 && version >= 2) {
+      if (b[o + 1] === 2 && version >= 2) {
+        meshes.push(i);
+      } else if (b[o + 1] === 1 && version >= 2) {
         const m: [number, number, number] = [0, 1, 2].map((j) => v.getFloat32(o + 16 + 4 * j, true)) as [number, number, number];
         if (!m.every(Number.isFinite)) throw new Error(`side stream record ${r}: layer ${i} has a non-finite plane`);
         geometry = { kind: "slanted", m };
@@ -122,7 +125,24 @@ export async function parseSide(buf: ArrayBuffer): Promise<SideFrame[]> {
       }
       layers.push({ stream: b[o], depth: v.getFloat32(o + 4, true), geometry });
     }
-    const e = p + 8 + n * recordBytes;
+    let e = p + 8 + n * recordBytes;
+    // Mesh layers' grids follow the layer table (see side.rs: quantised log inverse depth,
+    // each vertex predicted from its left neighbour, the first column's from above).
+    for (const i of meshes) {
+      const [step, cols, rows] = [0, 2, 4].map((d) => v.getUint16(e + d, true));
+      const glen = v.getUint32(e + 8, true);
+      const count = cols * rows;
+      const planes = await inflateRaw(b.subarray(e + 12, e + 12 + glen), 2 * count);
+      const inv = new Float32Array(count);
+      const q = new Int16Array(count);
+      for (let k = 0; k < count; k++) {
+        const pred = k === 0 ? 0 : k % cols === 0 ? q[k - cols] : q[k - 1];
+        q[k] = pred + (planes[k] | (planes[count + k] << 8));
+        inv[k] = Math.exp(q[k] / 2048);
+      }
+      layers[i].geometry = { kind: "mesh", grid: { step, cols, rows, inv } };
+      e += 12 + glen;
+    }
     const edcLen = v.getUint32(e, true);
     const c = e + 4;
     const step = v.getFloat32(c + 2, true);

@@ -88,8 +88,20 @@ export function planeInverse(src: Camera, dst: Camera, pose: Pose, depth: number
   return h.map((row) => row.map((v) => v / depth));
 }
 
-/** A layer's surface: the fronto-parallel plane at its depth, or the slanted plane `m . X = 1`. */
-export type Geometry = { kind: "plane" } | { kind: "slanted"; m: [number, number, number] };
+/** A mesh layer's grid of inverse depths (`cpsl_core::DepthGrid`). */
+export interface Grid {
+  step: number;
+  cols: number;
+  rows: number;
+  /** Inverse depth per vertex, row by row. */
+  inv: Float32Array;
+}
+
+/** A layer's surface: the fronto-parallel plane at its depth, the slanted plane `m . X = 1`, or a mesh. */
+export type Geometry =
+  | { kind: "plane" }
+  | { kind: "slanted"; m: [number, number, number] }
+  | { kind: "mesh"; grid: Grid };
 
 /**
  * `Geometry::inverse_homography`: the inverse homography of a layer at reference depth `depth`
@@ -97,6 +109,7 @@ export type Geometry = { kind: "plane" } | { kind: "slanted"; m: [number, number
  */
 export function layerInverse(src: Camera, dst: Camera, pose: Pose, depth: number, geometry: Geometry): Mat3 | null {
   if (geometry.kind === "plane") return planeInverse(src, dst, pose, depth);
+  if (geometry.kind === "mesh") return null;
   const m = geometry.m;
   const t = pose.translation;
   const gap = 1 - (m[0] * t[0] + m[1] * t[1] + m[2] * t[2]);
@@ -110,11 +123,85 @@ export function layerInverse(src: Camera, dst: Camera, pose: Pose, depth: number
  * which `Layer::clip_to_geometry` clears its texels (`[0, 0, 1, 0]`: nothing cleared).
  */
 export function horizonClip(cam: Camera, geometry: Geometry): [number, number, number, number] {
-  if (geometry.kind === "plane") return [0, 0, 1, 0];
+  if (geometry.kind !== "slanted") return [0, 0, 1, 0];
   const [mx, my, mz] = geometry.m;
   const a = mx / cam.fx;
   const b = my / cam.fy;
   return [a, b, mz - a * cam.cx - b * cam.cy, Math.abs(a) + Math.abs(b)];
+}
+
+/**
+ * The visible triangles of a mesh layer for the viewer at `pose`, as the Rust renderers select
+ * them (`cpsl_render::mesh::visible_triangles`, without its test for empty cells: their
+ * texels are transparent). `clip`: per vertex the clip position (x, y, z, w = viewer depth,
+ * framebuffer rows following image rows) and the triangle's number from `first` on, 5 floats;
+ * `h`: per triangle the inverse homography of its plane (`Geometry::inverse_homography`), row
+ * by row, each row padded to 4 floats.
+ */
+export function meshTriangles(cam: Camera, grid: Grid, pose: Pose, first: number): { clip: Float32Array; h: Float32Array } {
+  const { step, cols, rows, inv } = grid;
+  const vx = (i: number) => Math.min(i * step, cam.width) - 0.5;
+  const vy = (j: number) => Math.min(j * step, cam.height) - 0.5;
+  // Reference point, target position and viewer depth per vertex (NaN depth behind the viewer).
+  const ref: [number, number, number][] = [];
+  const px = new Float64Array(cols * rows * 3);
+  for (let j = 0; j < rows; j++)
+    for (let i = 0; i < cols; i++) {
+      const k = j * cols + i;
+      const z = 1 / inv[k];
+      ref.push([((vx(i) - cam.cx) / cam.fx) * z, ((vy(j) - cam.cy) / cam.fy) * z, z]);
+      const p = refToView(pose, ref[k]);
+      if (!(p[2] > 1e-9)) {
+        px[3 * k + 2] = NaN;
+        continue;
+      }
+      px.set([(cam.fx * p[0]) / p[2] + cam.cx, (cam.fy * p[1]) / p[2] + cam.cy, p[2]], 3 * k);
+    }
+  const tris: number[][] = [];
+  const hs: Mat3[] = [];
+  let near = Infinity;
+  for (let cj = 0; cj + 1 < rows; cj++)
+    for (let ci = 0; ci + 1 < cols; ci++)
+      for (const ids of [
+        [ci, cj, ci + 1, cj, ci + 1, cj + 1],
+        [ci, cj, ci + 1, cj + 1, ci, cj + 1],
+      ]) {
+        const k = [0, 1, 2].map((v) => ids[2 * v + 1] * cols + ids[2 * v]);
+        if (!k.every((q) => px[3 * q + 2] > 0)) continue;
+        const [a, b, c] = k.map((q) => [px[3 * q], px[3 * q + 1], px[3 * q + 2]]);
+        if (!((b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]) > 0)) continue;
+        // The plane m . X = 1 through the three reference points.
+        const m = solve3(k.map((q) => ref[q]) as Mat3, [1, 1, 1]);
+        const h = m && layerInverse(cam, cam, pose, 1, { kind: "slanted", m });
+        if (!h || !h.flat().every(Number.isFinite)) continue;
+        tris.push(k);
+        hs.push(h);
+        near = Math.min(near, a[2], b[2], c[2]);
+      }
+  near *= 0.999;
+  const clip = new Float32Array(tris.length * 15);
+  const h = new Float32Array(tris.length * 12);
+  tris.forEach((k, t) => {
+    k.forEach((q, v) => {
+      const [x, y, z] = [px[3 * q], px[3 * q + 1], px[3 * q + 2]];
+      const nx = ((x + 0.5) / cam.width) * 2 - 1;
+      const ny = ((y + 0.5) / cam.height) * 2 - 1;
+      clip.set([nx * z, ny * z, z - near, z, first + t], (3 * t + v) * 5);
+    });
+    hs[t].forEach((row, r) => h.set(row, t * 12 + r * 4));
+  });
+  return { clip, h };
+}
+
+/** Solves `a x = b` (Cramer's rule); null when `a` is singular. */
+function solve3(a: Mat3, b: [number, number, number]): [number, number, number] | null {
+  const det = (m: Mat3) =>
+    m[0][0] * (m[1][1] * m[2][2] - m[1][2] * m[2][1]) -
+    m[0][1] * (m[1][0] * m[2][2] - m[1][2] * m[2][0]) +
+    m[0][2] * (m[1][0] * m[2][1] - m[1][1] * m[2][0]);
+  const d = det(a);
+  if (!(Math.abs(d) > 1e-300)) return null;
+  return [0, 1, 2].map((c) => det(a.map((row, r) => row.map((v, j) => (j === c ? b[r] : v))) as Mat3) / d) as [number, number, number];
 }
 
 /** `Pose::ref_to_view`. */

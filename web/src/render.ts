@@ -1,15 +1,18 @@
 // The WebGL2 renderer, with the semantics of the CPU reference (crates/7-output/cpsl-render):
-// per layer the inverse plane-induced homography, bilinear premultiplied sampling with a
+// per layer the inverse plane-induced homography (for a mesh layer, its triangles rasterised
+// into a source map first, as cpsl-render-gpu does), bilinear premultiplied sampling with a
 // transparent border, front-to-back compositing (paper eq. 2), then the Dynamic Pixel Strip
 // (paper eq. 4) guided by the Edge-Depth Cache. The layer pictures are converted from
 // Y'CbCr (BT.709, limited range, colour over alpha) in the shader exactly as cpsl-codec's
 // `unstack` does, so the browser's own colour conversion never enters.
 
-import { type Camera, type Pose, horizonClip, layerInverse, stripWidth } from "./pose.js";
+import { type Camera, type Pose, horizonClip, layerInverse, meshTriangles, stripWidth } from "./pose.js";
 import type { SideFrame } from "./package.js";
 
 /** Most layers per frame. */
 export const MAX_LAYERS = 16;
+/** Triangles per row of the homography texture (3 texels each). */
+const TRIS_PER_ROW = 1024;
 
 const VERT = `#version 300 es
 void main() {
@@ -32,6 +35,9 @@ uniform int uStream[${MAX_LAYERS}];
 uniform int uScale[${MAX_LAYERS}];  // downscale factor of layer k's stream
 uniform int uLayers;
 uniform vec4 uPlane[${MAX_LAYERS}];  // inverse depth a x + b y + c of slanted layer k, clip margin
+uniform int uMesh[${MAX_LAYERS}];    // mesh layer k's slice of uMaps, -1 for a plane
+uniform highp sampler2DArray uMaps;  // per mesh layer and pixel: its triangle, coverage
+uniform highp sampler2D uTriH;       // per triangle its inverse homography, 3 rows of RGBA32F
 
 float q8(float v) { return clamp(floor(v + 0.5), 0.0, 255.0); }
 
@@ -72,8 +78,20 @@ vec4 texel(int k, ivec2 t) {
   return floor(v + 0.5);
 }
 
-// Target pixel -> source position of layer k; false where the plane is not visible.
+// Target pixel -> source position of layer k; false where its surface is not visible.
 bool warp(int k, vec2 px, out vec2 src) {
+  if (uMesh[k] >= 0) {
+    vec4 m = texelFetch(uMaps, ivec3(ivec2(px), uMesh[k]), 0);
+    if (m.z <= 0.0) return false;
+    int t = int(m.x);
+    ivec2 at = ivec2((t % ${TRIS_PER_ROW}) * 3, t / ${TRIS_PER_ROW});
+    vec3 p = vec3(px, 1.0);
+    vec3 h = vec3(dot(texelFetch(uTriH, at, 0).xyz, p), dot(texelFetch(uTriH, at + ivec2(1, 0), 0).xyz, p),
+                  dot(texelFetch(uTriH, at + ivec2(2, 0), 0).xyz, p));
+    if (h.z <= 0.0) return false;
+    src = h.xy / h.z;
+    return true;
+  }
   vec3 h = uH[k] * vec3(px, 1.0);
   if (h.z <= 0.0) return false;
   src = h.xy / h.z;
@@ -218,7 +236,25 @@ void main() {
   outColor = vec4(texelFetch(uImage, clamp(p, ivec2(0), size - 1), 0).rgb, 1.0);
 }`;
 
-function compile(gl: WebGL2RenderingContext, frag: string): WebGLProgram {
+// Mesh layers: each pixel's nearest triangle into a map; the composite applies that
+// triangle's homography, exactly as for a plane.
+const MESH_VERT = `#version 300 es
+in vec4 aClip;
+in float aTri;
+flat out float vTri;
+void main() {
+  vTri = aTri;
+  gl_Position = aClip;
+}`;
+const MESH_FRAG = `#version 300 es
+precision highp float;
+flat in float vTri;
+out vec4 outColor;
+void main() {
+  outColor = vec4(vTri, 0.0, 1.0, 0.0);
+}`;
+
+function compile(gl: WebGL2RenderingContext, frag: string, vert = VERT): WebGLProgram {
   const shader = (type: number, src: string) => {
     const s = gl.createShader(type)!;
     gl.shaderSource(s, src);
@@ -227,7 +263,7 @@ function compile(gl: WebGL2RenderingContext, frag: string): WebGLProgram {
     return s;
   };
   const p = gl.createProgram()!;
-  gl.attachShader(p, shader(gl.VERTEX_SHADER, VERT));
+  gl.attachShader(p, shader(gl.VERTEX_SHADER, vert));
   gl.attachShader(p, shader(gl.FRAGMENT_SHADER, frag));
   gl.linkProgram(p);
   if (!gl.getProgramParameter(p, gl.LINK_STATUS)) throw new Error(`program: ${gl.getProgramInfoLog(p)}`);
@@ -246,6 +282,10 @@ export class Renderer {
   private composite: WebGLProgram;
   private dps: WebGLProgram;
   private present: WebGLProgram;
+  private mesh: WebGLProgram;
+  private maps: { tex: WebGLTexture; fb: WebGLFramebuffer; depth: WebGLRenderbuffer; slices: number } | null = null;
+  private meshBuffer: WebGLBuffer;
+  private triH: { tex: WebGLTexture; rows: number } | null = null;
   private planes: WebGLTexture[] = [];
   private streams = 0;
   private offsets: WebGLTexture;
@@ -267,6 +307,8 @@ export class Renderer {
     this.composite = compile(gl, COMPOSITE);
     this.dps = compile(gl, DPS);
     this.present = compile(gl, PRESENT);
+    this.mesh = compile(gl, MESH_FRAG, MESH_VERT);
+    this.meshBuffer = gl.createBuffer()!;
     gl.getExtension("EXT_color_buffer_float");
     this.offsets = gl.createTexture()!;
     gl.bindTexture(gl.TEXTURE_2D, this.offsets);
@@ -360,12 +402,15 @@ export class Renderer {
     const cam = this.camera;
     const hs = new Float32Array(MAX_LAYERS * 9);
     const planes = new Float32Array(MAX_LAYERS * 4);
+    const mesh = new Int32Array(MAX_LAYERS).fill(-1);
+    let slice = 0;
     const streams = new Int32Array(MAX_LAYERS);
     const scales = new Int32Array(MAX_LAYERS);
     let n = 0;
     for (const l of side.layers.slice(0, MAX_LAYERS)) {
       const h = layerInverse(cam, cam, pose, l.depth, l.geometry);
       planes.set(horizonClip(cam, l.geometry), n * 4);
+      if (l.geometry.kind === "mesh") mesh[n] = slice++;
       // A layer the viewer has passed is skipped, as the CPU renderer does.
       const m = h ?? [
         [0, 0, 0],
@@ -382,6 +427,16 @@ export class Renderer {
     const u = (name: string) => gl.getUniformLocation(p, name);
     gl.uniformMatrix3fv(u("uH"), false, hs);
     gl.uniform4fv(u("uPlane"), planes);
+    gl.uniform1iv(u("uMesh"), mesh);
+    // Units of their own even without meshes: samplers of different types may not share one.
+    gl.uniform1i(u("uMaps"), 5);
+    gl.uniform1i(u("uTriH"), 6);
+    if (this.maps && this.triH) {
+      gl.activeTexture(gl.TEXTURE5);
+      gl.bindTexture(gl.TEXTURE_2D_ARRAY, this.maps.tex);
+      gl.activeTexture(gl.TEXTURE6);
+      gl.bindTexture(gl.TEXTURE_2D, this.triH.tex);
+    }
     gl.uniform1iv(u("uStream"), streams);
     gl.uniform1iv(u("uScale"), scales);
     gl.uniform1i(u("uLayers"), n);
@@ -394,12 +449,85 @@ export class Renderer {
     });
   }
 
+  /** Source maps of the frame's mesh layers for `pose` (one array slice each). */
+  private drawMeshes(pose: Pose) {
+    const gl = this.gl;
+    const cam = this.camera;
+    const meshes = this.frame!.layers.slice(0, MAX_LAYERS).flatMap((l) => (l.geometry.kind === "mesh" ? [l.geometry.grid] : []));
+    if (!meshes.length) return;
+    if (!this.maps || this.maps.slices < meshes.length) {
+      if (!gl.getExtension("EXT_color_buffer_float")) throw new Error("mesh layers need WebGL2's EXT_color_buffer_float");
+      if (this.maps) {
+        gl.deleteTexture(this.maps.tex);
+        gl.deleteFramebuffer(this.maps.fb);
+        gl.deleteRenderbuffer(this.maps.depth);
+      }
+      const tex = gl.createTexture()!;
+      gl.bindTexture(gl.TEXTURE_2D_ARRAY, tex);
+      gl.texStorage3D(gl.TEXTURE_2D_ARRAY, 1, gl.RGBA32F, cam.width, cam.height, meshes.length);
+      for (const p of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER]) gl.texParameteri(gl.TEXTURE_2D_ARRAY, p, gl.NEAREST);
+      const depth = gl.createRenderbuffer()!;
+      gl.bindRenderbuffer(gl.RENDERBUFFER, depth);
+      gl.renderbufferStorage(gl.RENDERBUFFER, gl.DEPTH_COMPONENT24, cam.width, cam.height);
+      this.maps = { tex, fb: gl.createFramebuffer()!, depth, slices: meshes.length };
+    }
+    const maps = this.maps;
+    // Every mesh layer's triangles, numbered across the layers; their homographies in uTriH.
+    let count = 0;
+    const parts = meshes.map((grid) => {
+      const t = meshTriangles(cam, grid, pose, count);
+      count += t.h.length / 12;
+      return t;
+    });
+    const rows = Math.max(1, Math.ceil(count / TRIS_PER_ROW));
+    if (!this.triH || this.triH.rows < rows) {
+      if (this.triH) gl.deleteTexture(this.triH.tex);
+      const tex = gl.createTexture()!;
+      gl.bindTexture(gl.TEXTURE_2D, tex);
+      gl.texStorage2D(gl.TEXTURE_2D, 1, gl.RGBA32F, 3 * TRIS_PER_ROW, rows);
+      for (const p of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER]) gl.texParameteri(gl.TEXTURE_2D, p, gl.NEAREST);
+      this.triH = { tex, rows };
+    }
+    const all = new Float32Array(rows * TRIS_PER_ROW * 12);
+    let at = 0;
+    for (const t of parts) {
+      all.set(t.h, at);
+      at += t.h.length;
+    }
+    gl.bindTexture(gl.TEXTURE_2D, this.triH.tex);
+    gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, 3 * TRIS_PER_ROW, rows, gl.RGBA, gl.FLOAT, all);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, maps.fb);
+    gl.framebufferRenderbuffer(gl.FRAMEBUFFER, gl.DEPTH_ATTACHMENT, gl.RENDERBUFFER, maps.depth);
+    gl.useProgram(this.mesh);
+    gl.bindBuffer(gl.ARRAY_BUFFER, this.meshBuffer);
+    const clip = gl.getAttribLocation(this.mesh, "aClip");
+    const tri = gl.getAttribLocation(this.mesh, "aTri");
+    gl.enableVertexAttribArray(clip);
+    gl.enableVertexAttribArray(tri);
+    gl.vertexAttribPointer(clip, 4, gl.FLOAT, false, 20, 0);
+    gl.vertexAttribPointer(tri, 1, gl.FLOAT, false, 20, 16);
+    gl.enable(gl.DEPTH_TEST);
+    gl.depthFunc(gl.LESS);
+    for (const [i, t] of parts.entries()) {
+      gl.framebufferTextureLayer(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, maps.tex, 0, i);
+      gl.clearColor(0, 0, 0, 0);
+      gl.clearDepth(1);
+      gl.clear(gl.COLOR_BUFFER_BIT | gl.DEPTH_BUFFER_BIT);
+      gl.bufferData(gl.ARRAY_BUFFER, t.clip, gl.STREAM_DRAW);
+      gl.drawArrays(gl.TRIANGLES, 0, t.clip.length / 5);
+    }
+    gl.disable(gl.DEPTH_TEST);
+    gl.disableVertexAttribArray(clip);
+    gl.disableVertexAttribArray(tri);
+  }
+
   /** Renders the uploaded frame from `pose`; the result stays in an offscreen target. */
   render(pose: Pose) {
     if (!this.frame) return;
     const gl = this.gl;
     const cam = this.camera;
     gl.viewport(0, 0, cam.width, cam.height);
+    this.drawMeshes(pose);
     gl.bindFramebuffer(gl.FRAMEBUFFER, this.targets[0].fb);
     this.bindLayers(this.composite, pose);
     gl.drawArrays(gl.TRIANGLES, 0, 3);

@@ -20,9 +20,9 @@ pub enum GeometryMode {
     /// Every layer fronto-parallel: the paper's representation.
     Plane,
     /// A slanted plane wherever it fits the layer's depth clearly better.
-    #[default]
     Slanted,
     /// A depth mesh, or a slanted plane, wherever either fits clearly better.
+    #[default]
     Mesh,
 }
 

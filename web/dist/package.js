@@ -32,6 +32,8 @@ export function packageBitrate(m) {
         bytes += s.side.bytes + s.streams.reduce((a, t) => a + t.file.bytes, 0);
     return (bytes * 8 * m.frame_rate) / m.frames;
 }
+/** Steps per unit of log inverse depth in a mesh grid (side.rs `GRID_STEP` = 1 / 1024). */
+const GRID_SCALE = 1024;
 async function inflateRaw(bytes, expected) {
     const ds = new DecompressionStream("deflate-raw");
     const out = new Uint8Array(await new Response(new Blob([bytes]).stream().pipeThrough(ds)).arrayBuffer());
@@ -86,18 +88,27 @@ export async function parseSide(buf) {
         }
         let e = p + 8 + n * recordBytes;
         // Mesh layers' grids follow the layer table (see side.rs: quantised log inverse depth,
-        // each vertex predicted from its left neighbour, the first column's from above).
+        // each vertex predicted from the same vertex of a grid of the previous record, or from its
+        // left neighbour, the first column's from above).
+        const previous = out.length ? out[out.length - 1] : null;
         for (const i of meshes) {
-            const [step, cols, rows] = [0, 2, 4].map((d) => v.getUint16(e + d, true));
+            const [step, cols, rows, refIndex] = [0, 2, 4, 6].map((d) => v.getUint16(e + d, true));
             const glen = v.getUint32(e + 8, true);
             const count = cols * rows;
+            let ref = null;
+            if (refIndex > 0) {
+                const g = previous?.layers[refIndex - 1]?.geometry;
+                if (g?.kind !== "mesh" || g.grid.cols !== cols || g.grid.rows !== rows)
+                    throw new Error(`side stream record ${r}: layer ${i}'s grid refers to a missing grid`);
+                ref = Int16Array.from(g.grid.inv, (x) => Math.round(Math.log(x) * GRID_SCALE));
+            }
             const planes = await inflateRaw(b.subarray(e + 12, e + 12 + glen), 2 * count);
             const inv = new Float32Array(count);
             const q = new Int16Array(count);
             for (let k = 0; k < count; k++) {
-                const pred = k === 0 ? 0 : k % cols === 0 ? q[k - cols] : q[k - 1];
+                const pred = ref ? ref[k] : k === 0 ? 0 : k % cols === 0 ? q[k - cols] : q[k - 1];
                 q[k] = pred + (planes[k] | (planes[count + k] << 8));
-                inv[k] = Math.exp(q[k] / 2048);
+                inv[k] = Math.exp(q[k] / GRID_SCALE);
             }
             layers[i].geometry = { kind: "mesh", grid: { step, cols, rows, inv } };
             e += 12 + glen;

@@ -161,6 +161,48 @@ impl DepthGrid {
         m.is_finite().then_some(m)
     }
 
+    /// Which cells hold a pixel where `covered` holds (pixel `y * width + x` of a
+    /// `width x height` image), one pixel wider on each side for bilinear taps; cell
+    /// `(ci, cj)` at `cj * (cols - 1) + ci`.
+    pub fn occupied(&self, width: u32, height: u32, covered: impl Fn(usize) -> bool) -> Vec<bool> {
+        let (cw, ch) = (self.cols - 1, self.rows - 1);
+        let mut cells = vec![false; (cw * ch) as usize];
+        let s = self.step;
+        for y in 0..height {
+            let (j0, j1) = (y.saturating_sub(1) / s, ((y + 1) / s).min(ch - 1));
+            for x in 0..width {
+                if !covered((y * width + x) as usize) {
+                    continue;
+                }
+                let (i0, i1) = (x.saturating_sub(1) / s, ((x + 1) / s).min(cw - 1));
+                for j in j0..=j1 {
+                    for i in i0..=i1 {
+                        cells[(j * cw + i) as usize] = true;
+                    }
+                }
+            }
+        }
+        cells
+    }
+
+    /// Sets every vertex that no occupied cell (see [`DepthGrid::occupied`]) uses to `value`:
+    /// renderers draw nothing there, and a constant codes to almost nothing.
+    pub fn settle_unused(&mut self, occupied: &[bool], value: f32) {
+        let (cols, cw) = (self.cols, self.cols - 1);
+        let mut used = vec![false; self.inverse_depth.len()];
+        for (c, _) in occupied.iter().enumerate().filter(|(_, &o)| o) {
+            let (ci, cj) = (c as u32 % cw, c as u32 / cw);
+            for (i, j) in [(ci, cj), (ci + 1, cj), (ci, cj + 1), (ci + 1, cj + 1)] {
+                used[(j * cols + i) as usize] = true;
+            }
+        }
+        for (v, u) in self.inverse_depth.iter_mut().zip(used) {
+            if !u {
+                *v = value;
+            }
+        }
+    }
+
     /// Inverse depth at every pixel of a `width x height` image, row by row (as
     /// [`DepthGrid::inverse_depth_at`] gives at pixel centres).
     pub fn inverse_depth_map(&self, width: u32, height: u32) -> Vec<f32> {

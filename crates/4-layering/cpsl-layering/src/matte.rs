@@ -376,6 +376,7 @@ pub fn build_layers(
                 depth: &cues.depth,
                 confidence: Some(&cues.confidence),
                 own: &own,
+                covered: &|p: usize| alpha[p] >= 0.5 / 255.0,
             };
             let step = match cfg.mesh_step {
                 0 => crate::geometry::auto_mesh_step(camera.width, camera.height),

@@ -43,7 +43,7 @@
 
 use cpsl_core::{Camera, LayerSet, LayeredFrame, Limits, NoProgress, PremulImage, RefreshReason};
 use cpsl_flow::{Flow, FlowConfig, Grey};
-use cpsl_layering::geometry::{fit_geometry, LayerDepth};
+use cpsl_layering::geometry::{fit_geometry, fit_grid, LayerDepth};
 use cpsl_layering::matte::edge_depth_cache_from;
 use cpsl_layering::{layer_frame, GeometryMode, LayeringConfig, LayeringError};
 use rayon::prelude::*;
@@ -217,6 +217,8 @@ struct State {
     maps: Vec<Vec<f32>>,
     /// The previous frame's layer depths.
     depths: Vec<f64>,
+    /// The previous frame's layer surfaces.
+    geometries: Vec<cpsl_core::Geometry>,
     /// Per layer, the 5 % and 95 % quantiles of `ln z` over its pixels at the I-frame.
     spans: Vec<(f32, f32)>,
     tracks: Vec<u32>,
@@ -228,6 +230,10 @@ struct State {
     run: usize,
     pending: Option<RefreshReason>,
 }
+
+/// How far, in log depth, a mesh vertex may move between frames before its new value is
+/// taken (0.5 %, five steps of the side stream's grid quantisation).
+const GRID_HOLD: f32 = 0.005;
 
 /// Layers a video frame by frame (see the crate documentation).
 pub struct VideoLayerer {
@@ -432,6 +438,7 @@ impl VideoLayerer {
                 .collect(),
             maps,
             depths: set.layers().iter().map(|l| l.depth).collect(),
+            geometries: set.layers().iter().map(|l| l.geometry.clone()).collect(),
             spans,
             tracks,
             base,
@@ -544,28 +551,47 @@ impl VideoLayerer {
             layer.depth = z.max(prev * (1.0 + 1e-6));
             prev = layer.depth;
         }
-        // A slanted layer's plane follows the new depth: refitted over the layer's pixels (a
-        // fronto-parallel layer stays so, as the I-frame chose).
+        // A slanted layer's plane and a mesh layer's grid follow the new depth: refitted over
+        // the layer's pixels (a fronto-parallel layer stays so, as the I-frame chose). A grid
+        // vertex keeps the previous frame's value unless it moved by more than
+        // `GRID_HOLD` in log depth: steadier geometry, and a side stream of mostly zeros.
         let cam = *s.key.camera();
+        let previous = &s.geometries;
         layers
             .par_iter_mut()
             .enumerate()
             .filter(|(_, l)| !l.geometry.is_plane())
             .for_each(|(l, layer)| {
                 let own = |p: usize| owner[p] as usize == l;
+                let bytes = layer.image.as_bytes();
+                let covered = |p: usize| bytes[p * 4 + 3] != 0;
                 let px = LayerDepth {
                     width: w,
                     height: h,
                     depth: &depth,
                     confidence: None,
                     own: &own,
+                    covered: &covered,
                 };
                 let extent = layer.extent().map(|e| e.map(|v| v as usize));
-                let (mode, step) = match &layer.geometry {
-                    cpsl_core::Geometry::Mesh(g) => (GeometryMode::Mesh, g.step),
-                    _ => (GeometryMode::Slanted, 0),
-                };
-                layer.geometry = fit_geometry(mode, &cam, &px, layer.depth, extent, step);
+                if let cpsl_core::Geometry::Mesh(key) = &layer.geometry {
+                    let Some(mut grid) = fit_grid(&cam, &px, key.step, layer.depth) else {
+                        return; // no pixel left: the grid carries over
+                    };
+                    if let Some(cpsl_core::Geometry::Mesh(last)) = previous.get(l) {
+                        if last.inverse_depth.len() == grid.inverse_depth.len() {
+                            for (v, &p) in grid.inverse_depth.iter_mut().zip(&last.inverse_depth) {
+                                if (*v / p).ln().abs() <= GRID_HOLD {
+                                    *v = p;
+                                }
+                            }
+                        }
+                    }
+                    layer.geometry = cpsl_core::Geometry::Mesh(std::sync::Arc::new(grid));
+                } else {
+                    layer.geometry =
+                        fit_geometry(GeometryMode::Slanted, &cam, &px, layer.depth, extent, 0);
+                }
             });
         // The warp blends premultiplied texels alike in every channel, and the refresh only
         // recolours opaque pixels: the layers are premultiplied by construction.
@@ -608,6 +634,7 @@ impl VideoLayerer {
         s.owner = owner.clone();
         s.maps = maps;
         s.depths = set.layers().iter().map(|l| l.depth).collect();
+        s.geometries = set.layers().iter().map(|l| l.geometry.clone()).collect();
         Ok(LayeredFrame {
             index: self.frames as u32,
             refresh: None,

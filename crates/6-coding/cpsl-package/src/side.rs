@@ -12,10 +12,12 @@
 //!                       | track u32 | version 2: plane 3 x f32)
 //!          | version 2: per mesh layer, in layer order, a grid
 //!          | edc_len u32 | compact EDC
-//! grid     step u16 | cols u16 | rows u16 | reserved u16 | len u32 | deflate(planes)
+//! grid     step u16 | cols u16 | rows u16 | reference u16 | len u32 | deflate(planes)
 //! planes   per vertex (row by row) q - prediction as i16, low bytes then high bytes; q is
-//!          round(ln(inverse depth) / GRID_STEP), the prediction the vertex to the left (the
-//!          one above for the first column, 0 for the first vertex)
+//!          round(ln(inverse depth) / GRID_STEP); with reference 0 the prediction is the
+//!          vertex to the left (the one above for the first column, 0 for the first vertex),
+//!          with reference j + 1 the same vertex of layer j's grid in the previous record
+//!          (a mesh of the same size; writers pick the layer with the same track)
 //! compact EDC  layers u16 | step f32 | samples u32 | deflate(planes)
 //! planes   per sample, field by field: y - previous y (u16, wrapping), x - previous x (u16,
 //!          wrapping), front u8, back u8, front offset i8, back offset i8
@@ -27,7 +29,7 @@
 //! `geometry` is 0 for the fronto-parallel plane at `depth` (plane all zero), 1 for the
 //! slanted plane `m` and 2 for a mesh (plane all zero, its grid after the layer table)
 //! ([`cpsl_core::Geometry`]); grids are quantised to [`GRID_STEP`] in log inverse depth
-//! (0.05 % of depth). Version 1 has neither (every layer
+//! (0.1 % of depth). Version 1 has neither (every layer
 //! fronto-parallel, `geometry` reserved as 0). Writers use version 1 when every layer of the
 //! segment is fronto-parallel, so older players still read such segments.
 //!
@@ -44,7 +46,7 @@ pub const SIDE_MAGIC: &[u8; 8] = b"CPSLSIDE";
 /// Newest side-stream version this build reads and writes.
 pub const SIDE_VERSION: u16 = 2;
 /// Quantisation step of a mesh grid's log inverse depth.
-pub const GRID_STEP: f64 = 1.0 / 2048.0;
+pub const GRID_STEP: f64 = 1.0 / 1024.0;
 /// Most frames one segment may hold.
 pub const MAX_SEGMENT_FRAMES: u32 = 100_000;
 /// Most layer streams one segment may hold.
@@ -179,6 +181,7 @@ impl SideStream {
         out.extend_from_slice(&self.height.to_le_bytes());
         let c = crc(&out);
         out.extend_from_slice(&c.to_le_bytes());
+        let mut previous: Option<&SideFrame> = None;
         for f in &self.frames {
             let mut p = Vec::new();
             p.extend_from_slice(&f.index.to_le_bytes());
@@ -206,9 +209,10 @@ impl SideStream {
             }
             for l in &f.layers {
                 if let Geometry::Mesh(g) = &l.geometry {
-                    compact_grid(g, &mut p);
+                    compact_grid(g, reference(l, previous), &mut p);
                 }
             }
+            previous = Some(f);
             let edc = compact_edc(&f.edc);
             p.extend_from_slice(&(edc.len() as u32).to_le_bytes());
             p.extend_from_slice(&edc);
@@ -280,7 +284,8 @@ impl SideStream {
             if u32_at(pos + len) != crc(p) {
                 return Err(bad("checksum mismatch".into()));
             }
-            let frame = Self::decode_frame(p, version, streams, width, height, record)?;
+            let frame =
+                Self::decode_frame(p, version, streams, (width, height), record, out.last())?;
             let expected = start as u64 + record as u64;
             if frame.index as u64 != expected {
                 return Err(bad(format!(
@@ -318,9 +323,9 @@ impl SideStream {
         p: &[u8],
         version: u16,
         streams: u16,
-        width: u32,
-        height: u32,
+        (width, height): (u32, u32),
         record: usize,
+        previous: Option<&SideFrame>,
     ) -> Result<SideFrame, SideError> {
         let bad = |reason: String| SideError::Frame { record, reason };
         let u32_at = |o: usize| u32::from_le_bytes([p[o], p[o + 1], p[o + 2], p[o + 3]]);
@@ -410,7 +415,7 @@ impl SideStream {
         }
         let mut edc_at = edc_at;
         for i in meshes {
-            let (grid, used) = expand_grid(&p[edc_at..], width, height)
+            let (grid, used) = expand_grid(&p[edc_at..], (width, height), previous)
                 .map_err(|e| bad(format!("layer {i}: mesh grid: {e}")))?;
             layers[i].geometry = Geometry::Mesh(std::sync::Arc::new(grid));
             edc_at += used;
@@ -442,32 +447,72 @@ impl SideStream {
     }
 }
 
-/// Appends the compact grid of a mesh layer (see the module documentation).
-fn compact_grid(g: &DepthGrid, out: &mut Vec<u8>) {
-    let q: Vec<i16> = g
-        .inverse_depth
+/// Quantised log inverse depths of a grid.
+fn quantise(g: &DepthGrid) -> Vec<i16> {
+    g.inverse_depth
         .iter()
         .map(|&v| {
             ((v as f64).ln() / GRID_STEP)
                 .round()
                 .clamp(-32768.0, 32767.0) as i16
         })
-        .collect();
+        .collect()
+}
+
+/// The layer of `previous` whose grid predicts `layer`'s: a mesh with the same track and grid
+/// size, as `(index, grid)`.
+fn reference<'a>(
+    layer: &SideLayer,
+    previous: Option<&'a SideFrame>,
+) -> Option<(usize, &'a DepthGrid)> {
+    let (Geometry::Mesh(g), Some(track)) = (&layer.geometry, layer.track) else {
+        return None;
+    };
+    previous?
+        .layers
+        .iter()
+        .enumerate()
+        .find_map(|(j, l)| match &l.geometry {
+            Geometry::Mesh(r)
+                if l.track == Some(track)
+                    && (r.step, r.cols, r.rows) == (g.step, g.cols, g.rows) =>
+            {
+                Some((j, &**r))
+            }
+            _ => None,
+        })
+}
+
+/// The prediction of vertex `k` (of a grid `cols` wide): from the reference grid's `k`th value
+/// or, without one, from the vertex to the left (above for the first column).
+#[inline]
+fn predict(q: &[i16], reference: Option<&[i16]>, k: usize, cols: usize) -> i16 {
+    match (reference, k % cols, k / cols) {
+        (Some(r), _, _) => r[k],
+        (None, 0, 0) => 0,
+        (None, 0, _) => q[k - cols],
+        (None, _, _) => q[k - 1],
+    }
+}
+
+/// Appends the compact grid of a mesh layer, predicted from `reference` where given (see the
+/// module documentation).
+fn compact_grid(g: &DepthGrid, reference: Option<(usize, &DepthGrid)>, out: &mut Vec<u8>) {
+    let q = quantise(g);
+    let r = reference.map(|(_, r)| quantise(r));
     let n = q.len();
     let cols = g.cols as usize;
     let mut planes = vec![0u8; 2 * n];
     for (k, &v) in q.iter().enumerate() {
-        let pred = match (k % cols, k / cols) {
-            (0, 0) => 0,
-            (0, _) => q[k - cols],
-            _ => q[k - 1],
-        };
-        let [lo, hi] = v.wrapping_sub(pred).to_le_bytes();
+        let [lo, hi] = v
+            .wrapping_sub(predict(&q, r.as_deref(), k, cols))
+            .to_le_bytes();
         planes[k] = lo;
         planes[n + k] = hi;
     }
     let packed = miniz_oxide::deflate::compress_to_vec(&planes, 6);
-    for v in [g.step as u16, g.cols as u16, g.rows as u16, 0] {
+    let index = reference.map_or(0, |(j, _)| j as u16 + 1);
+    for v in [g.step as u16, g.cols as u16, g.rows as u16, index] {
         out.extend_from_slice(&v.to_le_bytes());
     }
     out.extend_from_slice(&(packed.len() as u32).to_le_bytes());
@@ -482,19 +527,24 @@ pub fn geometry_bytes(g: &Geometry) -> usize {
         Geometry::Slanted(_) => 12,
         Geometry::Mesh(grid) => {
             let mut out = Vec::new();
-            compact_grid(grid, &mut out);
+            compact_grid(grid, None, &mut out);
             out.len()
         }
     }
 }
 
-/// Reads a compact grid for a `width x height` frame; returns it and the bytes it took.
-fn expand_grid(b: &[u8], width: u32, height: u32) -> Result<(DepthGrid, usize), String> {
+/// Reads a compact grid for a `width x height` frame whose previous record is `previous`;
+/// returns it and the bytes it took.
+fn expand_grid(
+    b: &[u8],
+    (width, height): (u32, u32),
+    previous: Option<&SideFrame>,
+) -> Result<(DepthGrid, usize), String> {
     if b.len() < 12 {
         return Err("truncated header".into());
     }
     let u16_at = |o: usize| u16::from_le_bytes([b[o], b[o + 1]]) as u32;
-    let (step, cols, rows) = (u16_at(0), u16_at(2), u16_at(4));
+    let (step, cols, rows, index) = (u16_at(0), u16_at(2), u16_at(4), u16_at(6));
     let len = u32::from_le_bytes([b[8], b[9], b[10], b[11]]) as usize;
     if step == 0 || step > DepthGrid::MAX_STEP {
         return Err(format!("step {step}"));
@@ -505,6 +555,21 @@ fn expand_grid(b: &[u8], width: u32, height: u32) -> Result<(DepthGrid, usize), 
             DepthGrid::dims(width, height, step)
         ));
     }
+    let reference = match index {
+        0 => None,
+        j => match previous
+            .and_then(|f| f.layers.get(j as usize - 1))
+            .map(|l| &l.geometry)
+        {
+            Some(Geometry::Mesh(r)) if (r.cols, r.rows) == (cols, rows) => Some(quantise(r)),
+            _ => {
+                return Err(format!(
+                "predicted from layer {} of the previous record, which has no grid of this size",
+                j - 1
+            ))
+            }
+        },
+    };
     if b.len() - 12 < len {
         return Err(format!("{len} bytes of values, {} left", b.len() - 12));
     }
@@ -517,12 +582,8 @@ fn expand_grid(b: &[u8], width: u32, height: u32) -> Result<(DepthGrid, usize), 
     let c = cols as usize;
     let mut q = vec![0i16; n];
     for k in 0..n {
-        let pred = match (k % c, k / c) {
-            (0, 0) => 0,
-            (0, _) => q[k - c],
-            _ => q[k - 1],
-        };
-        q[k] = pred.wrapping_add(i16::from_le_bytes([planes[k], planes[n + k]]));
+        q[k] = predict(&q, reference.as_deref(), k, c)
+            .wrapping_add(i16::from_le_bytes([planes[k], planes[n + k]]));
     }
     let grid = DepthGrid {
         step,

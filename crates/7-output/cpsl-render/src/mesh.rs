@@ -64,32 +64,11 @@ pub(crate) struct MeshWarp {
 /// Whether the vertex positions are far enough from overflow for the integer span maths.
 const FAR: f64 = (1u64 << 30) as f64;
 
-/// Which cells of `grid` (over an image of `image`'s size) hold a texel with alpha above zero,
-/// one texel wider on each side for the bilinear taps; cell `(ci, cj)` at `cj * (cols - 1) + ci`.
+/// Which cells of `grid` hold a texel of `image` with alpha above zero, one texel wider on
+/// each side for the bilinear taps ([`DepthGrid::occupied`]).
 pub fn occupied_cells(image: &PremulImage, grid: &DepthGrid) -> Vec<bool> {
-    let (w, h) = (image.width(), image.height());
-    let (cw, ch) = (grid.cols - 1, grid.rows - 1);
-    let mut cells = vec![false; (cw * ch) as usize];
     let bytes = image.as_bytes();
-    let s = grid.step;
-    for y in 0..h {
-        // Texel rows reach the cells whose span, one texel wider, holds them.
-        let (j0, j1) = ((y.saturating_sub(1) / s), ((y + 1) / s).min(ch - 1));
-        let row = &bytes[(y * w * 4) as usize..((y + 1) * w * 4) as usize];
-        for (x, p) in row.chunks_exact(4).enumerate() {
-            if p[3] == 0 {
-                continue;
-            }
-            let x = x as u32;
-            let (i0, i1) = ((x.saturating_sub(1) / s), ((x + 1) / s).min(cw - 1));
-            for j in j0..=j1 {
-                for i in i0..=i1 {
-                    cells[(j * cw + i) as usize] = true;
-                }
-            }
-        }
-    }
-    cells
+    grid.occupied(image.width(), image.height(), |p| bytes[p * 4 + 3] != 0)
 }
 
 /// One triangle of a mesh layer as a viewer sees it.

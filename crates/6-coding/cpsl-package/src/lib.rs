@@ -30,8 +30,8 @@ pub use manifest::{
     PackageManifestError, Segment, StreamEntry, MANIFEST_FILE, PACKAGE_FORMAT, PACKAGE_VERSION,
 };
 pub use side::{
-    geometry_bytes, summarise_edc, SideError, SideFrame, SideLayer, SideStream, MAX_SEGMENT_FRAMES,
-    MAX_STREAMS, SIDE_MAGIC, SIDE_VERSION,
+    geometry_bytes, summarise_edc, SideError, SideFrame, SideLayer, SideStream, GRID_STEP,
+    MAX_SEGMENT_FRAMES, MAX_STREAMS, SIDE_MAGIC, SIDE_VERSION,
 };
 pub use variants::{VariantSet, VARIANTS_FILE, VARIANTS_FORMAT};
 

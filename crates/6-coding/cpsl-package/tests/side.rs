@@ -64,6 +64,65 @@ fn fronto_parallel_segments_stay_version_1() {
     assert_eq!(version(side(true)), 2);
 }
 
+/// A mesh grid on the side stream's quantisation lattice (as every decoded grid is).
+fn grid(w: u32, h: u32, step: u32, shift: i32) -> std::sync::Arc<cpsl_core::DepthGrid> {
+    let (cols, rows) = cpsl_core::DepthGrid::dims(w, h, step);
+    std::sync::Arc::new(cpsl_core::DepthGrid {
+        step,
+        cols,
+        rows,
+        inverse_depth: (0..cols * rows)
+            .map(|k| {
+                let q = -700 + (k % cols) as i32 * 3 + (k / cols) as i32 + shift;
+                (q as f64 * GRID_STEP).exp() as f32
+            })
+            .collect(),
+    })
+}
+
+#[test]
+fn mesh_grids_round_trip_predicted_from_the_previous_record() {
+    let mut s = side(true);
+    for (i, f) in s.frames.iter_mut().enumerate() {
+        // Frame 2's grid differs from frame 1's in one place only.
+        let g = grid(64, 48, 8, (i == 0) as i32);
+        let g = if i == 2 {
+            let mut v = (*g).clone();
+            v.inverse_depth[5] *= 1.5f32;
+            v.inverse_depth[5] = ((v.inverse_depth[5] as f64).ln() / GRID_STEP).round() as f32;
+            v.inverse_depth[5] = (v.inverse_depth[5] as f64 * GRID_STEP).exp() as f32;
+            std::sync::Arc::new(v)
+        } else {
+            g
+        };
+        f.layers[0].geometry = Geometry::Mesh(g);
+    }
+    round_trip_and_damage(s.clone());
+    // Predicted from the previous record, the P-frames' grids cost less than coded alone.
+    let alone: usize = s
+        .frames
+        .iter()
+        .map(|f| {
+            SideStream {
+                frames: vec![f.clone()],
+                ..s.clone()
+            }
+            .encode()
+            .len()
+        })
+        .sum();
+    assert!(
+        s.encode().len() + 2 * 40 < alone,
+        "{} vs {alone}",
+        s.encode().len()
+    );
+    // A grid of the wrong size for the frame is an error naming the layer.
+    let mut bad = side(true);
+    bad.frames[0].layers[0].geometry = Geometry::Mesh(grid(64, 40, 8, 0));
+    let e = SideStream::decode(&bad.encode()).unwrap_err().to_string();
+    assert!(e.contains("layer 0: mesh grid"), "{e}");
+}
+
 #[test]
 fn non_finite_planes_are_rejected() {
     let mut s = side(true);

@@ -8,6 +8,7 @@ use cpsl_core::Pose;
 use cpsl_eval::bench::{
     bench_layer, bench_play, bench_render, BenchCoverage, LayerBench, PlayBench, RenderBench,
 };
+use cpsl_layering::GeometryMode;
 use std::path::PathBuf;
 
 /// Benchmarks.
@@ -94,6 +95,10 @@ pub struct BenchRenderArgs {
     /// submission to completion) and check its image against the CPU's.
     #[arg(long)]
     pub gpu: bool,
+    /// Surfaces of the synthetic layers: `plane` (fronto-parallel), `slanted` or `mesh` (a
+    /// grid at the layering's default step for the frame size).
+    #[arg(long, default_value = "plane", conflicts_with = "layerset")]
+    pub geometry: GeometryMode,
     /// Print JSON instead of a table.
     #[arg(long)]
     pub json: bool,
@@ -193,6 +198,7 @@ fn render(a: BenchRenderArgs) -> Result<()> {
         pose: a.pose,
         opencv: a.opencv,
         gpu: a.gpu,
+        geometry: a.geometry,
     };
     let report = bench_render(&opts, &Bars::default())?;
     if let Some(path) = &a.save {

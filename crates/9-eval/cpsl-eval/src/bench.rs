@@ -5,6 +5,7 @@
 use crate::error::{Context, EvalError};
 use crate::report::today;
 use cpsl_core::{Homography, LayerSet, Pose, PremulImage, Progress, ProgressEvent};
+use cpsl_layering::GeometryMode;
 use cpsl_pipeline::image::{layer_image, InstanceMode};
 use cpsl_pipeline::sources::open_depth_model;
 use cpsl_render::{CpuRenderer, DpsConfig, PreparedLayers, Renderer};
@@ -426,6 +427,10 @@ pub struct RenderBench {
     pub opencv: Option<PathBuf>,
     /// Also time the GPU renderer (a warning and the CPU only where there is none).
     pub gpu: bool,
+    /// The synthetic layers' surfaces: fronto-parallel, slanted
+    /// ([`cpsl_synth::layers::slanted`]) or meshes at the default step for the frame size
+    /// ([`cpsl_synth::layers::meshed`]).
+    pub geometry: GeometryMode,
 }
 
 /// Times the CPU reference renderer (and, when asked, the GPU renderer and OpenCV) on
@@ -434,6 +439,9 @@ pub fn bench_render(a: &RenderBench, progress: &dyn Progress) -> Result<RenderRe
     if a.frames < 1 {
         return invalid("--frames must be at least 1");
     }
+    if a.opencv.is_some() && a.geometry != GeometryMode::Plane {
+        return invalid("--opencv warps fronto-parallel planes only: use --geometry plane");
+    }
     let sets: Vec<(&'static str, LayerSet)> = match (&a.layerset, a.coverage) {
         (Some(dir), _) => vec![(
             "layerset",
@@ -441,7 +449,17 @@ pub fn bench_render(a: &RenderBench, progress: &dyn Progress) -> Result<RenderRe
                 .context_with(|| format!("reading layer set {}", dir.display()))?,
         )],
         (None, c) => {
-            let make = |cov| synthetic_layer_set(a.width, a.height, a.layers as usize, cov, 7);
+            let make = |cov| {
+                let set = synthetic_layer_set(a.width, a.height, a.layers as usize, cov, 7);
+                match a.geometry {
+                    GeometryMode::Plane => set,
+                    GeometryMode::Slanted => cpsl_synth::layers::slanted(set),
+                    GeometryMode::Mesh => cpsl_synth::layers::meshed(
+                        set,
+                        cpsl_layering::geometry::auto_mesh_step(a.width, a.height),
+                    ),
+                }
+            };
             let mut v = Vec::new();
             if c != BenchCoverage::Dense {
                 v.push(("typical", make(Coverage::Typical)));

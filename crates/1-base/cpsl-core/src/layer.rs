@@ -98,6 +98,58 @@ impl Layer {
         b
     }
 
+    /// A plane for a mesh layer: the slanted plane that best fits its grid over the cells its
+    /// pixels occupy, or the fronto-parallel plane where that plane would not keep the layer's
+    /// extent in front of the camera. Other layers keep their geometry.
+    pub fn flattened(&self, cam: &Camera) -> Geometry {
+        let Geometry::Mesh(g) = &self.geometry else {
+            return self.geometry.clone();
+        };
+        let bytes = self.image.as_bytes();
+        let occupied = g.occupied(cam.width, cam.height, |p| bytes[p * 4 + 3] != 0);
+        let cw = g.cols - 1;
+        let mut samples = Vec::new();
+        for j in 0..g.rows {
+            for i in 0..g.cols {
+                let used = [(i, j), (i.wrapping_sub(1), j), (i, j.wrapping_sub(1))]
+                    .iter()
+                    .chain(&[(i.wrapping_sub(1), j.wrapping_sub(1))])
+                    .any(|&(ci, cj)| {
+                        ci < cw && cj < g.rows - 1 && occupied[(cj * cw + ci) as usize]
+                    });
+                if used {
+                    let (u, v) = g.vertex(i, j, cam.width, cam.height);
+                    samples.push([
+                        (u - cam.cx) / cam.fx,
+                        (v - cam.cy) / cam.fy,
+                        g.at(i, j),
+                        1.0,
+                    ]);
+                }
+            }
+        }
+        let Some(m) = crate::geometry::fit_plane(&samples, 3) else {
+            return Geometry::Plane;
+        };
+        let plane = Geometry::Slanted(m);
+        let in_front = self.extent().is_none_or(|[x0, y0, x1, y1]| {
+            let (x0, y0, x1, y1) = (
+                x0 as f64 - 1.0,
+                y0 as f64 - 1.0,
+                x1 as f64 + 1.0,
+                y1 as f64 + 1.0,
+            );
+            [(x0, y0), (x1, y0), (x0, y1), (x1, y1)]
+                .iter()
+                .all(|&(u, v)| plane.inverse_depth_at(self.depth, cam, u, v) > 0.0)
+        });
+        if in_front {
+            plane
+        } else {
+            Geometry::Plane
+        }
+    }
+
     /// Makes transparent every pixel where the layer's surface is not in front of the
     /// reference camera with a pixel to spare, so that the layer passes the check of
     /// [`LayerSet::new`]. Lossy coding spreads faint alpha beyond a layer's extent; beyond a

@@ -181,7 +181,7 @@ fn oversized_manifest() {
     let p = valid(d.path());
     let m = p.join("manifest.json");
     let mut s = std::fs::read_to_string(&m).unwrap();
-    s.push_str(&" ".repeat(2 << 20));
+    s.push_str(&" ".repeat(17 << 20));
     std::fs::write(&m, s).unwrap();
     assert!(matches!(
         rejects(&p, &["manifest.json", "limit"]),

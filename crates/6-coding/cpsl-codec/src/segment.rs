@@ -215,6 +215,37 @@ struct Choice {
     encodes: usize,
 }
 
+/// Under a budget, the share of a segment's bits its side stream may take before mesh layers
+/// give up their grids.
+const GEOMETRY_SHARE: f64 = 0.1;
+
+/// Encodes `side`, first replacing mesh layers' grids by planes ([`cpsl_core::Layer::flattened`])
+/// while the stream is above `max_bits`: the stream whose grids cost the most first. Geometry
+/// competes with colour for the budget; a grid that would starve the layers' pictures goes.
+fn geometry_within(side: &mut SideStream, frames: &[LayeredFrame], max_bits: f64) -> Vec<u8> {
+    let mut bytes = side.encode();
+    while bytes.len() as f64 * 8.0 > max_bits {
+        let mut cost = std::collections::BTreeMap::<u8, usize>::new();
+        for l in side.frames.iter().flat_map(|f| &f.layers) {
+            if matches!(l.geometry, cpsl_core::Geometry::Mesh(_)) {
+                *cost.entry(l.stream).or_default() += cpsl_package::geometry_bytes(&l.geometry);
+            }
+        }
+        let Some((&worst, _)) = cost.iter().max_by_key(|(_, &c)| c) else {
+            break;
+        };
+        for (sf, f) in side.frames.iter_mut().zip(frames) {
+            for (l, layer) in sf.layers.iter_mut().zip(f.set.layers()) {
+                if l.stream == worst {
+                    l.geometry = layer.flattened(f.set.camera());
+                }
+            }
+        }
+        bytes = side.encode();
+    }
+    bytes
+}
+
 /// Codes one segment into `root/seg_NNNNNN/` (layer streams and side stream) and returns its
 /// manifest entry. The first frame must be an I-frame, the others P-frames of the same layers.
 pub fn encode_segment(
@@ -235,9 +266,15 @@ pub fn encode_segment(
         path: dir.clone(),
         source,
     })?;
-    let side = side_stream(number, frames, &map, (w, h));
+    let seconds = frames.len() as f64 / opts.fps;
+    let mut side = side_stream(number, frames, &map, (w, h));
+    let side_bytes = match opts.rate {
+        RateControl::Budget(bps) => {
+            geometry_within(&mut side, frames, GEOMETRY_SHARE * bps * seconds)
+        }
+        RateControl::Quality(_) => side.encode(),
+    };
     let side_rel = format!("{dir_name}/side.bin");
-    let side_bytes = side.encode();
     let side_path = root.join(&side_rel);
     std::fs::write(&side_path, &side_bytes).map_err(|source| CodecError::Io {
         path: side_path,
@@ -273,7 +310,6 @@ pub fn encode_segment(
     let encode_one = |k: usize, r: usize, q: f32, path: &Path| {
         encode_stream(path, &pics(k, r), opts.codec, q, opts.fps)
     };
-    let seconds = frames.len() as f64 / opts.fps;
     let (q_min, q_max, _) = quality_range(opts.codec);
     let fit = |which: &[usize]| {
         trial_models(

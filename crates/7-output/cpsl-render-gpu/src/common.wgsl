@@ -13,6 +13,7 @@ struct Params {
 @group(0) @binding(0) var layers: texture_2d_array<f32>;
 @group(0) @binding(1) var<uniform> P: Params;
 @group(0) @binding(3) var maps: texture_2d_array<f32>;
+@group(0) @binding(4) var tri_h: texture_2d<f32>;
 
 @vertex
 fn vs(@builtin(vertex_index) i: u32) -> @builtin(position) vec4<f32> {
@@ -36,11 +37,24 @@ fn texel(k: i32, t: vec2<i32>) -> vec4<f32> {
 fn warp(k: i32, px: vec2<f32>) -> vec3<f32> {
     let slice = P.mesh[k / 4][k % 4];
     if (slice >= 0) {
-        let m = textureLoad(maps, vec2<i32>(px), slice, 0);
-        if (m.z <= 0.0) {
+        // The pixel's triangle (number + 1 in four bytes, 0 for none) and its homography.
+        let b = vec4<u32>(round(textureLoad(maps, vec2<i32>(px), slice, 0) * 255.0));
+        let id = b.x | (b.y << 8u) | (b.z << 16u) | (b.w << 24u);
+        if (id == 0u) {
             return vec3<f32>(0.0, 0.0, -1.0);
         }
-        return vec3<f32>(m.xy, 1.0);
+        let t = i32(id - 1u);
+        let at = vec2<i32>((t % 1024) * 3, t / 1024);
+        let p = vec3<f32>(px, 1.0);
+        let hm = vec3<f32>(
+            dot(textureLoad(tri_h, at, 0).xyz, p),
+            dot(textureLoad(tri_h, at + vec2<i32>(1, 0), 0).xyz, p),
+            dot(textureLoad(tri_h, at + vec2<i32>(2, 0), 0).xyz, p),
+        );
+        if (hm.z <= 0.0) {
+            return vec3<f32>(0.0, 0.0, -1.0);
+        }
+        return vec3<f32>(hm.xy / hm.z, 1.0);
     }
     let h = P.h[k] * vec3<f32>(px, 1.0);
     if (h.z <= 0.0) {

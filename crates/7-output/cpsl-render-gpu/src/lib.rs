@@ -139,6 +139,7 @@ impl GpuRenderer {
                 ),
                 entry(2, tex(wgpu::TextureViewDimension::D2)),
                 entry(3, tex(wgpu::TextureViewDimension::D2Array)),
+                entry(4, tex(wgpu::TextureViewDimension::D2)),
             ],
         });
         let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
@@ -397,8 +398,9 @@ impl GpuRenderer {
         // Mesh layers' source maps, drawn first.
         let meshes: Vec<&mesh::MeshLayer> = layers.meshes.iter().flatten().collect();
         let maps = mesh::maps(&self.device, target, meshes.len());
-        mesh::draw_maps(
+        let homographies = mesh::draw_maps(
             &self.device,
+            &self.queue,
             encoder,
             &self.mesh,
             &maps,
@@ -411,6 +413,7 @@ impl GpuRenderer {
             dimension: Some(wgpu::TextureViewDimension::D2Array),
             ..Default::default()
         });
+        let homographies = homographies.create_view(&Default::default());
         let first_view = first.create_view(&Default::default());
         let bind = |image: &wgpu::TextureView| {
             self.device.create_bind_group(&wgpu::BindGroupDescriptor {
@@ -432,6 +435,10 @@ impl GpuRenderer {
                     wgpu::BindGroupEntry {
                         binding: 3,
                         resource: wgpu::BindingResource::TextureView(&maps),
+                    },
+                    wgpu::BindGroupEntry {
+                        binding: 4,
+                        resource: wgpu::BindingResource::TextureView(&homographies),
                     },
                 ],
             })

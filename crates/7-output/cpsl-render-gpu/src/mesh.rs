@@ -1,15 +1,19 @@
 //! Mesh layers on the GPU: per view, the triangles both renderers draw
-//! ([`cpsl_render::mesh::visible_triangles`]) are rasterised into one slice per mesh layer of
-//! a source map (`mesh.wgsl`); the composite and strip passes read it for those layers.
+//! ([`cpsl_render::mesh::visible_triangles`]) are rasterised by number into one slice per
+//! mesh layer of a triangle map (`mesh.wgsl`; RGBA8, renderable everywhere), and their
+//! homographies go into a float texture; the composite and strip passes apply, for those
+//! layers, the homography of the pixel's triangle.
 
 use cpsl_core::{Camera, DepthGrid, Pose};
 use std::sync::Arc;
 
-/// The source-map format: source x, y, coverage flag.
-pub(crate) const MAP_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba32Float;
+/// The triangle-map format: triangle number plus one in four bytes.
+pub(crate) const MAP_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8Unorm;
 const DEPTH_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Depth32Float;
-/// Bytes per vertex: clip position (4 x f32) and source position (2 x f32).
-const VERTEX_BYTES: u64 = 24;
+/// Bytes per vertex: clip position (4 x f32) and triangle number (u32).
+const VERTEX_BYTES: u64 = 20;
+/// Triangles per row of the homography texture (3 texels each).
+pub(crate) const TRIS_PER_ROW: u32 = 1024;
 
 /// A mesh layer as uploaded: its grid and occupied cells.
 pub(crate) struct MeshLayer {
@@ -38,7 +42,7 @@ pub(crate) fn pipeline(device: &wgpu::Device) -> wgpu::RenderPipeline {
             buffers: &[Some(wgpu::VertexBufferLayout {
                 array_stride: VERTEX_BYTES,
                 step_mode: wgpu::VertexStepMode::Vertex,
-                attributes: &wgpu::vertex_attr_array![0 => Float32x4, 1 => Float32x2],
+                attributes: &wgpu::vertex_attr_array![0 => Float32x4, 1 => Uint32],
             })],
         },
         fragment: Some(wgpu::FragmentState {
@@ -61,28 +65,56 @@ pub(crate) fn pipeline(device: &wgpu::Device) -> wgpu::RenderPipeline {
     })
 }
 
-/// The vertices of one mesh layer's visible triangles for the viewer `target` at `pose`.
-fn vertices(layer: &MeshLayer, cam: &Camera, target: &Camera, pose: &Pose) -> Vec<f32> {
-    let tris = cpsl_render::mesh::visible_triangles(&layer.grid, &layer.cells, cam, target, pose);
+/// The vertices (clip position and triangle number from `first` on) of one mesh layer's
+/// visible triangles for the viewer `target` at `pose`, and each triangle's inverse
+/// homography (rows padded to 4 floats).
+fn triangles(
+    layer: &MeshLayer,
+    cam: &Camera,
+    target: &Camera,
+    pose: &Pose,
+    first: u32,
+) -> (Vec<u8>, Vec<f32>) {
+    let tris: Vec<_> =
+        cpsl_render::mesh::visible_triangles(&layer.grid, &layer.cells, cam, target, pose)
+            .into_iter()
+            .filter_map(|t| {
+                let (ci, cj, k) = t.cell;
+                let h = layer
+                    .grid
+                    .triangle_plane(cam, ci, cj, k)
+                    .and_then(|m| cpsl_core::geometry::plane_inverse(m, cam, target, pose))
+                    .filter(|h| h.0.is_finite())?;
+                Some((t, h))
+            })
+            .collect();
     // Depth 1 - near / z in (0, 1), affine in screen space as the rasteriser interpolates it.
     let near = tris
         .iter()
-        .flat_map(|t| t.target.map(|v| v.2))
+        .flat_map(|(t, _)| t.target.map(|v| v.2))
         .fold(f64::MAX, f64::min)
         * 0.999;
     let (w, h) = (target.width as f64, target.height as f64);
-    let mut out = Vec::with_capacity(tris.len() * 18);
-    for t in &tris {
-        for (&(x, y, z), &(u, v)) in t.target.iter().zip(&t.source) {
+    let mut verts = Vec::with_capacity(tris.len() * 3 * VERTEX_BYTES as usize);
+    let mut homs = Vec::with_capacity(tris.len() * 12);
+    for (n, (t, hom)) in tris.iter().enumerate() {
+        for &(x, y, z) in &t.target {
             // Pixel centres are integers; the framebuffer's are at + 0.5.
             let (nx, ny) = ((x + 0.5) / w * 2.0 - 1.0, 1.0 - (y + 0.5) / h * 2.0);
-            out.extend([nx * z, ny * z, z - near, z, u, v].map(|c| c as f32));
+            for c in [nx * z, ny * z, z - near, z] {
+                verts.extend_from_slice(&(c as f32).to_le_bytes());
+            }
+            verts.extend_from_slice(&(first + n as u32).to_le_bytes());
+        }
+        for row in hom.0 .0 {
+            homs.extend(row.map(|v| v as f32));
+            homs.push(0.0);
         }
     }
-    out
+    (verts, homs)
 }
 
-/// A texture array of `n` source maps of `target`'s size (at least one slice).
+/// A texture array of `n` triangle maps of `target`'s size (at least one slice).
 pub(crate) fn maps(device: &wgpu::Device, target: &Camera, n: usize) -> wgpu::Texture {
     device.create_texture(&wgpu::TextureDescriptor {
         label: Some("cpsl mesh maps"),
@@ -100,10 +132,48 @@ pub(crate) fn maps(device: &wgpu::Device, target: &Camera, n: usize) -> wgpu::Te
     })
 }
 
-/// Records the passes that fill slice `i` of `maps` with mesh layer `meshes[i]`'s source map.
+/// The triangles' homographies as a float texture (3 texels per triangle, [`TRIS_PER_ROW`]
+/// triangles per row; at least one row).
+fn homography_texture(device: &wgpu::Device, queue: &wgpu::Queue, homs: &[f32]) -> wgpu::Texture {
+    let per_row = (TRIS_PER_ROW * 12) as usize;
+    let rows = homs.len().div_ceil(per_row).max(1);
+    let mut data = homs.to_vec();
+    data.resize(rows * per_row, 0.0);
+    let size = wgpu::Extent3d {
+        width: 3 * TRIS_PER_ROW,
+        height: rows as u32,
+        depth_or_array_layers: 1,
+    };
+    let texture = device.create_texture(&wgpu::TextureDescriptor {
+        label: Some("cpsl mesh homographies"),
+        size,
+        mip_level_count: 1,
+        sample_count: 1,
+        dimension: wgpu::TextureDimension::D2,
+        format: wgpu::TextureFormat::Rgba32Float,
+        usage: wgpu::TextureUsages::TEXTURE_BINDING | wgpu::TextureUsages::COPY_DST,
+        view_formats: &[],
+    });
+    let bytes: Vec<u8> = data.iter().flat_map(|v| v.to_le_bytes()).collect();
+    queue.write_texture(
+        texture.as_image_copy(),
+        &bytes,
+        wgpu::TexelCopyBufferLayout {
+            offset: 0,
+            bytes_per_row: Some(3 * TRIS_PER_ROW * 16),
+            rows_per_image: Some(rows as u32),
+        },
+        size,
+    );
+    texture
+}
+
+/// Records the passes that fill slice `i` of `maps` with mesh layer `meshes[i]`'s triangle
+/// map, and returns the texture of the triangles' homographies.
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn draw_maps(
     device: &wgpu::Device,
+    queue: &wgpu::Queue,
     encoder: &mut wgpu::CommandEncoder,
     pipeline: &wgpu::RenderPipeline,
     maps: &wgpu::Texture,
@@ -111,7 +181,7 @@ pub(crate) fn draw_maps(
     cam: &Camera,
     target: &Camera,
     pose: &Pose,
-) {
+) -> wgpu::Texture {
     use wgpu::util::DeviceExt;
     let depth = device.create_texture(&wgpu::TextureDescriptor {
         label: Some("cpsl mesh depth"),
@@ -128,13 +198,14 @@ pub(crate) fn draw_maps(
         view_formats: &[],
     });
     let depth_view = depth.create_view(&Default::default());
+    let mut homs = Vec::new();
     for (i, layer) in meshes.iter().enumerate() {
-        let data = vertices(layer, cam, target, pose);
-        let buffer = (!data.is_empty()).then(|| {
-            let bytes: Vec<u8> = data.iter().flat_map(|v| v.to_le_bytes()).collect();
+        let (verts, h) = triangles(layer, cam, target, pose, (homs.len() / 12) as u32);
+        homs.extend(h);
+        let buffer = (!verts.is_empty()).then(|| {
             device.create_buffer_init(&wgpu::util::BufferInitDescriptor {
                 label: Some("cpsl mesh vertices"),
-                contents: &bytes,
+                contents: &verts,
                 usage: wgpu::BufferUsages::VERTEX,
             })
         });
@@ -170,7 +241,8 @@ pub(crate) fn draw_maps(
         if let Some(buffer) = &buffer {
             pass.set_pipeline(pipeline);
             pass.set_vertex_buffer(0, buffer.slice(..));
-            pass.draw(0..(data.len() / 6) as u32, 0..1);
+            pass.draw(0..(verts.len() / VERTEX_BYTES as usize) as u32, 0..1);
         }
     }
+    homography_texture(device, queue, &homs)
 }

@@ -48,10 +48,13 @@ try {
   const clip = join(work, "clip");
   run(["encode", join(clip, "frames"), "--depth-frames", join(clip, "depth"), "--camera", join(clip, "camera.json"),
        "--fps", "30", "--gop", "8", "--variants", "150k,1M", "-o", join(work, "set")]);
-  // The same clip coded with VP9 and AV1 (the demuxer's other configuration records).
+  // The same clip coded with VP9 and AV1 (the demuxer's other configuration records), and with
+  // mesh layers (their grids in the side stream).
   for (const codec of ["vp9", "av1"])
     run(["encode", join(clip, "frames"), "--depth-frames", join(clip, "depth"), "--camera", join(clip, "camera.json"),
          "--fps", "30", "--codec", codec, "--quality", "30", "-o", join(work, `${codec}.cpsl`)]);
+  run(["encode", join(clip, "frames"), "--depth-frames", join(clip, "depth"), "--camera", join(clip, "camera.json"),
+       "--fps", "30", "--geometry", "mesh", "--quality", "30", "-o", join(work, "mesh.cpsl")]);
   server = await startServer(bin, work);
   browser = await launchChromium();
   const page = await browser.newPage({ viewport: { width: 800, height: 600 }, deviceScaleFactor: 1 });
@@ -92,7 +95,7 @@ try {
         `screenshot ${s.psnr.toFixed(2)} dB (max diff ${s.max}); need ${MIN_PSNR} / ${MIN_SCREENSHOT_PSNR} dB${strip}`,
     );
   }
-  for (const codec of ["vp9", "av1"]) {
+  for (const codec of ["vp9", "av1", "mesh"]) {
     const ref = join(work, `ref_${codec}.png`);
     const pose = "0.1,0,0,0,2,0";
     run(["render", join(work, `${codec}.cpsl`), "--frame", "5", "--pose", pose, "-o", ref]);
@@ -168,4 +171,4 @@ if (failures) {
   console.error(`${failures} of ${cases.length} player renders differ from the CPU reference`);
   process.exit(1);
 }
-console.log(`browser player matches the CPU reference on ${cases.length + 4} renders (H.264, VP9, AV1; downscaled streams) and adapts between variants; controls work`);
+console.log(`browser player matches the CPU reference on ${cases.length + 5} renders (H.264, VP9, AV1; downscaled streams; mesh layers) and adapts between variants; controls work`);

@@ -45,8 +45,9 @@ pub struct DemoArgs {
     #[arg(long, default_value_t = 6, value_parser = clap::value_parser!(u32).range(2..=16))]
     pub layers: u32,
     /// Layer surfaces: `plane` (the paper's fronto-parallel planes), `slanted` (a plane fitted
-    /// to each layer's depth where it fits clearly better) or `mesh` (a depth mesh or a slanted
-    /// plane where either fits clearly better; the default).
+    /// to each layer's depth where it fits clearly better; the default for video) or `mesh` (a
+    /// depth mesh or a slanted plane where either fits clearly better; the default for single
+    /// images). Overrides the configuration file's.
     #[arg(long)]
     pub geometry: Option<GeometryMode>,
     /// Layering configuration as JSON (as for `cpsl layer --config`).
@@ -278,7 +279,11 @@ fn clip(a: &DemoArgs, scene: &Scene, bars: &Bars) -> Result<()> {
         video: VideoJob {
             input: frames_dir.clone(),
             camera: CameraChoice::File(camera_json),
-            layering: layering_config(a.config.as_deref(), a.layers, a.geometry)?,
+            layering: layering_config(
+                a.config.as_deref(),
+                a.layers,
+                Some(a.geometry.unwrap_or(GeometryMode::VIDEO_DEFAULT)),
+            )?,
             gop: GopConfig::default(),
             motion: MotionSource::Auto,
             depth_every_frame: false,

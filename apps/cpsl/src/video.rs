@@ -79,8 +79,9 @@ pub struct VideoLayeringArgs {
     #[arg(long, default_value_t = 6, value_parser = clap::value_parser!(u32).range(2..=16))]
     pub layers: u32,
     /// Layer surfaces: `plane` (the paper's fronto-parallel planes), `slanted` (a plane fitted
-    /// to each layer's depth where it fits clearly better) or `mesh` (a depth mesh or a slanted
-    /// plane where either fits clearly better; the default).
+    /// to each layer's depth where it fits clearly better; the default for video) or `mesh` (a
+    /// depth mesh or a slanted plane where either fits clearly better; the default for single
+    /// images). Overrides the configuration file's.
     #[arg(long)]
     pub geometry: Option<GeometryMode>,
     /// Depth model: `fastdepth` (default) or an .onnx file described by `<model>.json`.
@@ -125,7 +126,11 @@ impl VideoLayeringArgs {
         let job = VideoJob {
             input: input.to_path_buf(),
             camera: self.camera.choice(),
-            layering: layering_config(self.config.as_deref(), self.layers, self.geometry)?,
+            layering: layering_config(
+                self.config.as_deref(),
+                self.layers,
+                Some(self.geometry.unwrap_or(GeometryMode::VIDEO_DEFAULT)),
+            )?,
             gop: self.temporal.config(self.gop as usize),
             motion: self.motion.into(),
             depth_every_frame: self.depth_every_frame,

@@ -368,9 +368,7 @@ fn cpsl_layers(clip: &Clip, a: &RdOptions, bars: &dyn Progress) -> Result<Segmen
         layers: a.layers as usize,
         ..Default::default()
     };
-    if let Some(g) = a.geometry {
-        cfg.matte.geometry = g;
-    }
+    cfg.matte.geometry = a.geometry.unwrap_or(GeometryMode::VIDEO_DEFAULT);
     let mut layerer = VideoLayerer::new(clip.camera, cfg, GopConfig::default())?;
     let stage = "layer clip";
     bars.event(ProgressEvent::Start {

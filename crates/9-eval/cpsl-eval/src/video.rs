@@ -476,9 +476,7 @@ pub fn evaluate_video(
         layers: a.layers,
         ..LayeringConfig::default()
     };
-    if let Some(g) = a.geometry {
-        cfg.matte.geometry = g;
-    }
+    cfg.matte.geometry = a.geometry.unwrap_or(GeometryMode::VIDEO_DEFAULT);
     let mut rows: Vec<StabilityScore> = Vec::new();
     for clip in clips {
         let c = match clip {

@@ -1,11 +1,12 @@
 //! Criterion benchmark of a P-frame at 1280x720 (motion given, as from the decoder's motion
 //! vectors; depth carried, as when depth inference is skipped on P-frames). The end-to-end
-//! figures in BENCHMARKS.md come from `cpsl layer-video`; this tracks the P-frame per change.
+//! figures in BENCHMARKS.md come from `cpsl layer-video`; this tracks the P-frame per change,
+//! with the video default (slanted planes) and with mesh layers.
 #![allow(missing_docs)] // criterion_group! generates undocumented items
 
 use cpsl_core::Pose;
 use cpsl_flow::Flow;
-use cpsl_layering::LayeringConfig;
+use cpsl_layering::{GeometryMode, LayeringConfig};
 use cpsl_synth::Scene;
 use cpsl_temporal::{GopConfig, VideoLayerer};
 use criterion::{criterion_group, criterion_main, Criterion};
@@ -27,20 +28,26 @@ fn bench(c: &mut Criterion) {
         adaptive_refresh: false,
         ..GopConfig::default()
     };
-    let mut layerer = VideoLayerer::new(scene.camera, LayeringConfig::default(), gop)
-        .expect("valid configuration");
-    layerer
-        .push(&views[0].rgb, Some(&views[0].depth))
-        .expect("I-frame");
-    c.bench_function("p_frame_720p_k6_pair", |b| {
-        b.iter(|| {
-            for (view, motion) in [(&views[1], &there), (&views[0], &back)] {
-                layerer
-                    .push_with_motion(&view.rgb, None, Some(motion.clone()))
-                    .expect("P-frame");
-            }
-        })
-    });
+    for (name, geometry) in [
+        ("p_frame_720p_k6_pair", GeometryMode::VIDEO_DEFAULT),
+        ("p_frame_720p_k6_pair_mesh", GeometryMode::Mesh),
+    ] {
+        let mut cfg = LayeringConfig::default();
+        cfg.matte.geometry = geometry;
+        let mut layerer = VideoLayerer::new(scene.camera, cfg, gop).expect("valid configuration");
+        layerer
+            .push(&views[0].rgb, Some(&views[0].depth))
+            .expect("I-frame");
+        c.bench_function(name, |b| {
+            b.iter(|| {
+                for (view, motion) in [(&views[1], &there), (&views[0], &back)] {
+                    layerer
+                        .push_with_motion(&view.rgb, None, Some(motion.clone()))
+                        .expect("P-frame");
+                }
+            })
+        });
+    }
 }
 
 criterion_group! {

@@ -153,7 +153,7 @@ pub fn fit_geometry(
         for x in (0..w).step_by(stride) {
             let p = y * w + x;
             let z = px.depth[p] as f64;
-            if !(px.own)(p) || !(z.is_finite() && z > 0.0) {
+            if !((px.own)(p) && z.is_finite() && z > 0.0) {
                 continue;
             }
             let c = px.confidence.map_or(1.0, |c| c[p] as f64).max(0.05);
@@ -234,7 +234,7 @@ pub fn fit_grid(cam: &Camera, px: &LayerDepth<'_>, step: u32, depth: f64) -> Opt
         for x in 0..w {
             let p = y * w + x;
             let z = px.depth[p];
-            if !(px.own)(p) || !(z.is_finite() && z > 0.0) {
+            if !((px.own)(p) && z.is_finite() && z > 0.0) {
                 continue;
             }
             let c = px.confidence.map_or(1.0, |c| c[p]).max(0.05);

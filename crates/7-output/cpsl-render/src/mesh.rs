@@ -120,7 +120,8 @@ pub fn visible_triangles(
                 };
                 // Same winding as in the reference image, or the triangle shows its back.
                 let area = (b.0 - a.0) * (c.1 - a.1) - (b.1 - a.1) * (c.0 - a.0);
-                if !(area > 0.0) {
+                // (Also drops degenerate and non-finite triangles.)
+                if area.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
                     continue;
                 }
                 out.push(ProjectedTriangle {

@@ -265,12 +265,12 @@ pub fn info(a: PackageArgs) -> Result<()> {
                 format!("{g} z {:.2} {kbps:.0}", l.depth)
             })
             .collect();
-        let bytes: usize = side
-            .frames
-            .iter()
-            .flat_map(|f| &f.layers)
-            .map(|l| cpsl_package::geometry_bytes(&l.geometry))
-            .sum();
+        // The side stream's size against the same stream with every layer fronto-parallel.
+        let mut flat = side.clone();
+        for l in flat.frames.iter_mut().flat_map(|f| &mut f.layers) {
+            l.geometry = Geometry::Plane;
+        }
+        let bytes = side.encode().len().saturating_sub(flat.encode().len());
         let kbps = bytes as f64 * 8.0 * m.frame_rate / s.frames as f64 / 1e3;
         println!("  {i:>7}  {} ; {kbps:.1}", layers.join(" | "));
     }

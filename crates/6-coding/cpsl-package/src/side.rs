@@ -520,7 +520,8 @@ fn compact_grid(g: &DepthGrid, reference: Option<(usize, &DepthGrid)>, out: &mut
 }
 
 /// Bytes a layer's geometry takes in a version 2 side stream beyond the fronto-parallel
-/// plane's record: 12 for a slanted plane's coefficients, the compact grid of a mesh.
+/// plane's record, coded alone: 12 for a slanted plane's coefficients, the compact grid of a
+/// mesh without prediction from a previous record (an upper bound for a P-frame's).
 pub fn geometry_bytes(g: &Geometry) -> usize {
     match g {
         Geometry::Plane => 0,

@@ -188,6 +188,17 @@ impl DepthGrid {
     /// Sets every vertex that no occupied cell (see [`DepthGrid::occupied`]) uses to `value`:
     /// renderers draw nothing there, and a constant codes to almost nothing.
     pub fn settle_unused(&mut self, occupied: &[bool], value: f32) {
+        let used = self.used_vertices(occupied);
+        for (v, u) in self.inverse_depth.iter_mut().zip(used) {
+            if !u {
+                *v = value;
+            }
+        }
+    }
+
+    /// Per vertex (row by row), whether a cell of `occupied` ([`DepthGrid::occupied`]) has it
+    /// as a corner.
+    pub fn used_vertices(&self, occupied: &[bool]) -> Vec<bool> {
         let (cols, cw) = (self.cols, self.cols - 1);
         let mut used = vec![false; self.inverse_depth.len()];
         for (c, _) in occupied.iter().enumerate().filter(|(_, &o)| o) {
@@ -196,11 +207,7 @@ impl DepthGrid {
                 used[(j * cols + i) as usize] = true;
             }
         }
-        for (v, u) in self.inverse_depth.iter_mut().zip(used) {
-            if !u {
-                *v = value;
-            }
-        }
+        used
     }
 
     /// Inverse depth at every pixel of a `width x height` image, row by row (as
@@ -304,6 +311,40 @@ impl Geometry {
         }
         let m = self.plane(depth);
         m.x() * (u - cam.cx) / cam.fx + m.y() * (v - cam.cy) / cam.fy + m.z()
+    }
+
+    /// For a plane (fronto-parallel or slanted) at reference depth `depth` seen by `cam`, the
+    /// inverse depth as `(a, b, c)` with `1 / z = a u + b v + c` at pixel `(u, v)`; `None`
+    /// for a mesh.
+    pub fn pixel_plane(&self, depth: f64, cam: &Camera) -> Option<[f64; 3]> {
+        if let Self::Mesh(_) = self {
+            return None;
+        }
+        let m = self.plane(depth);
+        let (a, b) = (m.x() / cam.fx, m.y() / cam.fy);
+        Some([a, b, m.z() - a * cam.cx - b * cam.cy])
+    }
+
+    /// For a plane, the least inverse depth over the pixel box `[u0, v0, u1, v1]` and the
+    /// corner `(u, v)` that has it (inverse depth is affine in pixels, so the least value is at
+    /// a corner; a non-finite value counts as least).
+    pub fn least_inverse_depth(
+        &self,
+        depth: f64,
+        cam: &Camera,
+        [u0, v0, u1, v1]: [f64; 4],
+    ) -> (f64, f64, f64) {
+        [(u0, v0), (u1, v0), (u0, v1), (u1, v1)]
+            .map(|(u, v)| (self.inverse_depth_at(depth, cam, u, v), u, v))
+            .into_iter()
+            .reduce(|a, b| {
+                if !b.0.is_finite() || (a.0.is_finite() && b.0 < a.0) {
+                    b
+                } else {
+                    a
+                }
+            })
+            .expect("four corners")
     }
 
     /// The inverse plane-induced homography (viewer pixels of `dst` to reference pixels of

@@ -107,17 +107,11 @@ impl Layer {
         };
         let bytes = self.image.as_bytes();
         let occupied = g.occupied(cam.width, cam.height, |p| bytes[p * 4 + 3] != 0);
-        let cw = g.cols - 1;
+        let used = g.used_vertices(&occupied);
         let mut samples = Vec::new();
         for j in 0..g.rows {
             for i in 0..g.cols {
-                let used = [(i, j), (i.wrapping_sub(1), j), (i, j.wrapping_sub(1))]
-                    .iter()
-                    .chain(&[(i.wrapping_sub(1), j.wrapping_sub(1))])
-                    .any(|&(ci, cj)| {
-                        ci < cw && cj < g.rows - 1 && occupied[(cj * cw + ci) as usize]
-                    });
-                if used {
+                if used[(j * g.cols + i) as usize] {
                     let (u, v) = g.vertex(i, j, cam.width, cam.height);
                     samples.push([
                         (u - cam.cx) / cam.fx,
@@ -132,17 +126,9 @@ impl Layer {
             return Geometry::Plane;
         };
         let plane = Geometry::Slanted(m);
-        let in_front = self.extent().is_none_or(|[x0, y0, x1, y1]| {
-            let (x0, y0, x1, y1) = (
-                x0 as f64 - 1.0,
-                y0 as f64 - 1.0,
-                x1 as f64 + 1.0,
-                y1 as f64 + 1.0,
-            );
-            [(x0, y0), (x1, y0), (x0, y1), (x1, y1)]
-                .iter()
-                .all(|&(u, v)| plane.inverse_depth_at(self.depth, cam, u, v) > 0.0)
-        });
+        let in_front = self
+            .grown_extent()
+            .is_none_or(|b| plane.least_inverse_depth(self.depth, cam, b).0 > 0.0);
         if in_front {
             plane
         } else {
@@ -155,12 +141,12 @@ impl Layer {
     /// [`LayerSet::new`]. Lossy coding spreads faint alpha beyond a layer's extent; beyond a
     /// slanted plane's horizon such texels are noise.
     pub fn clip_to_geometry(&mut self, cam: &Camera) {
-        let Geometry::Slanted(m) = self.geometry else {
+        if !matches!(self.geometry, Geometry::Slanted(_)) {
+            return;
+        }
+        let Some([a, b, c]) = self.geometry.pixel_plane(self.depth, cam) else {
             return;
         };
-        // Inverse depth a x + b y + c in pixels.
-        let (a, b) = (m.x() / cam.fx, m.y() / cam.fy);
-        let c = m.z() - a * cam.cx - b * cam.cy;
         let margin = a.abs() + b.abs();
         let w = self.image.width() as usize;
         for (y, row) in self
@@ -176,6 +162,18 @@ impl Layer {
                 }
             }
         }
+    }
+
+    /// The layer's extent grown by one pixel (the bilinear footprint), as `[u0, v0, u1, v1]`.
+    fn grown_extent(&self) -> Option<[f64; 4]> {
+        self.extent().map(|[x0, y0, x1, y1]| {
+            [
+                x0 as f64 - 1.0,
+                y0 as f64 - 1.0,
+                x1 as f64 + 1.0,
+                y1 as f64 + 1.0,
+            ]
+        })
     }
 
     /// Checks the geometry against the camera: finite, and a depth above zero over the
@@ -194,21 +192,16 @@ impl Layer {
         if !m.is_finite() {
             return Err(bad(format!("plane {:?} is not finite", m.0)));
         }
-        let Some([x0, y0, x1, y1]) = self.extent() else {
+        let Some(b) = self.grown_extent() else {
             return Ok(());
         };
-        let (x0, y0) = (x0 as f64 - 1.0, y0 as f64 - 1.0);
-        let (x1, y1) = (x1 as f64 + 1.0, y1 as f64 + 1.0);
-        // Inverse depth is affine in pixels: its least value over a box is at a corner.
-        for (u, v) in [(x0, y0), (x1, y0), (x0, y1), (x1, y1)] {
-            let inv = self.geometry.inverse_depth_at(self.depth, cam, u, v);
-            if !(inv.is_finite() && inv > 0.0) {
-                return Err(bad(format!(
-                    "plane {:?} puts pixel ({u}, {v}) of the layer's extent at depth {}",
-                    m.0,
-                    1.0 / inv
-                )));
-            }
+        let (inv, u, v) = self.geometry.least_inverse_depth(self.depth, cam, b);
+        if !(inv.is_finite() && inv > 0.0) {
+            return Err(bad(format!(
+                "plane {:?} puts pixel ({u}, {v}) of the layer's extent at depth {}",
+                m.0,
+                1.0 / inv
+            )));
         }
         Ok(())
     }

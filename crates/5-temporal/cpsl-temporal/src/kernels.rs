@@ -741,9 +741,8 @@ impl LogDepth {
                 width: w as usize,
                 map: match &l.geometry {
                     cpsl_core::Geometry::Plane => None,
-                    cpsl_core::Geometry::Slanted(m) => {
-                        let (a, b) = (m.x() / cam.fx, m.y() / cam.fy);
-                        let c = m.z() - a * cam.cx - b * cam.cy;
+                    g @ cpsl_core::Geometry::Slanted(_) => {
+                        let [a, b, c] = g.pixel_plane(l.depth, cam).expect("a plane");
                         Some(
                             (0..h)
                                 .flat_map(|y| (0..w).map(move |x| (x, y)))

@@ -75,29 +75,17 @@ fn triangles(
     pose: &Pose,
     first: u32,
 ) -> (Vec<u8>, Vec<f32>) {
-    let tris: Vec<_> =
-        cpsl_render::mesh::visible_triangles(&layer.grid, &layer.cells, cam, target, pose)
-            .into_iter()
-            .filter_map(|t| {
-                let (ci, cj, k) = t.cell;
-                let h = layer
-                    .grid
-                    .triangle_plane(cam, ci, cj, k)
-                    .and_then(|m| cpsl_core::geometry::plane_inverse(m, cam, target, pose))
-                    .filter(|h| h.0.is_finite())?;
-                Some((t, h))
-            })
-            .collect();
+    let tris = cpsl_render::mesh::visible_triangles(&layer.grid, &layer.cells, cam, target, pose);
     // Depth 1 - near / z in (0, 1), affine in screen space as the rasteriser interpolates it.
     let near = tris
         .iter()
-        .flat_map(|(t, _)| t.target.map(|v| v.2))
+        .flat_map(|t| t.target.map(|v| v.2))
         .fold(f64::MAX, f64::min)
         * 0.999;
     let (w, h) = (target.width as f64, target.height as f64);
     let mut verts = Vec::with_capacity(tris.len() * 3 * VERTEX_BYTES as usize);
     let mut homs = Vec::with_capacity(tris.len() * 12);
-    for (n, (t, hom)) in tris.iter().enumerate() {
+    for (n, t) in tris.iter().enumerate() {
         for &(x, y, z) in &t.target {
             // Pixel centres are integers; the framebuffer's are at + 0.5.
             let (nx, ny) = ((x + 0.5) / w * 2.0 - 1.0, 1.0 - (y + 0.5) / h * 2.0);
@@ -106,7 +94,7 @@ fn triangles(
             }
             verts.extend_from_slice(&(first + n as u32).to_le_bytes());
         }
-        for row in hom.0 .0 {
+        for row in t.h {
             homs.extend(row.map(|v| v as f32));
             homs.push(0.0);
         }

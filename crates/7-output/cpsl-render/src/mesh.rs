@@ -74,18 +74,16 @@ pub fn occupied_cells(image: &PremulImage, grid: &DepthGrid) -> Vec<bool> {
 /// One triangle of a mesh layer as a viewer sees it.
 #[derive(Debug, Clone, Copy)]
 pub struct ProjectedTriangle {
-    /// Cell column, row and half (see [`DepthGrid::triangle`]).
-    pub cell: (u32, u32, u32),
     /// Target pixel position and viewer depth of each vertex.
     pub target: [(f64, f64, f64); 3],
-    /// Source (reference) pixel position of each vertex.
-    pub source: [(f64, f64); 3],
+    /// Inverse homography of its plane: target pixel to source pixel.
+    pub h: [[f64; 3]; 3],
 }
 
 /// The triangles of a mesh layer (`grid`, with `occupied` from [`occupied_cells`]) that the
 /// viewer `target` at `pose` sees: over occupied cells, every vertex in front of the viewer,
 /// facing it (a triangle whose winding flips shows its back: the viewer has crossed its
-/// plane). Both renderers draw exactly these.
+/// plane), with a finite homography. Both renderers draw exactly these.
 pub fn visible_triangles(
     grid: &DepthGrid,
     occupied: &[bool],
@@ -124,10 +122,16 @@ pub fn visible_triangles(
                 if area.partial_cmp(&0.0) != Some(std::cmp::Ordering::Greater) {
                     continue;
                 }
+                let Some(h) = grid
+                    .triangle_plane(cam, ci, cj, t)
+                    .and_then(|m| plane_inverse(m, cam, target, pose))
+                    .filter(|h| h.0.is_finite())
+                else {
+                    continue;
+                };
                 out.push(ProjectedTriangle {
-                    cell: (ci, cj, t),
                     target: [a, b, c],
-                    source: ids.map(|(i, j)| grid.vertex(i, j, cam.width, cam.height)),
+                    h: h.0 .0,
                 });
             }
         }
@@ -150,16 +154,11 @@ impl MeshWarp {
         let tiles = tiles_x * th.div_ceil(TILE_H);
         let mut tris: Vec<(f64, Triangle)> = visible_triangles(grid, occupied, cam, target, pose)
             .into_iter()
-            .filter_map(|p| {
-                let (ci, cj, t) = p.cell;
-                let h = grid
-                    .triangle_plane(cam, ci, cj, t)
-                    .and_then(|m| plane_inverse(m, cam, target, pose))
-                    .filter(|h| h.0.is_finite())?;
+            .map(|p| {
                 let mut v = p.target.map(|q| (q.0, q.1));
                 v.sort_by(|a, b| a.1.total_cmp(&b.1).then(a.0.total_cmp(&b.0)));
                 let z = p.target.iter().map(|q| q.2).sum::<f64>();
-                Some((z, Triangle { h: h.0 .0, v }))
+                (z, Triangle { h: p.h, v })
             })
             .collect();
         // Nearest first, so that where a fold overlaps itself the near side composites first.

@@ -200,20 +200,16 @@ fn in_front(
     (sx, sy): (f64, f64),
     deepest: f64,
 ) -> bool {
-    let least = 1.0 / (MAX_EXTRAPOLATION * deepest);
-    // Inverse depth is affine: its least value over the box is at a corner.
-    let corner = |x: usize, y: usize, grow: f64| {
-        let (u, v) = ((x as f64 + 0.5) * sx - 0.5, (y as f64 + 0.5) * sy - 0.5);
-        g.inverse_depth_at(depth, cam, u + grow, v + grow)
-    };
-    [
-        corner(ex0, ey0, -1.0),
-        corner(ex1, ey0, 1.0),
-        corner(ex0, ey1, -1.0),
-        corner(ex1, ey1, 1.0),
-    ]
-    .iter()
-    .all(|&inv| inv.is_finite() && inv >= least)
+    // The extent in camera pixels, one pixel wider on each side.
+    let px = |v: usize, s: f64| (v as f64 + 0.5) * s - 0.5;
+    let grown = [
+        px(ex0, sx) - 1.0,
+        px(ey0, sy) - 1.0,
+        px(ex1, sx) + 1.0,
+        px(ey1, sy) + 1.0,
+    ];
+    let (inv, _, _) = g.least_inverse_depth(depth, cam, grown);
+    inv.is_finite() && inv >= 1.0 / (MAX_EXTRAPOLATION * deepest)
 }
 
 /// A depth grid of step `step` over the layer: each vertex takes the confidence-weighted mean

@@ -1,10 +1,11 @@
 #!/usr/bin/env bash
 # Installs the Debian packages cpsl builds and runs against, if any is missing: FFmpeg (the
 # `ffmpeg` tool for sweep videos and test clips, and the libav* development files and clang that
-# the ffmpeg-next crate builds against; see ../shared/STACK.md).
+# the ffmpeg-next crate builds against; see ../shared/STACK.md) and OpenCV 4.6 (the headers and
+# libraries the opencv crate binds to, for stereo matching in cpsl-stereo).
 set -euo pipefail
 PKGS="ffmpeg libavcodec-dev libavformat-dev libavutil-dev libswscale-dev libswresample-dev
-libavfilter-dev libavdevice-dev pkg-config clang libclang-dev"
+libavfilter-dev libavdevice-dev pkg-config clang libclang-dev libopencv-dev"
 missing=""
 for p in $PKGS; do
   dpkg -s "$p" >/dev/null 2>&1 || missing="$missing $p"

@@ -288,6 +288,7 @@ fn clip(a: &DemoArgs, scene: &Scene, bars: &Bars) -> Result<()> {
             motion: MotionSource::Auto,
             depth_every_frame: false,
             max_frames: None,
+            stereo: None,
         },
         codec: a.codec.into(),
         fps: Some(CLIP_FPS),

@@ -84,7 +84,8 @@ pub struct EvalArgs {
     /// Instance masks for CPSL.
     #[arg(long, value_enum, default_value_t = InstanceArg::Components)]
     pub instances: InstanceArg,
-    /// Depth: `gt` (the dataset's ground truth) or a model, `model:<name>` (`model:fastdepth`,
+    /// Depth: `gt` (the dataset's ground truth), `stereo` (matched from the dataset's own
+    /// stereo pair: the reference and the view to its right; HCI and Middlebury) or a model, `model:<name>` (`model:fastdepth`,
     /// `model:path.onnx`; `fastdepth` alone also works), median-scaled to the ground truth (or,
     /// for the temple ring, which has none, to the depth of the scene centre given by the
     /// poses).
@@ -173,6 +174,64 @@ pub fn run(a: EvalArgs) -> Result<()> {
     }
     if let Some(dir) = &a.html {
         println!("wrote {}", dir.join("index.html").display());
+    }
+    Ok(())
+}
+
+/// Arguments of `cpsl eval-stereo`.
+#[derive(Args)]
+pub struct EvalStereoArgs {
+    /// Dataset with a stereo pair (middlebury2005/Art|Books|Dolls, middlebury2003/Teddy|Cones,
+    /// hci/backgammon) or `all`.
+    #[arg(default_value = "all")]
+    pub dataset: String,
+    /// Folder holding the datasets (`../shared/data` beside the checkout).
+    #[arg(long, default_value = "../shared/data")]
+    pub data: PathBuf,
+    /// Matching block side in pixels (odd).
+    #[arg(long, default_value_t = cpsl_stereo::StereoConfig::default().block)]
+    pub block: u32,
+    /// Write the scores as JSON.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+}
+
+/// Runs `cpsl eval-stereo`: matches each pair and scores the disparity against ground truth.
+pub fn run_stereo(a: EvalStereoArgs) -> Result<()> {
+    let names = if a.dataset == "all" {
+        cpsl_eval::stereo::stereo_names()
+    } else {
+        vec![a.dataset.as_str()]
+    };
+    let cfg = cpsl_stereo::StereoConfig {
+        block: a.block,
+        ..Default::default()
+    };
+    println!(
+        "{:<22} {:>9} {:>11} {:>8} {:>8} {:>7} {:>7} {:>8} {:>8}",
+        "dataset", "size", "range px", "dy px", "matched", "bad>1", "bad>2", "mean px", "ms"
+    );
+    let mut scores = Vec::new();
+    for name in names {
+        let s = cpsl_eval::stereo::score(&a.data, name, &cfg)?;
+        println!(
+            "{:<22} {:>9} {:>11} {:>8} {:>7.1}% {:>6.1}% {:>6.1}% {:>8.2} {:>8.0}",
+            s.dataset,
+            format!("{}x{}", s.size.0, s.size.1),
+            format!("{}..{}", s.range.0, s.range.0 + s.range.1 as i32),
+            s.vertical_offset
+                .map_or("-".to_string(), |d| format!("{d:.2}")),
+            100.0 * s.density,
+            100.0 * s.bad1,
+            100.0 * s.bad2,
+            s.mean_abs,
+            s.ms
+        );
+        scores.push(s);
+    }
+    if let Some(path) = &a.json {
+        cpsl_io::write_json(path, &scores)?;
+        println!("wrote {}", path.display());
     }
     Ok(())
 }

@@ -7,8 +7,24 @@ use clap::{Args, ValueEnum};
 use cpsl_core::{Camera, DepthSource, Limits};
 use cpsl_layering::GeometryMode;
 use cpsl_pipeline::image::{layer_image, write_image_layers, InstanceMode};
-use cpsl_pipeline::sources::{layering_config, CameraChoice, DepthChoice};
+use cpsl_pipeline::sources::{layering_config, CameraChoice, DepthChoice, StereoDepth};
+use cpsl_stereo::StereoLayout;
 use std::path::PathBuf;
+
+/// Stereo input (shared by `cpsl layer`, `cpsl layer-video` and `cpsl encode`).
+#[derive(Args, Clone, Debug)]
+pub struct StereoArgs {
+    /// The input holds two views: `sbs` (side by side, left view in the left half) or `tab`
+    /// (top and bottom, left view on top). The left view is layered, with depth from stereo
+    /// matching of the pair unless --depth / --depth-frames give it.
+    #[arg(long)]
+    pub stereo: Option<StereoLayout>,
+    /// Distance between the two cameras in scene units, for stereo depth. The default, 0.065
+    /// (metres), is the human eye distance that stereo films and VR180 cameras are built
+    /// around.
+    #[arg(long, default_value_t = StereoDepth::DEFAULT_BASELINE)]
+    pub baseline: f64,
+}
 
 /// Where depth comes from.
 #[derive(Args, Clone, Debug)]
@@ -113,6 +129,12 @@ pub struct LayerArgs {
     #[command(flatten)]
     pub depth: DepthArgs,
     #[command(flatten)]
+    pub stereo: StereoArgs,
+    /// The right view of a stereo pair whose left view is the image: depth from stereo
+    /// matching (as --stereo, with --baseline).
+    #[arg(long, conflicts_with_all = ["stereo", "depth", "depth_model"])]
+    pub right: Option<PathBuf>,
+    #[command(flatten)]
     pub camera: CameraArgs,
     /// Instance masks.
     #[arg(long, value_enum, default_value_t = InstanceArg::Components)]
@@ -132,14 +154,65 @@ pub struct LayerArgs {
 
 /// Runs `cpsl layer`.
 pub fn run(a: LayerArgs) -> Result<()> {
-    let img = cpsl_io::images::read_rgb8(&a.image, &Limits::default())
-        .with_context(|| format!("reading image {}", a.image.display()))?;
+    let read = |p: &PathBuf| {
+        cpsl_io::images::read_rgb8(p, &Limits::default())
+            .with_context(|| format!("reading image {}", p.display()))
+    };
+    let mut img = read(&a.image)?;
+    // The second view of a stereo input.
+    let right = match (&a.right, a.stereo.stereo) {
+        (Some(p), _) => {
+            let r = read(p)?;
+            if (r.width, r.height) != (img.width, img.height) {
+                anyhow::bail!(
+                    "{} is {}x{} but {} is {}x{}: a stereo pair has one size",
+                    p.display(),
+                    r.width,
+                    r.height,
+                    a.image.display(),
+                    img.width,
+                    img.height
+                );
+            }
+            Some(r.data)
+        }
+        (None, Some(layout)) => {
+            let (l, r, w, h) = cpsl_stereo::split(&img.data, img.width, img.height, layout)
+                .with_context(|| format!("{} as stereo", a.image.display()))?;
+            (img.data, img.width, img.height) = (l, w, h);
+            Some(r)
+        }
+        (None, None) => None,
+    };
     let camera = a.camera.camera(img.width, img.height)?;
     let mut cfg = layering_config(a.config.as_deref(), a.layers, a.geometry)?;
     if a.depth_only {
         cfg = cfg.depth_only();
     }
-    let (mut source, allow_missing) = a.depth.source()?;
+    let given = a.depth.depth.is_some() || a.depth.depth_model.is_some();
+    let (mut source, allow_missing): (Box<dyn DepthSource>, bool) = match &right {
+        Some(r) if !given => {
+            let mut stereo = StereoDepth::new(a.stereo.baseline, None)?;
+            let z = stereo.depth(&img.data, r, img.width, img.height, camera.fx)?;
+            let name = format!(
+                "{} ({}, baseline {})",
+                stereo.note().unwrap_or("stereo"),
+                a.right.as_ref().map_or_else(
+                    || format!("{} views", a.image.display()),
+                    |p| format!("right view {}", p.display())
+                ),
+                a.stereo.baseline
+            );
+            let fixed = cpsl_core::FixedDepth {
+                name,
+                width: img.width,
+                height: img.height,
+                depth: z,
+            };
+            (Box::new(fixed), true)
+        }
+        _ => a.depth.source()?,
+    };
     let run = layer_image(
         &img.data,
         camera,

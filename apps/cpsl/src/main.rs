@@ -63,6 +63,9 @@ enum Command {
     /// propagation with and without refinement (boundary variance, F-SSIM, warping error,
     /// flicker, novel-view PSNR).
     EvalVideo(eval_video::EvalVideoArgs),
+    /// Stereo matching on the real two-view datasets: each pair's disparity scored against
+    /// ground truth (share of non-occluded pixels off by more than 1 and 2 px).
+    EvalStereo(eval::EvalStereoArgs),
     /// Rate-distortion curves on a synthetic moving clip: CPSL packages under budgets against
     /// DIBR streaming (colour + depth) and a uniform MPI coded with the same codec.
     EvalRd(eval_rd::EvalRdArgs),
@@ -129,6 +132,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Demo(a) => demo::run(a),
         Command::Eval(a) => eval::run(a),
         Command::EvalVideo(a) => eval_video::run(a),
+        Command::EvalStereo(a) => eval::run_stereo(a),
         Command::EvalRd(a) => eval_rd::run(a),
         Command::View(a) => view::run(a),
         Command::Serve(a) => serve::run(a),

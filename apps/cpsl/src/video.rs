@@ -1,12 +1,12 @@
 //! `cpsl layer-video`: a video (or an image sequence) to a sequence of layer sets, organised
 //! in groups of pictures with motion-guided propagation.
 
-use crate::layer::CameraArgs;
+use crate::layer::{CameraArgs, StereoArgs};
 use crate::progress::Bars;
 use anyhow::Result;
 use clap::{Args, ValueEnum};
 use cpsl_layering::GeometryMode;
-use cpsl_pipeline::sources::{layering_config, VideoDepth};
+use cpsl_pipeline::sources::{layering_config, StereoDepth, VideoDepth};
 use cpsl_pipeline::video::{write_layered_video, MotionSource, VideoJob};
 use cpsl_temporal::GopConfig;
 use std::path::{Path, PathBuf};
@@ -101,6 +101,8 @@ pub struct VideoLayeringArgs {
     #[arg(long)]
     pub depth_every_frame: bool,
     #[command(flatten)]
+    pub stereo: StereoArgs,
+    #[command(flatten)]
     pub camera: CameraArgs,
     /// Temporal organisation.
     #[arg(long, value_enum, default_value_t = Temporal::Full)]
@@ -119,9 +121,22 @@ pub struct VideoLayeringArgs {
 impl VideoLayeringArgs {
     /// The job these arguments describe for `input`, and its depth source.
     pub fn job(&self, input: &Path) -> Result<(VideoJob, VideoDepth)> {
-        let depth = match &self.depth_frames {
-            Some(dir) => VideoDepth::frames(dir, self.depth_scale)?,
-            None => VideoDepth::model(&self.depth_model, self.model_desc.as_deref())?,
+        let depth = match (&self.depth_frames, self.stereo.stereo) {
+            (Some(dir), _) => VideoDepth::frames(dir, self.depth_scale)?,
+            (None, Some(_)) => {
+                // The monocular model is the prior for frames stereo cannot see; without it
+                // (not installed) those frames keep the last stereo depth.
+                let prior = cpsl_pipeline::sources::open_depth_model(
+                    &self.depth_model,
+                    self.model_desc.as_deref(),
+                )
+                .map(|m| Box::new(m) as Box<dyn cpsl_core::DepthSource>);
+                if let Err(e) = &prior {
+                    eprintln!("warning: no monocular prior for stereo fallbacks: {e}");
+                }
+                VideoDepth::Stereo(StereoDepth::new(self.stereo.baseline, prior.ok())?)
+            }
+            (None, None) => VideoDepth::model(&self.depth_model, self.model_desc.as_deref())?,
         };
         let job = VideoJob {
             input: input.to_path_buf(),
@@ -135,6 +150,7 @@ impl VideoLayeringArgs {
             motion: self.motion.into(),
             depth_every_frame: self.depth_every_frame,
             max_frames: self.max_frames,
+            stereo: self.stereo.stereo,
         };
         Ok((job, depth))
     }

@@ -53,6 +53,9 @@ pub enum PipelineError {
     /// A camera is invalid.
     #[error(transparent)]
     Core(#[from] cpsl_core::CoreError),
+    /// Stereo matching.
+    #[error(transparent)]
+    Stereo(#[from] cpsl_stereo::StereoError),
     /// The caller asked to stop.
     #[error("interrupted; no {0} written")]
     Interrupted(&'static str),

@@ -77,6 +77,132 @@ pub enum VideoDepth {
     Model(Box<dyn DepthSource>),
     /// One depth map per frame.
     Frames(cpsl_io::depth::DepthSequence),
+    /// Stereo matching of each frame's two views.
+    Stereo(StereoDepth),
+}
+
+/// Depth from a stereo pair per frame: z-depth `f b / (d + offset)` from the left view's
+/// disparity `d` (see [`cpsl_stereo`]), with `offset` chosen once, on the first frame: zero
+/// when every matched disparity is at least 1 px (a parallel rig: metric depth), else
+/// `1 - d_1` px for the 1st percentile `d_1` (converged or shifted pairs, as in 3-D films,
+/// whose far content has zero or negative disparity: the farthest content then sits at
+/// 1 px). Frames where less than [`StereoDepth::MIN_MATCHED`] of the pixels match (black,
+/// blank or broken frames) fall back to the monocular prior when one is given, scaled to the
+/// last good frame's median depth, else to the last good depth (or a flat plane); each
+/// fallback is reported.
+pub struct StereoDepth {
+    /// Rig baseline in scene units (metres by default).
+    pub baseline: f64,
+    /// Matching settings.
+    pub config: cpsl_stereo::StereoConfig,
+    /// The monocular prior for frames stereo cannot see.
+    pub prior: Option<Box<dyn DepthSource>>,
+    offset: Option<f64>,
+    last: Option<Vec<f32>>,
+    note: String,
+}
+
+impl StereoDepth {
+    /// Least share of matched pixels for a frame's stereo depth to count.
+    pub const MIN_MATCHED: f64 = 0.05;
+    /// The default baseline: a human interocular distance, 65 mm (stereo films and VR180
+    /// cameras are built around it).
+    pub const DEFAULT_BASELINE: f64 = 0.065;
+
+    /// Stereo depth with `baseline` (scene units) and an optional prior.
+    pub fn new(baseline: f64, prior: Option<Box<dyn DepthSource>>) -> Result<Self, PipelineError> {
+        if !(baseline.is_finite() && baseline > 0.0) {
+            return Err(PipelineError::Invalid(format!(
+                "--baseline must be finite and > 0, found {baseline}"
+            )));
+        }
+        Ok(Self {
+            baseline,
+            config: cpsl_stereo::StereoConfig::default(),
+            prior,
+            offset: None,
+            last: None,
+            note: String::new(),
+        })
+    }
+
+    /// What the last frame's depth came from: stereo with its share of matched pixels, or the
+    /// fallback taken and why.
+    pub fn note(&self) -> Option<&str> {
+        (!self.note.is_empty()).then_some(self.note.as_str())
+    }
+
+    /// Depth of the left view from the pair, for a camera of focal length `focal` px.
+    pub fn depth(
+        &mut self,
+        left: &[u8],
+        right: &[u8],
+        width: u32,
+        height: u32,
+        focal: f64,
+    ) -> Result<Vec<f32>, PipelineError> {
+        let d = cpsl_stereo::match_pair(left, right, width, height, &self.config)?;
+        let matched = d.density();
+        if matched >= Self::MIN_MATCHED {
+            let offset = *self.offset.get_or_insert_with(|| {
+                let mut v: Vec<f32> = d
+                    .values
+                    .iter()
+                    .zip(&d.valid)
+                    .filter(|(_, &ok)| ok)
+                    .map(|(&x, _)| x)
+                    .collect();
+                v.sort_by(f32::total_cmp);
+                let d1 = v[(v.len() - 1) / 100] as f64;
+                (1.0 - d1).max(0.0)
+            });
+            let z = d.depth(focal, self.baseline, offset);
+            self.note = format!("stereo, {:.0} % matched", 100.0 * matched);
+            self.last = Some(z.clone());
+            return Ok(z);
+        }
+        let why = format!(
+            "too little texture for stereo ({:.1} % matched)",
+            100.0 * matched
+        );
+        let reference = self.last.as_deref().and_then(median);
+        let z = match (&mut self.prior, reference) {
+            (Some(p), _) => {
+                let mut z = p.depth(left, width, height)?;
+                if let (Some(r), Some(m)) = (reference, median(&z)) {
+                    z.iter_mut().for_each(|v| *v *= r / m);
+                }
+                self.note = format!("fallback: {why}; {}", p.name());
+                z
+            }
+            (None, _) => match &self.last {
+                Some(z) => {
+                    self.note = format!("fallback: {why}; the last stereo depth");
+                    z.clone()
+                }
+                None => {
+                    self.note = format!("fallback: {why}; a flat plane");
+                    let far = focal * self.baseline;
+                    vec![far as f32; (width * height) as usize]
+                }
+            },
+        };
+        Ok(z)
+    }
+}
+
+/// Median of the finite positive values.
+fn median(v: &[f32]) -> Option<f32> {
+    let mut d: Vec<f32> = v
+        .iter()
+        .copied()
+        .filter(|z| z.is_finite() && *z > 0.0)
+        .collect();
+    if d.is_empty() {
+        return None;
+    }
+    let n = d.len() / 2;
+    Some(*d.select_nth_unstable_by(n, f32::total_cmp).1)
 }
 
 impl VideoDepth {
@@ -97,18 +223,37 @@ impl VideoDepth {
         )?))
     }
 
-    /// Depth of frame `index`.
+    /// Depth of frame `index`, whose (left) view is `rgb` seen by `cam`; `right` is its
+    /// right view for stereo input.
     pub fn depth(
         &mut self,
         index: usize,
         rgb: &[u8],
-        width: u32,
-        height: u32,
+        right: Option<&[u8]>,
+        cam: &Camera,
     ) -> Result<Vec<f32>, PipelineError> {
+        let (width, height) = (cam.width, cam.height);
         Ok(match self {
             VideoDepth::Model(m) => m.depth(rgb, width, height)?,
             VideoDepth::Frames(s) => s.depth_at(index, width, height)?,
+            VideoDepth::Stereo(s) => {
+                let right = right.ok_or_else(|| {
+                    PipelineError::Invalid(
+                        "stereo depth needs stereo input (--stereo sbs|tab)".into(),
+                    )
+                })?;
+                s.depth(rgb, right, width, height, cam.fx)?
+            }
         })
+    }
+
+    /// What the last frame's depth came from, where it is worth saying per frame (stereo
+    /// and its fallbacks).
+    pub fn note(&self) -> Option<&str> {
+        match self {
+            VideoDepth::Stereo(s) => s.note(),
+            _ => None,
+        }
     }
 
     /// A short description, saved with the output.
@@ -116,6 +261,13 @@ impl VideoDepth {
         match self {
             VideoDepth::Model(m) => m.name(),
             VideoDepth::Frames(s) => format!("depth maps in {}", s.dir.display()),
+            VideoDepth::Stereo(s) => format!(
+                "stereo (SGBM, baseline {} scene units{})",
+                s.baseline,
+                s.prior
+                    .as_ref()
+                    .map_or(String::new(), |p| format!("; prior {}", p.name()))
+            ),
         }
     }
 }

@@ -7,6 +7,7 @@ use crate::error::{Context, PipelineError};
 use crate::sources::{CameraChoice, VideoDepth};
 use cpsl_core::{LayeredFrame, Progress, ProgressEvent, RefreshReason};
 use cpsl_layering::LayeringConfig;
+use cpsl_stereo::StereoLayout;
 use cpsl_temporal::{GopConfig, VideoLayerer};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
@@ -39,6 +40,10 @@ pub struct VideoJob {
     pub depth_every_frame: bool,
     /// Stop after this many frames.
     pub max_frames: Option<usize>,
+    /// The frames hold two views (side by side or top and bottom): the left one is layered,
+    /// and stereo depth sources see both. Motion then always comes from optical flow (the
+    /// decoder's vectors describe the packed frame).
+    pub stereo: Option<StereoLayout>,
 }
 
 /// One layered frame, as the driver hands it on.
@@ -49,6 +54,8 @@ pub struct FrameRecord {
     pub decoder_motion: bool,
     /// Milliseconds for this frame, depth included.
     pub ms: f64,
+    /// Where this frame's depth came from, when the source says (stereo and its fallbacks).
+    pub depth_note: Option<String>,
 }
 
 /// The progress stage of layering a video.
@@ -65,7 +72,12 @@ pub fn layer_video(
     let input = &job.input;
     let mut src =
         cpsl_media::open(input).context_with(|| format!("opening {}", input.display()))?;
-    let info = src.info().clone();
+    let mut info = src.info().clone();
+    if let Some(layout) = job.stereo {
+        (info.width, info.height) = layout
+            .view_size(info.width, info.height)
+            .context_with(|| format!("{} as stereo", input.display()))?;
+    }
     let cam = job.camera.camera(info.width, info.height)?;
     let mut cfg = job.layering;
     cfg.cues.allow_missing_depth = true;
@@ -87,25 +99,38 @@ pub fn layer_video(
             break;
         };
         let t = Instant::now();
+        let (rgb, right) = match job.stereo {
+            Some(layout) => {
+                let (full_w, full_h) = (src.info().width, src.info().height);
+                let (l, r, ..) = cpsl_stereo::split(&frame.rgb, full_w, full_h, layout)
+                    .context_with(|| format!("frame {}", frame.index))?;
+                (l, Some(r))
+            }
+            None => (frame.rgb, None),
+        };
         layerer.set_frames_left(total.map(|n| n.saturating_sub(count)));
         let intra = layerer.next_is_intra();
-        let z = if intra || job.depth_every_frame {
-            Some(depth.depth(frame.index, &frame.rgb, info.width, info.height)?)
+        let (z, depth_note) = if intra || job.depth_every_frame {
+            let z = depth
+                .depth(frame.index, &rgb, right.as_deref(), &cam)
+                .context_with(|| format!("depth of frame {}", frame.index))?;
+            (Some(z), depth.note().map(String::from))
         } else {
-            None
+            (None, None)
         };
         let given = match job.motion {
-            MotionSource::Auto => frame.motion,
-            MotionSource::Flow => None,
+            MotionSource::Auto if job.stereo.is_none() => frame.motion,
+            _ => None,
         };
         let decoder_motion = given.is_some() && !intra;
         let out = layerer
-            .push_with_motion(&frame.rgb, z.as_deref(), given)
+            .push_with_motion(&rgb, z.as_deref(), given)
             .context_with(|| format!("frame {}", frame.index))?;
         sink(FrameRecord {
             frame: out,
             decoder_motion,
             ms: t.elapsed().as_secs_f64() * 1e3,
+            depth_note,
         })?;
         count += 1;
         progress.event(ProgressEvent::Advance {
@@ -141,10 +166,13 @@ pub struct VideoManifest {
     pub codec: String,
     /// Frames per second.
     pub fps: f64,
-    /// Frame width.
+    /// Width of the layered view (half a side-by-side frame).
     pub width: u32,
-    /// Frame height.
+    /// Height of the layered view.
     pub height: u32,
+    /// `sbs` or `tab` for stereo input.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stereo: Option<String>,
     /// Clockwise rotation applied to make the pictures upright, in degrees.
     pub rotation: u32,
     /// The HDR transfer mapped to SDR, if any.
@@ -178,6 +206,10 @@ pub struct VideoFrameEntry {
     pub crack: f32,
     /// `estimated` or `propagated`.
     pub depth: String,
+    /// Where an estimated depth came from, when the source says: stereo with its share of
+    /// matched pixels, or the fallback taken and why.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub depth_note: Option<String>,
     /// `none` (I-frames), `decoder` or `flow`.
     pub motion: String,
     /// Milliseconds for the frame.
@@ -212,6 +244,7 @@ impl VideoFrameEntry {
                 "estimated"
             }
             .into(),
+            depth_note: r.depth_note.clone(),
             motion: match (f.refresh.is_some(), r.decoder_motion) {
                 (true, _) => "none",
                 (false, true) => "decoder",
@@ -273,6 +306,7 @@ pub fn write_layered_video(
         fps: info.fps,
         width: info.width,
         height: info.height,
+        stereo: job.stereo.map(|l| l.name().to_string()),
         rotation: info.rotation,
         hdr: info.hdr.map(String::from),
         depth: depth.name(),

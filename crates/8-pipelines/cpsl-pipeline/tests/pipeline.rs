@@ -52,6 +52,7 @@ fn clip(dir: &Path) -> VideoJob {
         motion: MotionSource::Auto,
         depth_every_frame: false,
         max_frames: None,
+        stereo: None,
     }
 }
 

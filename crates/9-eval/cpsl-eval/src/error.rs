@@ -51,6 +51,9 @@ pub enum EvalError {
     /// A pipeline (layering an image, depth sources).
     #[error(transparent)]
     Pipeline(#[from] cpsl_pipeline::PipelineError),
+    /// Stereo matching.
+    #[error(transparent)]
+    Stereo(#[from] cpsl_stereo::StereoError),
     /// Core validation.
     #[error(transparent)]
     Core(#[from] cpsl_core::CoreError),

@@ -11,6 +11,7 @@ mod error;
 pub mod metrics;
 pub mod rd;
 pub mod report;
+pub mod stereo;
 pub mod temporal;
 pub mod video;
 pub mod views;

@@ -428,6 +428,13 @@ fn dataset_depth(ds: &Dataset, depth: &str) -> Result<Option<(Vec<f32>, String)>
         }
         return Ok(Some((ds.depth.clone(), "ground truth".to_string())));
     }
+    if depth == "stereo" {
+        if ds.centre_depth.is_some() {
+            return Ok(None);
+        }
+        let (z, _, desc) = crate::stereo::stereo_depth(ds, &cpsl_stereo::StereoConfig::default())?;
+        return Ok(Some((z, desc)));
+    }
     let model = depth.strip_prefix("model:").unwrap_or(depth);
     let mut m: Box<dyn cpsl_core::DepthSource> =
         Box::new(cpsl_pipeline::sources::open_depth_model(model, None)?);
@@ -479,7 +486,14 @@ pub fn evaluate_views(
             ));
             continue;
         };
-        let scorer = Scorer::new(&ds, &depth, lpips.as_ref());
+        // Score the same pixels whatever the depth: co-visibility and depth-edge bands come
+        // from the ground truth where the dataset has it.
+        let truth = if ds.depth.iter().any(|z| z.is_finite()) {
+            &ds.depth
+        } else {
+            &depth
+        };
+        let scorer = Scorer::new(&ds, truth, lpips.as_ref());
         for &method in &methods {
             // The layers as rendered: the set itself, or the set coded and decoded again.
             let prepare = |set: LayerSet, edc: Option<Edc>| -> Result<(FrameLayers, Option<f64>)> {

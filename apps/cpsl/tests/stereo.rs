@@ -1,0 +1,186 @@
+//! Stereo input end to end: a side-by-side frame sequence made of a real Middlebury pair (and
+//! a black frame that stereo cannot see), a stereo pair for `cpsl layer`, the stereo scores,
+//! and the errors. Reads `../shared/data` beside the checkout; says so and returns when it is
+//! absent.
+
+mod common;
+use common::{cpsl, ok, s};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+fn data() -> Option<PathBuf> {
+    let root = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../../shared/data");
+    let teddy = root.join("middlebury_2005_2003_stereo/2003_QuarterSize/Teddy");
+    if teddy.is_dir() {
+        Some(teddy)
+    } else {
+        eprintln!("skipped: {} not found", teddy.display());
+        None
+    }
+}
+
+fn ffmpeg(args: &[&str]) {
+    let st = Command::new("ffmpeg")
+        .args(["-v", "error", "-y"])
+        .args(args)
+        .status()
+        .expect("the ffmpeg tool (scripts/setup-system.sh)");
+    assert!(st.success(), "ffmpeg {args:?}");
+}
+
+/// Writes frames 0, 1, 3 as the Teddy pair side by side and frame 2 black.
+fn sbs_frames(teddy: &Path, dir: &Path) {
+    std::fs::create_dir_all(dir).unwrap();
+    let (l, r) = (teddy.join("im2.png"), teddy.join("im6.png"));
+    for i in [0, 1, 3] {
+        let out = dir.join(format!("f{i}.png"));
+        ffmpeg(&[
+            "-i",
+            s(&l),
+            "-i",
+            s(&r),
+            "-filter_complex",
+            "hstack",
+            s(&out),
+        ]);
+    }
+    ffmpeg(&[
+        "-i",
+        s(&dir.join("f0.png")),
+        "-vf",
+        "lutrgb=r=0:g=0:b=0",
+        s(&dir.join("f2.png")),
+    ]);
+}
+
+#[test]
+fn side_by_side_video_layers_with_its_own_depth() {
+    let Some(teddy) = data() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let frames = dir.path().join("frames");
+    sbs_frames(&teddy, &frames);
+    let out = dir.path().join("layers");
+    let msg = ok(&[
+        "layer-video",
+        s(&frames),
+        "-o",
+        s(&out),
+        "--stereo",
+        "sbs",
+        "--gop",
+        "2",
+        "--layers",
+        "4",
+    ]);
+    assert!(msg.contains("wrote 4 frames"), "{msg}");
+    let v: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("video.json")).unwrap()).unwrap();
+    // The left view is layered, with stereo depth.
+    assert_eq!(
+        (v["width"].as_u64(), v["height"].as_u64()),
+        (Some(450), Some(375))
+    );
+    assert_eq!(v["stereo"], "sbs");
+    assert!(
+        v["depth"].as_str().unwrap().starts_with("stereo"),
+        "{}",
+        v["depth"]
+    );
+    let f = v["frames"].as_array().unwrap();
+    let note = |i: usize| f[i]["depth_note"].as_str().unwrap_or("").to_string();
+    assert!(note(0).starts_with("stereo, 9"), "{}", note(0));
+    // The black I-frame falls back, and says why.
+    assert_eq!(f[2]["kind"], "I");
+    assert!(
+        note(2).starts_with("fallback: too little texture"),
+        "{}",
+        note(2)
+    );
+    // The layers' depths span the scene's: Teddy's disparities (12-53 px at quarter size)
+    // with the default 60-degree camera and 65 mm baseline put it at 0.3-1.5 m.
+    let m: serde_json::Value = serde_json::from_slice(
+        &std::fs::read(out.join("frame_000000").join("manifest.json")).unwrap(),
+    )
+    .unwrap();
+    let depths: Vec<f64> = m["layers"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|l| l["depth"].as_f64().unwrap())
+        .collect();
+    let (near, far) = depths
+        .iter()
+        .fold((f64::MAX, 0.0f64), |(a, b), &d| (a.min(d), b.max(d)));
+    assert!(near > 0.2 && far < 2.0 && far > 2.0 * near, "{depths:?}");
+
+    // An odd-width side-by-side input is refused, nothing written.
+    let odd = dir.path().join("odd");
+    std::fs::create_dir(&odd).unwrap();
+    ffmpeg(&[
+        "-i",
+        s(&teddy.join("im2.png")),
+        "-vf",
+        "crop=449:375:0:0",
+        s(&odd.join("f.png")),
+    ]);
+    let o = cpsl(&[
+        "layer-video",
+        s(&odd),
+        "-o",
+        s(&dir.path().join("odd_out")),
+        "--stereo",
+        "sbs",
+    ]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("even width"), "{err}");
+    assert!(!dir.path().join("odd_out").exists());
+}
+
+#[test]
+fn stereo_pair_layers_and_scores() {
+    let Some(teddy) = data() else { return };
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("set");
+    let msg = ok(&[
+        "layer",
+        s(&teddy.join("im2.png")),
+        "--right",
+        s(&teddy.join("im6.png")),
+        "-o",
+        s(&out),
+        "--layers",
+        "4",
+    ]);
+    assert!(msg.contains("wrote"), "{msg}");
+    let cfg = std::fs::read_to_string(out.join("config.json")).unwrap();
+    assert!(
+        cfg.contains("stereo, 9"),
+        "depth source not recorded: {cfg}"
+    );
+    // A right view of another size is refused.
+    let o = cpsl(&[
+        "layer",
+        s(&teddy.join("im2.png")),
+        "--right",
+        s(&teddy.join("../../2005_ThirdSize/Art/view5.png")),
+        "-o",
+        s(&dir.path().join("bad")),
+    ]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("one size"));
+
+    // The stereo scores: Cones within the 10 % target.
+    let root = teddy.join("../../..");
+    let json = dir.path().join("stereo.json");
+    ok(&[
+        "eval-stereo",
+        "middlebury2003/Cones",
+        "--data",
+        s(&root),
+        "--json",
+        s(&json),
+    ]);
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    let bad1 = v[0]["bad1"].as_f64().unwrap();
+    assert!(bad1 < 0.10, "Cones bad>1 {bad1}");
+}

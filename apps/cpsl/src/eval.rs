@@ -235,3 +235,28 @@ pub fn run_stereo(a: EvalStereoArgs) -> Result<()> {
     }
     Ok(())
 }
+
+/// Arguments of `cpsl eval-track`.
+#[derive(Args)]
+pub struct EvalTrackArgs {
+    /// Folder holding the datasets (`../shared/data` beside the checkout).
+    #[arg(long, default_value = "../shared/data")]
+    pub data: PathBuf,
+    /// Write the score as JSON.
+    #[arg(long)]
+    pub json: Option<PathBuf>,
+}
+
+/// Runs `cpsl eval-track`: tracks the fox without its poses and scores the result.
+pub fn run_track(a: EvalTrackArgs) -> Result<()> {
+    let s = cpsl_eval::tracking::fox(&a.data)?;
+    println!(
+        "{}: {} of {} frames placed, motion {}, {} points, reprojection {:.2} px, rotation error {:.3} deg, translation direction {:.2} deg, {:.0} ms/frame",
+        s.clip, s.placed, s.frames, s.motion, s.points, s.reprojection_px, s.rotation_deg, s.translation_dir_deg, s.ms_per_frame
+    );
+    if let Some(path) = &a.json {
+        cpsl_io::write_json(path, &s)?;
+        println!("wrote {}", path.display());
+    }
+    Ok(())
+}

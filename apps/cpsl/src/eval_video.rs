@@ -66,6 +66,10 @@ pub struct EvalVideoArgs {
     /// synthetic clip has one): what propagation scores with perfect motion.
     #[arg(long)]
     pub true_motion: bool,
+    /// Depth of the fox: `fastdepth` (per frame, one scale for the clip) or `video` (from the
+    /// video itself: camera tracking, multi-view depth, fused with FastDepth).
+    #[arg(long, default_value = "fastdepth", value_parser = ["fastdepth", "video"])]
+    pub depth: String,
     /// Write the results as JSON.
     #[arg(long)]
     pub json: Option<PathBuf>,
@@ -81,6 +85,7 @@ pub fn run(a: EvalVideoArgs) -> Result<()> {
         geometry: a.geometry,
         lpips: !a.no_lpips,
         true_motion: a.true_motion,
+        video_depth: a.depth == "video",
     };
     println!(
         "{:<10} {:<36} {:>6} {:>9} {:>9} {:>8} {:>8} {:>8} {:>8}",

@@ -66,6 +66,8 @@ enum Command {
     /// Stereo matching on the real two-view datasets: each pair's disparity scored against
     /// ground truth (share of non-occluded pixels off by more than 1 and 2 px).
     EvalStereo(eval::EvalStereoArgs),
+    /// Camera tracking on the fox (its poses not read), scored against its COLMAP poses.
+    EvalTrack(eval::EvalTrackArgs),
     /// Rate-distortion curves on a synthetic moving clip: CPSL packages under budgets against
     /// DIBR streaming (colour + depth) and a uniform MPI coded with the same codec.
     EvalRd(eval_rd::EvalRdArgs),
@@ -133,6 +135,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Eval(a) => eval::run(a),
         Command::EvalVideo(a) => eval_video::run(a),
         Command::EvalStereo(a) => eval::run_stereo(a),
+        Command::EvalTrack(a) => eval::run_track(a),
         Command::EvalRd(a) => eval_rd::run(a),
         Command::View(a) => view::run(a),
         Command::Serve(a) => serve::run(a),

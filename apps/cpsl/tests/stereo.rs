@@ -1,6 +1,6 @@
-//! Stereo input end to end: a side-by-side frame sequence made of a real Middlebury pair (and
-//! a black frame that stereo cannot see), a stereo pair for `cpsl layer`, the stereo scores,
-//! and the errors. Reads `../shared/data` beside the checkout; says so and returns when it is
+//! Depth from the views themselves, end to end: a side-by-side frame sequence made of a real
+//! Middlebury pair (and a black frame that stereo cannot see), a stereo pair for `cpsl
+//! layer`, the stereo scores, their errors, and camera tracking on the fox. Reads `../shared/data` beside the checkout; says so and returns when it is
 //! absent.
 
 mod common;
@@ -183,4 +183,20 @@ fn stereo_pair_layers_and_scores() {
     let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
     let bad1 = v[0]["bad1"].as_f64().unwrap();
     assert!(bad1 < 0.10, "Cones bad>1 {bad1}");
+}
+
+#[test]
+fn tracks_the_fox_without_its_poses() {
+    let Some(teddy) = data() else { return };
+    let root = teddy.join("../../..");
+    let dir = tempfile::tempdir().unwrap();
+    let json = dir.path().join("track.json");
+    ok(&["eval-track", "--data", s(&root), "--json", s(&json)]);
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    // Measured: 31 of 50 frames placed (the clip has a gap the tracks do not cross), median
+    // rotation error 2.9 degrees (issue 29's 0.2 is not met yet).
+    assert_eq!(v["motion"], "translating");
+    assert!(v["placed"].as_u64().unwrap() >= 25, "{v}");
+    assert!(v["rotation_deg"].as_f64().unwrap() < 4.0, "{v}");
+    assert!(v["translation_dir_deg"].as_f64().unwrap() < 4.0, "{v}");
 }

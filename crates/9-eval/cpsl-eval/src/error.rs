@@ -54,6 +54,9 @@ pub enum EvalError {
     /// Stereo matching.
     #[error(transparent)]
     Stereo(#[from] cpsl_stereo::StereoError),
+    /// Camera tracking.
+    #[error(transparent)]
+    Track(#[from] cpsl_track::TrackError),
     /// Core validation.
     #[error(transparent)]
     Core(#[from] cpsl_core::CoreError),

@@ -13,6 +13,7 @@ pub mod rd;
 pub mod report;
 pub mod stereo;
 pub mod temporal;
+pub mod tracking;
 pub mod video;
 pub mod views;
 

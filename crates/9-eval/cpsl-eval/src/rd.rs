@@ -255,7 +255,7 @@ fn rotation_deg(p: &Pose) -> f64 {
 /// neighbouring frames that are 2 to 30 degrees away (the data's README: pairs closer than
 /// that barely move, farther ones mostly leave the frame) and scored against them.
 fn fox_clip(a: &RdOptions) -> Result<Clip> {
-    let mut f = crate::video::load_fox(&a.data, 2)?;
+    let mut f = crate::video::load_fox(&a.data, 2, false)?;
     let n = f.frames.len().min(a.frames as usize);
     f.frames.truncate(n);
     f.depth.truncate(n);

@@ -53,6 +53,9 @@ pub struct VideoOptions {
     pub lpips: bool,
     /// Give the I/P methods the clip's true motion (only the synthetic clip has one).
     pub true_motion: bool,
+    /// Depth of the fox from the video itself (tracking, multi-view depth fused with
+    /// FastDepth; [`crate::tracking::video_depth`]) instead of FastDepth alone.
+    pub video_depth: bool,
 }
 
 /// What a run reports as it goes.
@@ -318,11 +321,16 @@ pub struct Fox {
 }
 
 /// The fox at `1/scale` of full size ([`Fox`]).
-pub fn load_fox(data: &Path, scale: u32) -> Result<Fox> {
+pub fn load_fox(data: &Path, scale: u32, from_video: bool) -> Result<Fox> {
     let video = crate::datasets::fox(data)?;
     let camera = video.camera.scaled(1.0 / scale as f64);
-    let (frames, mut depth, name) =
+    let (frames, mut depth, mut name) =
         estimate_frames(&video.files, camera, scale as usize, Some(&video.lens))?;
+    if from_video {
+        let (z, how) = crate::tracking::video_depth(&frames, camera, &depth)?;
+        depth = z;
+        name = how;
+    }
     let ratios: Vec<f32> = depth
         .iter()
         .zip(&video.centre_depth)
@@ -356,8 +364,8 @@ pub fn load_fox(data: &Path, scale: u32) -> Result<Fox> {
 /// The fox at a quarter of full size. Its poses give every frame a real novel view: frame t is
 /// rendered at frame t+1's camera (the last frame at frame t-1's) and scored against that
 /// frame.
-fn fox(data: &Path) -> Result<ClipData> {
-    let f = load_fox(data, 4)?;
+fn fox(data: &Path, from_video: bool) -> Result<ClipData> {
+    let f = load_fox(data, 4, from_video)?;
     let n = f.frames.len();
     let target = |t: usize| {
         if t + 1 < n {
@@ -482,7 +490,7 @@ pub fn evaluate_video(
         let c = match clip {
             Clip::Synthetic => synthetic(),
             Clip::HciRow => hci_row(&a.data)?,
-            Clip::Fox => fox(&a.data)?,
+            Clip::Fox => fox(&a.data, a.video_depth)?,
             Clip::Kitti => kitti(&a.data)?,
             Clip::All => unreachable!(),
         };

@@ -1,0 +1,956 @@
+//! Camera tracking and multi-view depth for monocular video, on OpenCV.
+//!
+//! **Tracking** ([`Tracker`]): corners (`goodFeaturesToTrack`) followed frame to frame by
+//! pyramidal Lucas-Kanade with a forward-backward check, topped up where tracks die. At the
+//! end ([`Tracker::finish`]) the poses are solved:
+//!
+//! 1. *Initialisation with model selection.* From the first frame, the first later frame whose
+//!    tracks moved enough is tried: an essential matrix and a homography are both fitted
+//!    (RANSAC, 1 px); when the homography explains nearly as many tracks, the motion is a
+//!    rotation (or the camera is static: tracks barely move) and no depth can be triangulated;
+//!    otherwise the essential matrix gives the relative pose (unit baseline) and the common
+//!    tracks are triangulated.
+//! 2. *Registration.* Every other frame is placed by PnP (RANSAC) on the triangulated tracks
+//!    it sees, nearest frames first; each placed frame triangulates the tracks it shares with
+//!    the placed frame that sees them under the widest angle (at least `min_angle_deg`).
+//! 3. *Refinement.* Alternating resection and intersection: every frame re-solved by PnP on
+//!    its inliers, every point re-triangulated from its widest pair, twice.
+//!
+//! Poses are camera-to-world ([`cpsl_core::Pose`]: `X_world = R X_cam + t`), the world being
+//! the first frame's camera, and the first baseline has length 1 (monocular scale).
+//!
+//! **Multi-view depth** ([`mvs`]): dense optical flow (DIS) from a frame to posed neighbours,
+//! forward-backward checked and triangulated per pixel.
+
+pub mod mvs;
+
+/// OpenCV's image type, as [`work_grey`] and [`mvs`] take it.
+pub use opencv::core::Mat;
+
+use cpsl_core::{Camera, Mat3, Pose, Vec3};
+use opencv::core::{self, Point2f, Scalar, Size, TermCriteria, Vector};
+use opencv::prelude::*;
+use opencv::{calib3d, features2d, imgproc, video};
+use std::collections::HashMap;
+use thiserror::Error;
+
+/// Why tracking failed.
+#[derive(Debug, Error)]
+pub enum TrackError {
+    /// The frames do not fit the camera or each other.
+    #[error("{0}")]
+    Input(String),
+    /// OpenCV failed.
+    #[error("OpenCV: {0}")]
+    OpenCv(#[from] opencv::Error),
+}
+
+type Result<T> = std::result::Result<T, TrackError>;
+
+/// Tracking settings.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TrackConfig {
+    /// Longest side the frames are tracked at (they are downscaled to it).
+    pub work_side: u32,
+    /// Most corners tracked at once.
+    pub max_features: usize,
+    /// Least distance between corners (working pixels).
+    pub min_distance: f64,
+    /// Largest forward-backward disagreement of a tracked corner (working pixels).
+    pub max_fb_error: f32,
+    /// Least angle between the two rays of a triangulated point, in degrees.
+    pub min_angle_deg: f64,
+    /// Least median track motion (share of the working image's long side) for the first
+    /// baseline.
+    pub init_motion: f64,
+}
+
+impl Default for TrackConfig {
+    fn default() -> Self {
+        Self {
+            work_side: 640,
+            max_features: 1500,
+            min_distance: 8.0,
+            max_fb_error: 1.0,
+            min_angle_deg: 1.0,
+            init_motion: 0.04,
+        }
+    }
+}
+
+/// How the camera moves over a clip.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum CameraMotion {
+    /// It translates: poses and depth come from the video.
+    Translating,
+    /// Tracks move, but a homography explains them (a rotation about the centre, or a
+    /// planar scene): no baseline to triangulate.
+    Rotating,
+    /// Tracks barely move.
+    Static,
+    /// Too few tracks to tell (textureless, black or too short).
+    Untracked,
+}
+
+impl CameraMotion {
+    /// The name reports use.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::Translating => "translating",
+            Self::Rotating => "rotating",
+            Self::Static => "static",
+            Self::Untracked => "untracked",
+        }
+    }
+}
+
+/// The solved camera path of a clip.
+#[derive(Debug, Clone)]
+pub struct Trajectory {
+    /// The camera at working resolution.
+    pub camera: Camera,
+    /// Per frame, its camera-to-world pose when it could be placed.
+    pub poses: Vec<Option<Pose>>,
+    /// Per frame, the triangulated tracks its pose agrees with (PnP inliers).
+    pub inliers: Vec<usize>,
+    /// How the camera moves.
+    pub motion: CameraMotion,
+    /// Triangulated points.
+    pub points: usize,
+    /// Median reprojection error of the points over their observations (working pixels).
+    pub reprojection_px: f64,
+    /// The two frames of the first baseline.
+    pub initial_pair: Option<(usize, usize)>,
+}
+
+/// One observation of a track: frame and working-pixel position.
+type Obs = (u32, f32, f32);
+
+/// Follows corners through a clip; see the [crate docs](crate).
+pub struct Tracker {
+    cfg: TrackConfig,
+    camera: Camera,
+    size: (u32, u32),
+    prev: Option<Mat>,
+    live: Vec<(usize, Point2f)>,
+    tracks: Vec<Vec<Obs>>,
+    frames: u32,
+}
+
+impl Tracker {
+    /// A tracker for frames of `camera`'s size.
+    pub fn new(camera: Camera, cfg: TrackConfig) -> Result<Self> {
+        let long = camera.width.max(camera.height);
+        if long == 0 || cfg.work_side < 32 {
+            return Err(TrackError::Input(format!(
+                "cannot track {}x{} frames at a working side of {}",
+                camera.width, camera.height, cfg.work_side
+            )));
+        }
+        let scale = (cfg.work_side as f64 / long as f64).min(1.0);
+        let size = (
+            ((camera.width as f64 * scale).round() as u32).max(1),
+            ((camera.height as f64 * scale).round() as u32).max(1),
+        );
+        let work = Camera {
+            width: size.0,
+            height: size.1,
+            fx: camera.fx * size.0 as f64 / camera.width as f64,
+            fy: camera.fy * size.1 as f64 / camera.height as f64,
+            cx: (camera.cx + 0.5) * size.0 as f64 / camera.width as f64 - 0.5,
+            cy: (camera.cy + 0.5) * size.1 as f64 / camera.height as f64 - 0.5,
+        };
+        Ok(Self {
+            cfg,
+            camera: work,
+            size,
+            prev: None,
+            live: Vec::new(),
+            tracks: Vec::new(),
+            frames: 0,
+        })
+    }
+
+    /// The camera at working resolution.
+    pub fn camera(&self) -> Camera {
+        self.camera
+    }
+
+    /// Working grey image of an RGB frame of the tracker's size.
+    pub fn grey(&self, rgb: &[u8], width: u32, height: u32) -> Result<Mat> {
+        work_grey(rgb, width, height, self.size)
+    }
+
+    /// Tracks into the next frame (RGB, 3 bytes per pixel, of the camera's size).
+    pub fn push(&mut self, rgb: &[u8], width: u32, height: u32) -> Result<()> {
+        let grey = self.grey(rgb, width, height)?;
+        let f = self.frames;
+        if let Some(prev) = &self.prev {
+            if !self.live.is_empty() {
+                let p0: Vector<Point2f> = self.live.iter().map(|l| l.1).collect();
+                let p1 = lk(prev, &grey, &p0)?;
+                let back = lk(&grey, prev, &p1.0)?;
+                let (w, h) = (self.size.0 as f32, self.size.1 as f32);
+                let mut kept = Vec::with_capacity(self.live.len());
+                for (i, &(id, a)) in self.live.iter().enumerate() {
+                    let (b, c) = (p1.0.get(i)?, back.0.get(i)?);
+                    let fb = ((c.x - a.x).powi(2) + (c.y - a.y).powi(2)).sqrt();
+                    let inside = b.x >= 0.0 && b.y >= 0.0 && b.x < w - 1.0 && b.y < h - 1.0;
+                    if p1.1[i] && back.1[i] && fb < self.cfg.max_fb_error && inside {
+                        self.tracks[id].push((f, b.x, b.y));
+                        kept.push((id, b));
+                    }
+                }
+                self.live = kept;
+            }
+            if self.live.len() < MIN_LIVE {
+                // A break (a jump or a gap in the frames): seed tracks across it from
+                // descriptor matches.
+                let seeds = matches(prev, &grey)?;
+                for (a, b) in seeds {
+                    let near = self
+                        .live
+                        .iter()
+                        .any(|&(_, p)| (p.x - b.x).hypot(p.y - b.y) < self.cfg.min_distance as f32);
+                    if !near {
+                        self.tracks.push(vec![(f - 1, a.x, a.y), (f, b.x, b.y)]);
+                        self.live.push((self.tracks.len() - 1, b));
+                    }
+                }
+            }
+        }
+        if self.live.len() < self.cfg.max_features * 7 / 10 {
+            self.detect(&grey, f)?;
+        }
+        self.prev = Some(grey);
+        self.frames += 1;
+        Ok(())
+    }
+
+    fn detect(&mut self, grey: &Mat, f: u32) -> Result<()> {
+        let mut mask = Mat::new_rows_cols_with_default(
+            self.size.1 as i32,
+            self.size.0 as i32,
+            core::CV_8U,
+            Scalar::all(255.0),
+        )?;
+        for &(_, p) in &self.live {
+            imgproc::circle(
+                &mut mask,
+                core::Point::new(p.x as i32, p.y as i32),
+                self.cfg.min_distance as i32,
+                Scalar::all(0.0),
+                -1,
+                imgproc::LINE_8,
+                0,
+            )?;
+        }
+        let mut corners: Vector<Point2f> = Vector::new();
+        let want = (self.cfg.max_features - self.live.len()) as i32;
+        imgproc::good_features_to_track(
+            grey,
+            &mut corners,
+            want,
+            0.01,
+            self.cfg.min_distance,
+            &mask,
+            3,
+            false,
+            0.04,
+        )?;
+        for p in corners.iter() {
+            self.tracks.push(vec![(f, p.x, p.y)]);
+            self.live.push((self.tracks.len() - 1, p));
+        }
+        Ok(())
+    }
+
+    /// Frames pushed so far.
+    pub fn frames(&self) -> usize {
+        self.frames as usize
+    }
+
+    /// Solves the poses of every frame pushed; see the [crate docs](crate).
+    pub fn finish(self) -> Result<Trajectory> {
+        Solver::new(self.camera, self.cfg, self.frames as usize, self.tracks).solve()
+    }
+}
+
+/// Working grey image: RGB to grey, area-downscaled to `size`.
+pub fn work_grey(rgb: &[u8], width: u32, height: u32, size: (u32, u32)) -> Result<Mat> {
+    let n = width as usize * height as usize * 3;
+    if rgb.len() != n || width == 0 || height == 0 {
+        return Err(TrackError::Input(format!(
+            "a {width}x{height} RGB frame has {n} bytes, found {}",
+            rgb.len()
+        )));
+    }
+    let m = Mat::new_rows_cols_with_bytes::<core::Vec3b>(height as i32, width as i32, rgb)?
+        .try_clone()?;
+    let mut g = Mat::default();
+    imgproc::cvt_color(&m, &mut g, imgproc::COLOR_RGB2GRAY, 0)?;
+    if (width, height) == size {
+        return Ok(g);
+    }
+    let mut out = Mat::default();
+    imgproc::resize(
+        &g,
+        &mut out,
+        Size::new(size.0 as i32, size.1 as i32),
+        0.0,
+        0.0,
+        imgproc::INTER_AREA,
+    )?;
+    Ok(out)
+}
+
+/// Fewest PnP inliers that place a frame.
+const MIN_PNP: usize = 15;
+
+/// Largest turn between neighbouring frames, degrees.
+const MAX_TURN_DEG: f64 = 30.0;
+
+/// Angle of a rotation matrix in degrees.
+pub fn rotation_deg(r: &Mat3) -> f64 {
+    let tr = r.0[0][0] + r.0[1][1] + r.0[2][2];
+    ((tr - 1.0) / 2.0).clamp(-1.0, 1.0).acos().to_degrees()
+}
+
+/// Rounds of alternating resection and intersection.
+const REFINE_ROUNDS: usize = 5;
+
+/// Fewer tracks than this surviving into a frame is a break.
+const MIN_LIVE: usize = 150;
+
+/// Cross-checked ORB matches from `a` to `b` that agree with a fundamental matrix (RANSAC,
+/// 1.5 px).
+fn matches(a: &Mat, b: &Mat) -> Result<Vec<(Point2f, Point2f)>> {
+    let mut orb = features2d::ORB::create(
+        3000,
+        1.2,
+        8,
+        31,
+        0,
+        2,
+        features2d::ORB_ScoreType::HARRIS_SCORE,
+        31,
+        10,
+    )?;
+    let mut detect = |m: &Mat| -> Result<(Vector<core::KeyPoint>, Mat)> {
+        let mut kp = Vector::new();
+        let mut desc = Mat::default();
+        orb.detect_and_compute(m, &core::no_array(), &mut kp, &mut desc, false)?;
+        Ok((kp, desc))
+    };
+    let ((ka, da), (kb, db)) = (detect(a)?, detect(b)?);
+    if ka.len() < 8 || kb.len() < 8 {
+        return Ok(Vec::new());
+    }
+    let matcher = features2d::BFMatcher::create(core::NORM_HAMMING, true)?;
+    let mut m = Vector::new();
+    matcher.train_match(&da, &db, &mut m, &core::no_array())?;
+    let (mut pa, mut pb): (Vector<Point2f>, Vector<Point2f>) = (Vector::new(), Vector::new());
+    for d in m.iter().filter(|d| d.distance <= 64.0) {
+        pa.push(ka.get(d.query_idx as usize)?.pt());
+        pb.push(kb.get(d.train_idx as usize)?.pt());
+    }
+    if pa.len() < 15 {
+        return Ok(Vec::new());
+    }
+    let mut mask = Mat::default();
+    let fm =
+        calib3d::find_fundamental_mat(&pa, &pb, calib3d::FM_RANSAC, 1.5, 0.999, 2000, &mut mask)?;
+    if fm.empty() {
+        return Ok(Vec::new());
+    }
+    let keep = mask.data_typed::<u8>()?;
+    (0..pa.len())
+        .filter(|&i| keep[i] != 0)
+        .map(|i| Ok((pa.get(i)?, pb.get(i)?)))
+        .collect()
+}
+
+/// Pyramidal Lucas-Kanade from `a` to `b`: new positions and which were found.
+fn lk(a: &Mat, b: &Mat, p: &Vector<Point2f>) -> Result<(Vector<Point2f>, Vec<bool>)> {
+    let mut next: Vector<Point2f> = Vector::new();
+    let mut status: Vector<u8> = Vector::new();
+    let mut err: Vector<f32> = Vector::new();
+    video::calc_optical_flow_pyr_lk(
+        a,
+        b,
+        p,
+        &mut next,
+        &mut status,
+        &mut err,
+        Size::new(21, 21),
+        3,
+        TermCriteria::new(core::TermCriteria_COUNT + core::TermCriteria_EPS, 30, 0.01)?,
+        0,
+        1e-4,
+    )?;
+    Ok((next, status.iter().map(|s| s != 0).collect()))
+}
+
+/// World-to-camera `(R, t)` of a camera-to-world pose.
+fn extrinsics(p: &Pose) -> (Mat3, Vec3) {
+    let r = p.rotation.transpose();
+    (r, -(r * p.translation))
+}
+
+struct Solver {
+    cam: Camera,
+    cfg: TrackConfig,
+    frames: usize,
+    tracks: Vec<Vec<Obs>>,
+    /// Per frame: (track, x, y).
+    by_frame: Vec<Vec<(usize, f32, f32)>>,
+    poses: Vec<Option<Pose>>,
+    inliers: Vec<usize>,
+    points: HashMap<usize, Vec3>,
+}
+
+impl Solver {
+    fn new(cam: Camera, cfg: TrackConfig, frames: usize, tracks: Vec<Vec<Obs>>) -> Self {
+        let mut by_frame = vec![Vec::new(); frames];
+        for (id, t) in tracks.iter().enumerate() {
+            if t.len() < 2 {
+                continue;
+            }
+            for &(f, x, y) in t {
+                by_frame[f as usize].push((id, x, y));
+            }
+        }
+        Self {
+            cam,
+            cfg,
+            frames,
+            tracks,
+            by_frame,
+            poses: vec![None; frames],
+            inliers: vec![0; frames],
+            points: HashMap::new(),
+        }
+    }
+
+    fn k(&self) -> Result<Mat> {
+        Ok(Mat::from_slice_2d(&[
+            [self.cam.fx, 0.0, self.cam.cx],
+            [0.0, self.cam.fy, self.cam.cy],
+            [0.0, 0.0, 1.0],
+        ])?)
+    }
+
+    /// Tracks seen in both frames, as positions in each.
+    fn common(&self, a: usize, b: usize) -> (Vec<usize>, Vector<Point2f>, Vector<Point2f>) {
+        let mut at_b: HashMap<usize, (f32, f32)> = HashMap::new();
+        for &(id, x, y) in &self.by_frame[b] {
+            at_b.insert(id, (x, y));
+        }
+        let (mut ids, mut pa, mut pb) = (Vec::new(), Vector::new(), Vector::new());
+        for &(id, x, y) in &self.by_frame[a] {
+            if let Some(&(u, v)) = at_b.get(&id) {
+                ids.push(id);
+                pa.push(Point2f::new(x, y));
+                pb.push(Point2f::new(u, v));
+            }
+        }
+        (ids, pa, pb)
+    }
+
+    fn normalised(&self, p: &Vector<Point2f>) -> Vector<Point2f> {
+        p.iter()
+            .map(|q| {
+                Point2f::new(
+                    ((q.x as f64 - self.cam.cx) / self.cam.fx) as f32,
+                    ((q.y as f64 - self.cam.cy) / self.cam.fy) as f32,
+                )
+            })
+            .collect()
+    }
+
+    fn solve(mut self) -> Result<Trajectory> {
+        let long = self.cam.width.max(self.cam.height) as f64;
+        let mut motion = CameraMotion::Untracked;
+        let mut init = None;
+        let mut most_motion = 0.0f64;
+        let mut enough_tracks = false;
+        for k in 1..self.frames {
+            let (ids, p0, pk) = self.common(0, k);
+            if ids.len() < 30 {
+                continue;
+            }
+            enough_tracks = true;
+            let mut d: Vec<f64> = p0
+                .iter()
+                .zip(pk.iter())
+                .map(|(a, b)| (((a.x - b.x).powi(2) + (a.y - b.y).powi(2)) as f64).sqrt())
+                .collect();
+            d.sort_by(f64::total_cmp);
+            let med = d[d.len() / 2];
+            most_motion = most_motion.max(med);
+            if med < self.cfg.init_motion * long {
+                continue;
+            }
+            match self.initialise(k, &p0, &pk)? {
+                Some(true) => {
+                    init = Some((0, k));
+                    break;
+                }
+                Some(false) => motion = CameraMotion::Rotating,
+                None => {}
+            }
+        }
+        if init.is_none() {
+            if enough_tracks && motion != CameraMotion::Rotating {
+                motion = if most_motion < 1.0 {
+                    CameraMotion::Static
+                } else {
+                    CameraMotion::Rotating
+                };
+            }
+            return Ok(Trajectory {
+                camera: self.cam,
+                poses: vec![None; self.frames],
+                inliers: vec![0; self.frames],
+                motion,
+                points: 0,
+                reprojection_px: f64::NAN,
+                initial_pair: None,
+            });
+        }
+        self.register()?;
+
+        for _ in 0..REFINE_ROUNDS {
+            self.refine()?;
+        }
+        let reprojection_px = self.reprojection();
+        Ok(Trajectory {
+            camera: self.cam,
+            poses: self.poses,
+            inliers: self.inliers,
+            motion: CameraMotion::Translating,
+            points: self.points.len(),
+            reprojection_px,
+            initial_pair: init,
+        })
+    }
+
+    /// Tries frames 0 and `k` as the first baseline: `Some(true)` when the essential matrix
+    /// wins and the pair is set up, `Some(false)` when a homography explains the motion,
+    /// `None` when neither fits.
+    fn initialise(
+        &mut self,
+        k: usize,
+        p0: &Vector<Point2f>,
+        pk: &Vector<Point2f>,
+    ) -> Result<Option<bool>> {
+        let (n0, nk) = (self.normalised(p0), self.normalised(pk));
+        let f = 0.5 * (self.cam.fx + self.cam.fy);
+        let eye = Mat::from_slice_2d(&[[1.0f64, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])?;
+        let mut emask = Mat::default();
+        let e = calib3d::find_essential_mat(
+            &n0,
+            &nk,
+            &eye,
+            calib3d::RANSAC,
+            0.999,
+            1.0 / f,
+            1000,
+            &mut emask,
+        )?;
+        let mut hmask = Mat::default();
+        let h = calib3d::find_homography(&p0, &pk, &mut hmask, calib3d::RANSAC, 1.0)?;
+        let count = |m: &Mat| -> Result<usize> {
+            if m.empty() {
+                return Ok(0);
+            }
+            Ok(m.data_typed::<u8>()?.iter().filter(|&&v| v != 0).count())
+        };
+        let (ie, ih) = (
+            if e.rows() == 3 { count(&emask)? } else { 0 },
+            if h.empty() { 0 } else { count(&hmask)? },
+        );
+        if ie < 20 {
+            return Ok(None);
+        }
+        if ih as f64 >= 0.9 * ie as f64 {
+            return Ok(Some(false));
+        }
+        let e3 = if e.rows() > 3 {
+            Mat::roi(&e, core::Rect::new(0, 0, 3, 3))?.try_clone()?
+        } else {
+            e
+        };
+        let (mut r, mut t) = (Mat::default(), Mat::default());
+        let mut mask = emask.try_clone()?;
+        let good = calib3d::recover_pose(
+            &e3,
+            &n0,
+            &nk,
+            &mut r,
+            &mut t,
+            1.0,
+            core::Point2d::new(0.0, 0.0),
+            &mut mask,
+        )?;
+        if good < 20 {
+            return Ok(None);
+        }
+        let r = mat3(&r)?;
+        let t = vec3(&t)?;
+        // x_k = R x_0 + t (world = camera 0): camera-to-world is (R^T, -R^T t).
+        let rt = r.transpose();
+        self.poses[0] = Some(Pose::IDENTITY);
+        self.poses[k] = Some(Pose {
+            rotation: rt,
+            translation: -(rt * t),
+        });
+        self.triangulate_between(0, k)?;
+        if self.points.len() < 20 {
+            self.poses[k] = None;
+            self.poses[0] = None;
+            self.points.clear();
+            return Ok(None);
+        }
+        Ok(Some(true))
+    }
+
+    /// Triangulates the tracks frames `a` and `b` (both placed) share and that have no point
+    /// yet, keeping those in front of both, seen under `min_angle_deg` and reprojecting
+    /// within 2 px.
+    fn triangulate_between(&mut self, a: usize, b: usize) -> Result<usize> {
+        let (ids, pa, pb) = self.common(a, b);
+        let (pose_a, pose_b) = match (self.poses[a], self.poses[b]) {
+            (Some(x), Some(y)) => (x, y),
+            _ => return Ok(0),
+        };
+        let mut added = 0;
+        for (i, &id) in ids.iter().enumerate() {
+            if self.points.contains_key(&id) {
+                continue;
+            }
+            let (qa, qb) = (pa.get(i)?, pb.get(i)?);
+            if let Some(x) = self.triangulate(&[(pose_a, qa), (pose_b, qb)]) {
+                self.points.insert(id, x);
+                added += 1;
+            }
+        }
+        Ok(added)
+    }
+
+    /// Midpoint triangulation of two or more rays with the checks of
+    /// [`Solver::triangulate_between`].
+    fn triangulate(&self, obs: &[(Pose, Point2f)]) -> Option<Vec3> {
+        let ray = |p: &Pose, q: Point2f| {
+            let d = Vec3::new(
+                (q.x as f64 - self.cam.cx) / self.cam.fx,
+                (q.y as f64 - self.cam.cy) / self.cam.fy,
+                1.0,
+            );
+            (p.translation, (p.rotation * d).normalized())
+        };
+        let rays: Vec<(Vec3, Vec3)> = obs.iter().map(|(p, q)| ray(p, *q)).collect();
+        // Least squares point nearest to all rays: sum (I - d d^T) (x - c) = 0.
+        let mut a = Mat3([[0.0; 3]; 3]);
+        let mut b = Vec3::ZERO;
+        for (c, d) in &rays {
+            let m = Mat3::IDENTITY.add(&Mat3::outer(*d, *d).scale(-1.0));
+            a = a.add(&m);
+            b = b + m * *c;
+        }
+        let x = a.inverse()? * b;
+        let mut widest = 0.0f64;
+        for (i, (ci, _)) in rays.iter().enumerate() {
+            for (cj, _) in &rays[i + 1..] {
+                let (u, v) = ((x - *ci).normalized(), (x - *cj).normalized());
+                widest = widest.max(u.dot(v).clamp(-1.0, 1.0).acos().to_degrees());
+            }
+        }
+        if !x.is_finite() || widest < self.cfg.min_angle_deg {
+            return None;
+        }
+        for (p, q) in obs {
+            let (r, t) = extrinsics(p);
+            let xc = r * x + t;
+            let (u, v) = self.cam.project(xc)?;
+            if (u - q.x as f64).hypot(v - q.y as f64) > 2.0 {
+                return None;
+            }
+        }
+        Some(x)
+    }
+
+    /// PnP of frame `f` on its triangulated tracks; `refine` starts from its current pose
+    /// and uses only the iterative solver.
+    fn resect(&mut self, f: usize, refine: bool) -> Result<bool> {
+        let (mut obj, mut img): (Vector<core::Point3f>, Vector<Point2f>) =
+            (Vector::new(), Vector::new());
+        for &(id, x, y) in &self.by_frame[f] {
+            if let Some(p) = self.points.get(&id) {
+                obj.push(core::Point3f::new(p.x() as f32, p.y() as f32, p.z() as f32));
+                img.push(Point2f::new(x, y));
+            }
+        }
+        if obj.len() < MIN_PNP {
+            return Ok(false);
+        }
+        let k = self.k()?;
+        let (mut rvec, mut tvec) = (Mat::default(), Mat::default());
+        let guess = match (refine, self.poses[f]) {
+            (true, Some(p)) => {
+                let (r, t) = extrinsics(&p);
+                let rm = Mat::from_slice_2d(&r.0)?;
+                calib3d::rodrigues(&rm, &mut rvec, &mut core::no_array())?;
+                tvec = Mat::from_slice_2d(&[[t.x()], [t.y()], [t.z()]])?;
+                true
+            }
+            _ => false,
+        };
+        let mut inl: Vector<i32> = Vector::new();
+        let ok = calib3d::solve_pnp_ransac(
+            &obj,
+            &img,
+            &k,
+            &core::no_array(),
+            &mut rvec,
+            &mut tvec,
+            guess,
+            200,
+            2.0,
+            0.999,
+            &mut inl,
+            calib3d::SOLVEPNP_ITERATIVE,
+        )?;
+        if !ok || inl.len() < MIN_PNP {
+            return Ok(false);
+        }
+        let mut rm = Mat::default();
+        calib3d::rodrigues(&rvec, &mut rm, &mut core::no_array())?;
+        let (r, t) = (mat3(&rm)?, vec3(&tvec)?);
+        let rt = r.transpose();
+        let pose = Pose {
+            rotation: rt,
+            translation: -(rt * t),
+        };
+        if !pose.is_finite() {
+            return Ok(false);
+        }
+        // A camera does not turn by more than MAX_TURN_DEG between neighbouring frames: a
+        // pose that does is a wrong PnP solution on too few points.
+        for g in [f.wrapping_sub(1), f + 1] {
+            if let Some(q) = self.poses.get(g).copied().flatten() {
+                if rotation_deg(&(q.rotation.transpose() * pose.rotation)) > MAX_TURN_DEG {
+                    return Ok(false);
+                }
+            }
+        }
+        self.poses[f] = Some(pose);
+        self.inliers[f] = inl.len();
+        Ok(true)
+    }
+
+    /// Places every frame it can, nearest to a placed frame first, triangulating as it goes.
+    fn register(&mut self) -> Result<()> {
+        loop {
+            let mut progress = false;
+            // Unplaced frames, most triangulated tracks first.
+            let mut todo: Vec<(usize, usize)> = (0..self.frames)
+                .filter(|&f| self.poses[f].is_none())
+                .map(|f| {
+                    let n = self.by_frame[f]
+                        .iter()
+                        .filter(|o| self.points.contains_key(&o.0))
+                        .count();
+                    (n, f)
+                })
+                .collect();
+            todo.sort_by(|a, b| b.cmp(a));
+            for (n, f) in todo {
+                if n < MIN_PNP || !self.resect(f, false)? {
+                    continue;
+                }
+                progress = true;
+                // New points with every placed frame, farthest in time first (widest
+                // angles; a point keeps the first pair that triangulates it).
+                let mut others: Vec<usize> = (0..self.frames)
+                    .filter(|&g| g != f && self.poses[g].is_some())
+                    .collect();
+                others.sort_by_key(|&g| std::cmp::Reverse(g.abs_diff(f)));
+                for g in others {
+                    self.triangulate_between(f, g)?;
+                }
+            }
+            if !progress {
+                // Bridge a break (too few tracks with points across it, as after a gap in the
+                // frames): an unplaced neighbour of a placed frame by their relative pose.
+                let next = (0..self.frames).find_map(|f| {
+                    if self.poses[f].is_some() {
+                        return None;
+                    }
+                    [f.wrapping_sub(1), f + 1]
+                        .into_iter()
+                        .find(|&g| g < self.frames && self.poses[g].is_some())
+                        .map(|g| (f, g))
+                });
+                let Some((f, g)) = next else { return Ok(()) };
+                if !self.bridge(f, g)? {
+                    return Ok(());
+                }
+                let mut others: Vec<usize> = (0..self.frames)
+                    .filter(|&h| h != f && self.poses[h].is_some())
+                    .collect();
+                others.sort_by_key(|&h| std::cmp::Reverse(h.abs_diff(f)));
+                for h in others {
+                    self.triangulate_between(f, h)?;
+                }
+            }
+        }
+    }
+
+    /// Places frame `f` from placed frame `g` by their essential matrix; the baseline's length
+    /// comes from the triangulated tracks both see, or else is the length of `g`'s own step
+    /// from its other neighbour (constant speed).
+    fn bridge(&mut self, f: usize, g: usize) -> Result<bool> {
+        let (ids, pg, pf) = self.common(g, f);
+        if ids.len() < 15 {
+            return Ok(false);
+        }
+        let (ng, nf) = (self.normalised(&pg), self.normalised(&pf));
+        let fl = 0.5 * (self.cam.fx + self.cam.fy);
+        let eye = Mat::from_slice_2d(&[[1.0f64, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])?;
+        let mut emask = Mat::default();
+        let e = calib3d::find_essential_mat(
+            &ng,
+            &nf,
+            &eye,
+            calib3d::RANSAC,
+            0.999,
+            1.0 / fl,
+            1000,
+            &mut emask,
+        )?;
+        if e.rows() < 3 {
+            return Ok(false);
+        }
+        let e3 = Mat::roi(&e, core::Rect::new(0, 0, 3, 3))?.try_clone()?;
+        let (mut r, mut t) = (Mat::default(), Mat::default());
+        let good = calib3d::recover_pose(
+            &e3,
+            &ng,
+            &nf,
+            &mut r,
+            &mut t,
+            1.0,
+            core::Point2d::new(0.0, 0.0),
+            &mut emask,
+        )?;
+        if good < 10 {
+            return Ok(false);
+        }
+        // x_f = R x_g + s t in camera coordinates.
+        let (r, t) = (mat3(&r)?, vec3(&t)?);
+        let pose_g = self.poses[g].expect("g is placed");
+        let (rg, tg) = extrinsics(&pose_g);
+        let mut scales = Vec::new();
+        for (i, id) in ids.iter().enumerate() {
+            let Some(&x) = self.points.get(id) else {
+                continue;
+            };
+            let q = r * (rg * x + tg);
+            let o = nf.get(i)?;
+            let (u, v) = (o.x as f64, o.y as f64);
+            for (num, den) in [
+                (u * q.z() - q.x(), t.x() - u * t.z()),
+                (v * q.z() - q.y(), t.y() - v * t.z()),
+            ] {
+                if den.abs() > 0.2 {
+                    scales.push(num / den);
+                }
+            }
+        }
+        scales.sort_by(f64::total_cmp);
+        let s = if scales.len() >= 4 && scales[scales.len() / 2] > 0.0 {
+            scales[scales.len() / 2]
+        } else {
+            let h = if g > f { g + 1 } else { g.wrapping_sub(1) };
+            match self.poses.get(h).copied().flatten() {
+                Some(p) => (p.translation - pose_g.translation).norm(),
+                None => return Ok(false),
+            }
+        };
+        if !(s.is_finite() && s > 0.0) {
+            return Ok(false);
+        }
+        // World-to-camera of f: R_f = R Rg, t_f = R tg + s t.
+        let (rf, tf) = (r * rg, r * tg + t * s);
+        let rt = rf.transpose();
+        self.poses[f] = Some(Pose {
+            rotation: rt,
+            translation: -(rt * tf),
+        });
+        Ok(true)
+    }
+
+    /// One round of resection (every placed frame) and intersection (every point from all
+    /// placed frames that see it).
+    fn refine(&mut self) -> Result<()> {
+        for f in 0..self.frames {
+            if f != 0 && self.poses[f].is_some() && !self.resect(f, true)? {
+                self.poses[f] = None;
+            }
+        }
+        let ids: Vec<usize> = self.points.keys().copied().collect();
+        for id in ids {
+            let obs: Vec<(Pose, Point2f)> = self.tracks[id]
+                .iter()
+                .filter_map(|&(f, x, y)| self.poses[f as usize].map(|p| (p, Point2f::new(x, y))))
+                .collect();
+            match (obs.len() >= 2).then(|| self.triangulate(&obs)).flatten() {
+                Some(x) => {
+                    self.points.insert(id, x);
+                }
+                None => {
+                    self.points.remove(&id);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    fn reprojection(&self) -> f64 {
+        let mut e = Vec::new();
+        for (&id, &x) in &self.points {
+            for &(f, u, v) in &self.tracks[id] {
+                if let Some(p) = self.poses[f as usize] {
+                    let (r, t) = extrinsics(&p);
+                    if let Some((pu, pv)) = self.cam.project(r * x + t) {
+                        e.push((pu - u as f64).hypot(pv - v as f64));
+                    }
+                }
+            }
+        }
+        if e.is_empty() {
+            return f64::NAN;
+        }
+        e.sort_by(f64::total_cmp);
+        e[e.len() / 2]
+    }
+}
+
+fn mat3(m: &Mat) -> Result<Mat3> {
+    let mut out = [[0.0; 3]; 3];
+    for (i, row) in out.iter_mut().enumerate() {
+        for (j, v) in row.iter_mut().enumerate() {
+            *v = *m.at_2d::<f64>(i as i32, j as i32)?;
+        }
+    }
+    Ok(Mat3(out))
+}
+
+fn vec3(m: &Mat) -> Result<Vec3> {
+    let v = m.data_typed::<f64>()?;
+    if v.len() < 3 {
+        return Err(TrackError::Input("OpenCV returned a short vector".into()));
+    }
+    Ok(Vec3::new(v[0], v[1], v[2]))
+}

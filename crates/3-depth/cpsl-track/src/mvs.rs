@@ -1,0 +1,229 @@
+//! Per-pixel depth of a frame from posed neighbouring frames: dense optical flow (OpenCV's
+//! DIS, medium preset) to each neighbour and back, pixels whose forward and backward flow
+//! disagree by more than `max_fb` px dropped, each remaining pixel triangulated (closest
+//! point of the two rays) and kept when in front of both cameras and seen under at least
+//! `min_angle_deg`. Over the neighbours the median inverse depth is taken; the confidence
+//! is the share of neighbours that triangulated the pixel and agree with the median within
+//! 5 %.
+
+use crate::{Result, TrackError};
+use cpsl_core::{Camera, Pose, Vec3};
+use opencv::core::{Mat, Vec2f};
+use opencv::prelude::*;
+use opencv::video;
+
+/// Depth of one frame from its neighbours, at working resolution.
+#[derive(Debug, Clone)]
+pub struct ViewDepth {
+    /// Width.
+    pub width: u32,
+    /// Height.
+    pub height: u32,
+    /// Z-depth in the trajectory's unit, NaN where no neighbour triangulated the pixel.
+    pub depth: Vec<f32>,
+    /// Per pixel in `[0, 1]`.
+    pub confidence: Vec<f32>,
+}
+
+impl ViewDepth {
+    /// Share of pixels with a depth.
+    pub fn density(&self) -> f64 {
+        self.depth.iter().filter(|z| z.is_finite()).count() as f64 / self.depth.len().max(1) as f64
+    }
+}
+
+/// Settings of [`depth_from_views`].
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct MvsConfig {
+    /// Least ray angle in degrees.
+    pub min_angle_deg: f64,
+    /// Largest forward-backward flow disagreement in working pixels.
+    pub max_fb: f32,
+}
+
+impl Default for MvsConfig {
+    fn default() -> Self {
+        Self {
+            min_angle_deg: 1.0,
+            max_fb: 1.0,
+        }
+    }
+}
+
+fn flow(a: &Mat, b: &Mat) -> Result<Mat> {
+    let mut dis = video::DISOpticalFlow::create(video::DISOpticalFlow_PRESET_MEDIUM)?;
+    let mut f = Mat::default();
+    dis.calc(a, b, &mut f)?;
+    Ok(f)
+}
+
+/// Depth of `reference` (a working grey image and its camera-to-world pose) from
+/// `neighbours`, all seen by `cam`; see the [module docs](self).
+pub fn depth_from_views(
+    cam: &Camera,
+    reference: (&Mat, &Pose),
+    neighbours: &[(&Mat, &Pose)],
+    cfg: &MvsConfig,
+) -> Result<ViewDepth> {
+    let (w, h) = (cam.width as usize, cam.height as usize);
+    let size = reference.0.size()?;
+    if (size.width as usize, size.height as usize) != (w, h) {
+        return Err(TrackError::Input(format!(
+            "a {}x{} frame for a {w}x{h} camera",
+            size.width, size.height
+        )));
+    }
+    let (p0, c0) = (reference.1, reference.1.translation);
+    let cos_min = cfg.min_angle_deg.to_radians().cos();
+    let mut samples: Vec<Vec<f32>> = vec![Vec::new(); w * h];
+    for &(img, pose) in neighbours {
+        let fwd = flow(reference.0, img)?;
+        let bwd = flow(img, reference.0)?;
+        let (fwd, bwd) = (fwd.data_typed::<Vec2f>()?, bwd.data_typed::<Vec2f>()?);
+        let c1 = pose.translation;
+        for y in 0..h {
+            for x in 0..w {
+                let f = fwd[y * w + x];
+                let (u, v) = (x as f32 + f[0], y as f32 + f[1]);
+                if !(u >= 0.0 && v >= 0.0 && u <= (w - 1) as f32 && v <= (h - 1) as f32) {
+                    continue;
+                }
+                let b = bwd[(v.round() as usize) * w + u.round() as usize];
+                if (f[0] + b[0]).hypot(f[1] + b[1]) > cfg.max_fb {
+                    continue;
+                }
+                let d0 = p0.rotation * cam.unproject(x as f64, y as f64, 1.0);
+                let d1 = pose.rotation * cam.unproject(u as f64, v as f64, 1.0);
+                let w0 = c0 - c1;
+                let (a, bb, c) = (d0.dot(d0), d0.dot(d1), d1.dot(d1));
+                let (d, e) = (d0.dot(w0), d1.dot(w0));
+                let den = a * c - bb * bb;
+                if den.abs() < 1e-12 {
+                    continue;
+                }
+                // Along d0 (whose camera z is 1, so s is the depth) and along d1.
+                let s = (bb * e - c * d) / den;
+                let t = (a * e - bb * d) / den;
+                if s <= 0.0 || t <= 0.0 {
+                    continue;
+                }
+                let x3: Vec3 = c0 + d0 * s;
+                let (r0, r1) = ((x3 - c0).normalized(), (x3 - c1).normalized());
+                if r0.dot(r1) > cos_min {
+                    continue;
+                }
+                samples[y * w + x].push((1.0 / s) as f32);
+            }
+        }
+    }
+    let n = neighbours.len().max(1) as f32;
+    let (mut depth, mut confidence) = (vec![f32::NAN; w * h], vec![0.0f32; w * h]);
+    for (i, s) in samples.iter_mut().enumerate() {
+        if s.is_empty() {
+            continue;
+        }
+        s.sort_by(f32::total_cmp);
+        let m = s[s.len() / 2];
+        let agree = s.iter().filter(|&&v| (v - m).abs() <= 0.05 * m).count() as f32;
+        depth[i] = 1.0 / m;
+        confidence[i] = agree / n;
+    }
+    Ok(ViewDepth {
+        width: cam.width,
+        height: cam.height,
+        depth,
+        confidence,
+    })
+}
+
+/// How [`fuse`] combined the two depths.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Fusion {
+    /// Share of pixels whose depth came from the views.
+    pub from_views: f64,
+    /// The prior's inverse depth was mapped by `a / z + b`.
+    pub a: f64,
+    /// See `a`.
+    pub b: f64,
+}
+
+/// Fuses multi-view depth with a monocular prior of the same size (any scale): the prior's
+/// inverse depth is fitted to the views' (robust affine fit over pixels with confidence of
+/// at least `min_conf`: weighted least squares re-weighted with Cauchy weights), then every
+/// pixel the views did not see confidently takes the fitted prior. `None` when fewer than
+/// 1 % of the pixels are confident or the fit turns the prior's order around.
+pub fn fuse(views: &ViewDepth, prior: &[f32], min_conf: f32) -> Option<(Vec<f32>, Fusion)> {
+    if prior.len() != views.depth.len() {
+        return None;
+    }
+    let samples: Vec<(f64, f64)> = views
+        .depth
+        .iter()
+        .zip(&views.confidence)
+        .zip(prior)
+        .filter(|((z, &c), p)| z.is_finite() && c >= min_conf && p.is_finite() && **p > 0.0)
+        .map(|((z, _), p)| (1.0 / *p as f64, 1.0 / *z as f64))
+        .collect();
+    if samples.len() < prior.len() / 100 || samples.len() < 10 {
+        return None;
+    }
+    let (mut a, mut b) = (1.0, 0.0);
+    let mut scale = f64::INFINITY;
+    for _ in 0..6 {
+        let (mut sw, mut sx, mut sy, mut sxx, mut sxy) = (0.0, 0.0, 0.0, 0.0, 0.0);
+        for &(x, y) in &samples {
+            let w = if scale.is_finite() {
+                let r = (y - (a * x + b)) / scale;
+                1.0 / (1.0 + r * r)
+            } else {
+                1.0
+            };
+            sw += w;
+            sx += w * x;
+            sy += w * y;
+            sxx += w * x * x;
+            sxy += w * x * y;
+        }
+        let den = sw * sxx - sx * sx;
+        if den.abs() < 1e-18 {
+            return None;
+        }
+        a = (sw * sxy - sx * sy) / den;
+        b = (sy - a * sx) / sw;
+        let mut r: Vec<f64> = samples
+            .iter()
+            .map(|&(x, y)| (y - (a * x + b)).abs())
+            .collect();
+        r.sort_by(f64::total_cmp);
+        scale = (1.4826 * r[r.len() / 2]).max(1e-9);
+    }
+    if !(a.is_finite() && b.is_finite() && a > 0.0) {
+        return None;
+    }
+    let floor = samples.iter().map(|s| s.1).fold(f64::INFINITY, f64::min) * 0.5;
+    let mut from_views = 0usize;
+    let fused = views
+        .depth
+        .iter()
+        .zip(&views.confidence)
+        .zip(prior)
+        .map(|((&z, &c), &p)| {
+            if z.is_finite() && c >= min_conf {
+                from_views += 1;
+                z
+            } else if p.is_finite() && p > 0.0 {
+                (1.0 / (a / p as f64 + b).max(floor)) as f32
+            } else {
+                f32::NAN
+            }
+        })
+        .collect();
+    Some((
+        fused,
+        Fusion {
+            from_views: from_views as f64 / prior.len() as f64,
+            a,
+            b,
+        },
+    ))
+}

@@ -1,0 +1,245 @@
+//! Camera tracking and depth from the video itself ([`cpsl_track`]) scored on the fox: its
+//! frames (undistorted, a quarter of full size) are tracked without reading its poses, and
+//! the solved poses are compared with its COLMAP poses after a similarity alignment (both
+//! paths start at frame 0's camera; the scale is the median ratio of the camera distances
+//! from frame 0).
+
+use crate::error::{Context, EvalError};
+use cpsl_core::resample::downscale_rgb;
+use cpsl_core::{Camera, Limits, Pose};
+use cpsl_track::{TrackConfig, Tracker, Trajectory};
+use serde::Serialize;
+use std::path::Path;
+use std::time::Instant;
+
+type Result<T> = std::result::Result<T, EvalError>;
+
+/// Tracking scored against reference poses.
+#[derive(Debug, Clone, Serialize)]
+pub struct TrackScore {
+    /// The clip.
+    pub clip: String,
+    /// Frames.
+    pub frames: usize,
+    /// Frames placed.
+    pub placed: usize,
+    /// The camera motion found.
+    pub motion: String,
+    /// Triangulated points.
+    pub points: usize,
+    /// Median reprojection error (working pixels).
+    pub reprojection_px: f64,
+    /// Median rotation error against the reference, degrees.
+    pub rotation_deg: f64,
+    /// Median translation-direction error, degrees (frames at least a tenth of the farthest
+    /// camera distance from frame 0).
+    pub translation_dir_deg: f64,
+    /// Milliseconds per frame for tracking and solving.
+    pub ms_per_frame: f64,
+}
+
+use cpsl_track::rotation_deg as angle;
+
+/// Scores `est` (camera-to-world, world = frame 0) against `truth` (camera-to-world in any
+/// world frame).
+pub fn score(est: &Trajectory, truth: &[Pose]) -> (f64, f64) {
+    let rel = |i: usize| {
+        let (a, b) = (&truth[0], &truth[i]);
+        let rt = a.rotation.transpose();
+        Pose {
+            rotation: rt * b.rotation,
+            translation: rt * (b.translation - a.translation),
+        }
+    };
+    let far = (0..truth.len())
+        .map(|i| rel(i).translation.norm())
+        .fold(0.0, f64::max);
+    let (mut rot, mut dir) = (Vec::new(), Vec::new());
+    for (i, p) in est.poses.iter().enumerate() {
+        let Some(p) = p else { continue };
+        let g = rel(i);
+        rot.push(angle(&(p.rotation.transpose() * g.rotation)));
+        if g.translation.norm() >= 0.1 * far && p.translation.norm() > 0.0 {
+            let c = p
+                .translation
+                .normalized()
+                .dot(g.translation.normalized())
+                .clamp(-1.0, 1.0);
+            dir.push(c.acos().to_degrees());
+        }
+    }
+    let med = |mut v: Vec<f64>| {
+        if v.is_empty() {
+            return f64::NAN;
+        }
+        v.sort_by(f64::total_cmp);
+        v[v.len() / 2]
+    };
+    (med(rot), med(dir))
+}
+
+/// The fox's frames undistorted at `1/scale` of full size, and that camera.
+pub fn fox_frames(
+    data: &Path,
+    scale: u32,
+) -> Result<(crate::datasets::PosedVideo, Camera, Vec<Vec<u8>>)> {
+    let video = crate::datasets::fox(data)?;
+    let camera = video.camera.scaled(1.0 / scale as f64);
+    let mut frames = Vec::new();
+    for f in &video.files {
+        let img = cpsl_io::images::read_rgb8(f, &Limits::default())
+            .context_with(|| format!("reading {}", f.display()))?;
+        let (rgb, _, _) = downscale_rgb(
+            &img.data,
+            img.width as usize,
+            img.height as usize,
+            img.width as usize / scale as usize,
+        );
+        frames.push(video.lens.undistort_rgb(&rgb, &camera));
+    }
+    Ok((video, camera, frames))
+}
+
+/// Tracks frames seen by `camera`.
+pub fn track(frames: &[Vec<u8>], camera: Camera, cfg: TrackConfig) -> Result<Trajectory> {
+    let mut t = Tracker::new(camera, cfg)?;
+    for f in frames {
+        t.push(f, camera.width, camera.height)?;
+    }
+    Ok(t.finish()?)
+}
+
+/// Tracks the fox and scores its poses.
+pub fn fox(data: &Path) -> Result<TrackScore> {
+    let (video, camera, frames) = fox_frames(data, 4)?;
+    let t0 = Instant::now();
+    let est = track(&frames, camera, TrackConfig::default())?;
+    let ms = t0.elapsed().as_secs_f64() * 1e3 / frames.len() as f64;
+    let (rotation_deg, translation_dir_deg) = score(&est, &video.poses);
+    Ok(TrackScore {
+        clip: "fox".into(),
+        frames: frames.len(),
+        placed: est.poses.iter().filter(|p| p.is_some()).count(),
+        motion: est.motion.name().into(),
+        points: est.points,
+        reprojection_px: est.reprojection_px,
+        rotation_deg,
+        translation_dir_deg,
+        ms_per_frame: ms,
+    })
+}
+
+/// Depth of every frame from the video itself: tracked poses, multi-view depth from up to
+/// four nearest placed frames, fused with `prior` (per frame, any scale). Frames that could
+/// not be placed (or whose views saw too little) keep their prior, scaled by the median ratio
+/// of fused to prior depth over the fused frames, so that the whole clip shares the
+/// trajectory's scale. Returns the depths and a description.
+pub fn video_depth(
+    frames: &[Vec<u8>],
+    camera: Camera,
+    prior: &[Vec<f32>],
+) -> Result<(Vec<Vec<f32>>, String)> {
+    let est = track(frames, camera, TrackConfig::default())?;
+    let cam = est.camera;
+    if (cam.width, cam.height) != (camera.width, camera.height) {
+        return Err(EvalError::Invalid(
+            "video depth in the evaluation needs frames no larger than the tracking size".into(),
+        ));
+    }
+    let grey: Vec<opencv_grey::Grey> = frames
+        .iter()
+        .map(|f| opencv_grey::Grey::new(f, camera))
+        .collect::<Result<_>>()?;
+    let placed: Vec<usize> = (0..frames.len())
+        .filter(|&i| est.poses[i].is_some())
+        .collect();
+    let mut out: Vec<Option<Vec<f32>>> = vec![None; frames.len()];
+    let mut ratios = Vec::new();
+    let mut shares = Vec::new();
+    for &i in &placed {
+        let mut near: Vec<usize> = placed.iter().copied().filter(|&j| j != i).collect();
+        near.sort_by_key(|&j| j.abs_diff(i));
+        near.truncate(4);
+        let pose = est.poses[i].expect("placed");
+        let nb: Vec<(&opencv_grey::Mat, &Pose)> = near
+            .iter()
+            .map(|&j| (&grey[j].0, est.poses[j].as_ref().expect("placed")))
+            .collect();
+        let views = cpsl_track::mvs::depth_from_views(
+            &cam,
+            (&grey[i].0, &pose),
+            &nb,
+            &cpsl_track::mvs::MvsConfig::default(),
+        )?;
+        // Where the prior does not fit the views (its order disagrees), the views alone,
+        // their gaps filled later like any missing depth.
+        let fused = cpsl_track::mvs::fuse(&views, &prior[i], 0.5).or_else(|| {
+            let share = views.density();
+            (share >= 0.3).then(|| {
+                let z = views
+                    .depth
+                    .iter()
+                    .zip(&views.confidence)
+                    .map(|(&z, &c)| if c >= 0.5 { z } else { f32::NAN })
+                    .collect();
+                (
+                    z,
+                    cpsl_track::mvs::Fusion {
+                        from_views: share,
+                        a: 0.0,
+                        b: 0.0,
+                    },
+                )
+            })
+        });
+        if let Some((z, fusion)) = fused {
+            if let (Some(a), Some(b)) = (
+                crate::datasets::median(&z),
+                crate::datasets::median(&prior[i]),
+            ) {
+                ratios.push(a / b);
+            }
+            shares.push(fusion.from_views);
+            out[i] = Some(z);
+        }
+    }
+    let k = crate::datasets::median(&ratios).unwrap_or(1.0);
+    let fused = out.iter().filter(|o| o.is_some()).count();
+    let depths = out
+        .into_iter()
+        .zip(prior)
+        .map(|(o, p)| o.unwrap_or_else(|| p.iter().map(|v| v * k).collect()))
+        .collect();
+    shares.sort_by(f64::total_cmp);
+    let share = shares.get(shares.len() / 2).copied().unwrap_or(0.0);
+    Ok((
+        depths,
+        format!(
+            "video ({} of {} frames placed, {fused} fused; median {:.0} % of pixels from the views, the rest FastDepth fitted to them)",
+            placed.len(),
+            frames.len(),
+            100.0 * share
+        ),
+    ))
+}
+
+/// OpenCV grey images for the multi-view depth.
+mod opencv_grey {
+    use super::Result;
+    use cpsl_core::Camera;
+    pub use cpsl_track::Mat;
+
+    /// A working grey image.
+    pub struct Grey(pub Mat);
+
+    impl Grey {
+        pub fn new(rgb: &[u8], cam: Camera) -> Result<Self> {
+            Ok(Self(cpsl_track::work_grey(
+                rgb,
+                cam.width,
+                cam.height,
+                (cam.width, cam.height),
+            )?))
+        }
+    }
+}

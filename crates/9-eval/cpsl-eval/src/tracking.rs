@@ -171,27 +171,9 @@ pub fn video_depth(
             &nb,
             &cpsl_track::mvs::MvsConfig::default(),
         )?;
-        // Where the prior does not fit the views (its order disagrees), the views alone,
-        // their gaps filled later like any missing depth.
-        let fused = cpsl_track::mvs::fuse(&views, &prior[i], 0.5).or_else(|| {
-            let share = views.density();
-            (share >= 0.3).then(|| {
-                let z = views
-                    .depth
-                    .iter()
-                    .zip(&views.confidence)
-                    .map(|(&z, &c)| if c >= 0.5 { z } else { f32::NAN })
-                    .collect();
-                (
-                    z,
-                    cpsl_track::mvs::Fusion {
-                        from_views: share,
-                        a: 0.0,
-                        b: 0.0,
-                    },
-                )
-            })
-        });
+        // Where the prior does not fit the views (its order disagrees), the frame keeps the
+        // prior: using the views alone there scored lower on the fox.
+        let fused = cpsl_track::mvs::fuse(&views, &prior[i], 0.5);
         if let Some((z, fusion)) = fused {
             if let (Some(a), Some(b)) = (
                 crate::datasets::median(&z),

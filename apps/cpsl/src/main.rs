@@ -17,6 +17,7 @@ mod progress;
 mod render;
 mod serve;
 mod synth;
+mod track;
 mod util;
 mod video;
 mod view;
@@ -66,6 +67,9 @@ enum Command {
     /// Stereo matching on the real two-view datasets: each pair's disparity scored against
     /// ground truth (share of non-occluded pixels off by more than 1 and 2 px).
     EvalStereo(eval::EvalStereoArgs),
+    /// Track the camera through a video (no poses needed): poses.json and a NeRF-style
+    /// transforms.json.
+    Track(track::TrackArgs),
     /// Camera tracking on the fox (its poses not read), scored against its COLMAP poses.
     EvalTrack(eval::EvalTrackArgs),
     /// Rate-distortion curves on a synthetic moving clip: CPSL packages under budgets against
@@ -135,6 +139,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Eval(a) => eval::run(a),
         Command::EvalVideo(a) => eval_video::run(a),
         Command::EvalStereo(a) => eval::run_stereo(a),
+        Command::Track(a) => track::run(a),
         Command::EvalTrack(a) => eval::run_track(a),
         Command::EvalRd(a) => eval_rd::run(a),
         Command::View(a) => view::run(a),

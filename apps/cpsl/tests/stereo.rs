@@ -200,3 +200,50 @@ fn tracks_the_fox_without_its_poses() {
     assert!(v["rotation_deg"].as_f64().unwrap() < 4.0, "{v}");
     assert!(v["translation_dir_deg"].as_f64().unwrap() < 4.0, "{v}");
 }
+
+#[test]
+fn track_writes_poses_and_transforms() {
+    let Some(teddy) = data() else { return };
+    let fox = teddy.join("../../../instant_ngp_fox_video_frames/images");
+    let dir = tempfile::tempdir().unwrap();
+    let (poses, tf) = (dir.path().join("poses.json"), dir.path().join("tf.json"));
+    let msg = ok(&[
+        "track",
+        s(&fox),
+        "-o",
+        s(&poses),
+        "--transforms",
+        s(&tf),
+        "--fov",
+        "42.9",
+        "--max-frames",
+        "12",
+    ]);
+    assert!(msg.contains("camera translating"), "{msg}");
+    let p: serde_json::Value = serde_json::from_slice(&std::fs::read(&poses).unwrap()).unwrap();
+    let frames = p["frames"].as_array().unwrap();
+    assert_eq!(frames.len(), 12);
+    let placed = frames.iter().filter(|f| f["placed"] == true).count();
+    assert!(placed >= 10, "{placed} placed");
+    let t: serde_json::Value = serde_json::from_slice(&std::fs::read(&tf).unwrap()).unwrap();
+    let tf_frames = t["frames"].as_array().unwrap();
+    assert_eq!(tf_frames.len(), placed);
+    assert!(std::path::Path::new(tf_frames[0]["file_path"].as_str().unwrap()).is_file());
+    // The first frame is the world: identity with OpenGL's axes.
+    assert_eq!(tf_frames[0]["transform_matrix"][1][1], -1.0);
+
+    // A static clip (one image three times) is detected, not guessed; one frame is refused.
+    let still = dir.path().join("still");
+    std::fs::create_dir(&still).unwrap();
+    for i in 0..3 {
+        std::fs::copy(teddy.join("im2.png"), still.join(format!("f{i}.png"))).unwrap();
+    }
+    let msg = ok(&["track", s(&still), "-o", s(&dir.path().join("still.json"))]);
+    assert!(msg.contains("camera static, 0 of 3 frames placed"), "{msg}");
+    let one = dir.path().join("one");
+    std::fs::create_dir(&one).unwrap();
+    std::fs::copy(teddy.join("im2.png"), one.join("f.png")).unwrap();
+    let o = cpsl(&["track", s(&one), "-o", s(&dir.path().join("one.json"))]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("at least two"));
+}

@@ -11,6 +11,11 @@ pub struct ImageSequence {
 }
 
 impl ImageSequence {
+    /// The frame files in the order they are read.
+    pub fn files(&self) -> &[PathBuf] {
+        &self.files
+    }
+
     /// Lists the folder's images (`.png`, `.jpg`, `.jpeg`, any case).
     pub fn open(dir: &Path) -> Result<Self, MediaError> {
         let unreadable = |e: std::io::Error| MediaError::Unreadable {

@@ -53,6 +53,9 @@ pub enum PipelineError {
     /// A camera is invalid.
     #[error(transparent)]
     Core(#[from] cpsl_core::CoreError),
+    /// Camera tracking.
+    #[error(transparent)]
+    Track(#[from] cpsl_track::TrackError),
     /// Stereo matching.
     #[error(transparent)]
     Stereo(#[from] cpsl_stereo::StereoError),

@@ -15,6 +15,7 @@ mod error;
 pub mod image;
 pub mod sources;
 pub mod synthetic;
+pub mod track;
 pub mod video;
 
 pub use error::{Context, PipelineError};

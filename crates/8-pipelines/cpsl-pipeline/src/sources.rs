@@ -166,8 +166,8 @@ impl StereoDepth {
             100.0 * matched
         );
         let reference = self.last.as_deref().and_then(median);
-        let z = match (&mut self.prior, reference) {
-            (Some(p), _) => {
+        let z = match &mut self.prior {
+            Some(p) => {
                 let mut z = p.depth(left, width, height)?;
                 if let (Some(r), Some(m)) = (reference, median(&z)) {
                     z.iter_mut().for_each(|v| *v *= r / m);
@@ -175,7 +175,7 @@ impl StereoDepth {
                 self.note = format!("fallback: {why}; {}", p.name());
                 z
             }
-            (None, _) => match &self.last {
+            None => match &self.last {
                 Some(z) => {
                     self.note = format!("fallback: {why}; the last stereo depth");
                     z.clone()

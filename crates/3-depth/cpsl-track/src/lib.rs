@@ -535,6 +535,48 @@ impl Solver {
         })
     }
 
+    /// The essential matrix between two frames' track positions (RANSAC, 1 px) and the
+    /// relative pose it gives, `x_b = R x_a + t` with unit `t`: `(R, t, inliers of E,
+    /// tracks in front of both)`; `None` when no matrix fits.
+    fn relative_pose(
+        &self,
+        pa: &Vector<Point2f>,
+        pb: &Vector<Point2f>,
+    ) -> Result<Option<(Mat3, Vec3, usize, usize)>> {
+        let (na, nb) = (self.normalised(pa), self.normalised(pb));
+        let f = 0.5 * (self.cam.fx + self.cam.fy);
+        let eye = Mat::from_slice_2d(&[[1.0f64, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])?;
+        let mut mask = Mat::default();
+        let e = calib3d::find_essential_mat(
+            &na,
+            &nb,
+            &eye,
+            calib3d::RANSAC,
+            0.999,
+            1.0 / f,
+            1000,
+            &mut mask,
+        )?;
+        if e.rows() < 3 {
+            return Ok(None);
+        }
+        let inliers = count(&mask)?;
+        // Several solutions come stacked: take the first.
+        let e3 = Mat::roi(&e, core::Rect::new(0, 0, 3, 3))?.try_clone()?;
+        let (mut r, mut t) = (Mat::default(), Mat::default());
+        let good = calib3d::recover_pose(
+            &e3,
+            &na,
+            &nb,
+            &mut r,
+            &mut t,
+            1.0,
+            core::Point2d::new(0.0, 0.0),
+            &mut mask,
+        )?;
+        Ok(Some((mat3(&r)?, vec3(&t)?, inliers, good as usize)))
+    }
+
     /// Tries frames 0 and `k` as the first baseline: `Some(true)` when the essential matrix
     /// wins and the pair is set up, `Some(false)` when a homography explains the motion,
     /// `None` when neither fits.
@@ -544,60 +586,21 @@ impl Solver {
         p0: &Vector<Point2f>,
         pk: &Vector<Point2f>,
     ) -> Result<Option<bool>> {
-        let (n0, nk) = (self.normalised(p0), self.normalised(pk));
-        let f = 0.5 * (self.cam.fx + self.cam.fy);
-        let eye = Mat::from_slice_2d(&[[1.0f64, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])?;
-        let mut emask = Mat::default();
-        let e = calib3d::find_essential_mat(
-            &n0,
-            &nk,
-            &eye,
-            calib3d::RANSAC,
-            0.999,
-            1.0 / f,
-            1000,
-            &mut emask,
-        )?;
+        let Some((r, t, ie, good)) = self.relative_pose(p0, pk)? else {
+            return Ok(None);
+        };
         let mut hmask = Mat::default();
         let h = calib3d::find_homography(&p0, &pk, &mut hmask, calib3d::RANSAC, 1.0)?;
-        let count = |m: &Mat| -> Result<usize> {
-            if m.empty() {
-                return Ok(0);
-            }
-            Ok(m.data_typed::<u8>()?.iter().filter(|&&v| v != 0).count())
-        };
-        let (ie, ih) = (
-            if e.rows() == 3 { count(&emask)? } else { 0 },
-            if h.empty() { 0 } else { count(&hmask)? },
-        );
+        let ih = if h.empty() { 0 } else { count(&hmask)? };
         if ie < 20 {
             return Ok(None);
         }
         if ih as f64 >= 0.9 * ie as f64 {
             return Ok(Some(false));
         }
-        let e3 = if e.rows() > 3 {
-            Mat::roi(&e, core::Rect::new(0, 0, 3, 3))?.try_clone()?
-        } else {
-            e
-        };
-        let (mut r, mut t) = (Mat::default(), Mat::default());
-        let mut mask = emask.try_clone()?;
-        let good = calib3d::recover_pose(
-            &e3,
-            &n0,
-            &nk,
-            &mut r,
-            &mut t,
-            1.0,
-            core::Point2d::new(0.0, 0.0),
-            &mut mask,
-        )?;
         if good < 20 {
             return Ok(None);
         }
-        let r = mat3(&r)?;
-        let t = vec3(&t)?;
         // x_k = R x_0 + t (world = camera 0): camera-to-world is (R^T, -R^T t).
         let rt = r.transpose();
         self.poses[0] = Some(Pose::IDENTITY);
@@ -815,40 +818,14 @@ impl Solver {
         if ids.len() < 15 {
             return Ok(false);
         }
-        let (ng, nf) = (self.normalised(&pg), self.normalised(&pf));
-        let fl = 0.5 * (self.cam.fx + self.cam.fy);
-        let eye = Mat::from_slice_2d(&[[1.0f64, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])?;
-        let mut emask = Mat::default();
-        let e = calib3d::find_essential_mat(
-            &ng,
-            &nf,
-            &eye,
-            calib3d::RANSAC,
-            0.999,
-            1.0 / fl,
-            1000,
-            &mut emask,
-        )?;
-        if e.rows() < 3 {
+        let Some((r, t, _, good)) = self.relative_pose(&pg, &pf)? else {
             return Ok(false);
-        }
-        let e3 = Mat::roi(&e, core::Rect::new(0, 0, 3, 3))?.try_clone()?;
-        let (mut r, mut t) = (Mat::default(), Mat::default());
-        let good = calib3d::recover_pose(
-            &e3,
-            &ng,
-            &nf,
-            &mut r,
-            &mut t,
-            1.0,
-            core::Point2d::new(0.0, 0.0),
-            &mut emask,
-        )?;
+        };
         if good < 10 {
             return Ok(false);
         }
+        let nf = self.normalised(&pf);
         // x_f = R x_g + s t in camera coordinates.
-        let (r, t) = (mat3(&r)?, vec3(&t)?);
         let pose_g = self.poses[g].expect("g is placed");
         let (rg, tg) = extrinsics(&pose_g);
         let mut scales = Vec::new();
@@ -935,6 +912,14 @@ impl Solver {
         e.sort_by(f64::total_cmp);
         e[e.len() / 2]
     }
+}
+
+/// Non-zero entries of an OpenCV mask (0 for an empty one).
+fn count(m: &Mat) -> Result<usize> {
+    if m.empty() {
+        return Ok(0);
+    }
+    Ok(m.data_typed::<u8>()?.iter().filter(|&&v| v != 0).count())
 }
 
 fn mat3(m: &Mat) -> Result<Mat3> {

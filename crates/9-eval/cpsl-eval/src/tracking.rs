@@ -4,9 +4,8 @@
 //! paths start at frame 0's camera; the scale is the median ratio of the camera distances
 //! from frame 0).
 
-use crate::error::{Context, EvalError};
-use cpsl_core::resample::downscale_rgb;
-use cpsl_core::{Camera, Limits, Pose};
+use crate::error::EvalError;
+use cpsl_core::{Camera, Pose};
 use cpsl_track::{TrackConfig, Tracker, Trajectory};
 use serde::Serialize;
 use std::path::Path;
@@ -85,18 +84,8 @@ pub fn fox_frames(
 ) -> Result<(crate::datasets::PosedVideo, Camera, Vec<Vec<u8>>)> {
     let video = crate::datasets::fox(data)?;
     let camera = video.camera.scaled(1.0 / scale as f64);
-    let mut frames = Vec::new();
-    for f in &video.files {
-        let img = cpsl_io::images::read_rgb8(f, &Limits::default())
-            .context_with(|| format!("reading {}", f.display()))?;
-        let (rgb, _, _) = downscale_rgb(
-            &img.data,
-            img.width as usize,
-            img.height as usize,
-            img.width as usize / scale as usize,
-        );
-        frames.push(video.lens.undistort_rgb(&rgb, &camera));
-    }
+    let frames =
+        crate::video::read_frames(&video.files, camera, scale as usize, Some(&video.lens))?;
     Ok((video, camera, frames))
 }
 

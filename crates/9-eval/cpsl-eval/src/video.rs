@@ -250,8 +250,34 @@ fn hci_row(data: &Path) -> Result<ClipData> {
 /// Frames (RGB), their depth maps and the depth's source.
 type Estimated = (Vec<Vec<u8>>, Vec<Vec<f32>>, String);
 
-/// The frames of `files` downscaled by `scale` (and undistorted with `lens`, if any) and their
-/// FastDepth depth.
+/// The frames of `files` downscaled by `scale` and undistorted with `lens`, if any, to
+/// `camera`.
+pub fn read_frames(
+    files: &[PathBuf],
+    camera: Camera,
+    scale: usize,
+    lens: Option<&Distortion>,
+) -> Result<Vec<Vec<u8>>> {
+    files
+        .iter()
+        .map(|f| {
+            let img = cpsl_io::images::read_rgb8(f, &Limits::default())
+                .context_with(|| format!("reading {}", f.display()))?;
+            let (rgb, _, _) = downscale_rgb(
+                &img.data,
+                img.width as usize,
+                img.height as usize,
+                img.width as usize / scale,
+            );
+            Ok(match lens {
+                Some(l) => l.undistort_rgb(&rgb, &camera),
+                None => rgb,
+            })
+        })
+        .collect()
+}
+
+/// [`read_frames`] and their FastDepth depth.
 fn estimate_frames(
     files: &[PathBuf],
     camera: Camera,
@@ -259,24 +285,11 @@ fn estimate_frames(
     lens: Option<&Distortion>,
 ) -> Result<Estimated> {
     let mut model = fastdepth()?;
-    let (mut frames, mut depth) = (vec![], vec![]);
-    for f in files {
-        let img = cpsl_io::images::read_rgb8(f, &Limits::default())
-            .context_with(|| format!("reading {}", f.display()))?;
-        let (rgb, _, _) = downscale_rgb(
-            &img.data,
-            img.width as usize,
-            img.height as usize,
-            img.width as usize / scale,
-        );
-        let rgb = match lens {
-            Some(l) => l.undistort_rgb(&rgb, &camera),
-            None => rgb,
-        };
-        let z = model.depth(&rgb, camera.width, camera.height)?;
-        frames.push(rgb);
-        depth.push(z);
-    }
+    let frames = read_frames(files, camera, scale, lens)?;
+    let depth = frames
+        .iter()
+        .map(|rgb| Ok(model.depth(rgb, camera.width, camera.height)?))
+        .collect::<Result<_>>()?;
     Ok((frames, depth, model.name()))
 }
 

@@ -6,7 +6,7 @@
 # Output: out/demo/.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-bash scripts/setup-system.sh              # FFmpeg (tool and libraries), clang
+bash scripts/setup-system.sh              # FFmpeg (tool and libraries), clang, OpenCV
 bash scripts/setup-models.sh >/dev/null   # ONNX Runtime + FastDepth, for `cpsl demo --depth-model`
 cargo build --release -p cpsl
 ./target/release/cpsl demo -o "${1:-out/demo}"

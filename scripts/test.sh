@@ -4,7 +4,7 @@
 # Chromium renders match the CPU reference), a build of the benchmarks and of the fuzz targets.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-bash scripts/setup-system.sh   # FFmpeg libraries and clang, which the build needs
+bash scripts/setup-system.sh   # FFmpeg libraries, clang and OpenCV, which the build needs
 cargo fmt --all --check
 cargo clippy --workspace --all-targets --locked -- -D warnings
 cargo test --workspace --locked

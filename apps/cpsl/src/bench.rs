@@ -87,8 +87,9 @@ pub struct BenchRenderArgs {
     /// Viewer pose `tx,ty,tz,rx,ry,rz` (default includes rotation, so the warp is projective).
     #[arg(long, allow_hyphen_values = true, default_value = "0.05,-0.02,0.03,0.4,-0.8,0.2", value_parser = Pose::parse)]
     pub pose: Pose,
-    /// Also time the same render done with OpenCV (cv2.warpPerspective per layer + numpy
-    /// compositing) by running scripts/bench_opencv.py with this Python interpreter.
+    /// Also time the same render done with OpenCV (cv2.warpPerspective per plane layer,
+    /// cv2.remap from a per-pixel map per mesh layer, numpy compositing) by running
+    /// scripts/bench_opencv.py with this Python interpreter.
     #[arg(long)]
     pub opencv: Option<PathBuf>,
     /// Also time the GPU renderer (wgpu; composite pass only, like the CPU timing, from

@@ -4,7 +4,7 @@
 
 use crate::error::{Context, EvalError};
 use crate::report::today;
-use cpsl_core::{Homography, LayerSet, Pose, PremulImage, Progress, ProgressEvent};
+use cpsl_core::{LayerSet, Pose, PremulImage, Progress, ProgressEvent};
 use cpsl_layering::GeometryMode;
 use cpsl_pipeline::image::{layer_image, InstanceMode};
 use cpsl_pipeline::sources::open_depth_model;
@@ -337,10 +337,23 @@ fn time_opencv(
     let ls = dir.join("layers");
     cpsl_io::write_layer_set(&ls, set, &[])?;
     let cam = set.camera();
-    let homs: Vec<Option<[[f64; 3]; 3]>> = set
+    // Per layer: a plane's inverse homography (or null when the viewer is behind it), or a
+    // mesh's grid with the camera and pose for a per-pixel warp.
+    let homs: Vec<serde_json::Value> = set
         .layers()
         .iter()
-        .map(|l| Homography::plane_inverse(cam, cam, pose, l.depth).map(|h| h.0 .0))
+        .map(|l| match &l.geometry {
+            cpsl_core::Geometry::Mesh(g) => serde_json::json!({
+                "step": g.step, "cols": g.cols, "rows": g.rows,
+                "inverse_depth": g.inverse_depth,
+                "k": [cam.fx, cam.fy, cam.cx, cam.cy],
+                "r": pose.rotation.0,
+                "t": [pose.translation.x(), pose.translation.y(), pose.translation.z()],
+            }),
+            geometry => serde_json::json!(geometry
+                .inverse_homography(l.depth, cam, cam, pose)
+                .map(|h| h.0 .0)),
+        })
         .collect();
     let homs_path = dir.join("homographies.json");
     std::fs::write(
@@ -438,9 +451,6 @@ pub struct RenderBench {
 pub fn bench_render(a: &RenderBench, progress: &dyn Progress) -> Result<RenderReport> {
     if a.frames < 1 {
         return invalid("--frames must be at least 1");
-    }
-    if a.opencv.is_some() && a.geometry != GeometryMode::Plane {
-        return invalid("--opencv warps fronto-parallel planes only: use --geometry plane");
     }
     let sets: Vec<(&'static str, LayerSet)> = match (&a.layerset, a.coverage) {
         (Some(dir), _) => vec![(

@@ -752,12 +752,16 @@ impl LogDepth {
                                 .collect(),
                         )
                     }
-                    cpsl_core::Geometry::Mesh(g) => Some(
-                        g.inverse_depth_map(w, h)
-                            .into_iter()
-                            .map(|v| -v.max(1e-12).ln())
-                            .collect(),
-                    ),
+                    cpsl_core::Geometry::Mesh(g) => {
+                        // Log depth interpolated over each triangle from its vertices' (a
+                        // logarithm per vertex, not per pixel; within a cell the two differ
+                        // by far less than the agreement tolerance).
+                        let mut log = (**g).clone();
+                        log.inverse_depth
+                            .iter_mut()
+                            .for_each(|v| *v = -v.max(1e-12).ln());
+                        Some(log.inverse_depth_map(w, h))
+                    }
                 },
             })
             .collect()

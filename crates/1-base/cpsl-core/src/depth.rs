@@ -22,6 +22,20 @@ pub trait DepthSource {
     fn depth(&mut self, rgb: &[u8], width: u32, height: u32) -> Result<Vec<f32>, DepthSourceError>;
 }
 
+/// Median of the finite positive values of a depth map; `None` when it has none.
+pub fn median_depth(v: &[f32]) -> Option<f32> {
+    let mut d: Vec<f32> = v
+        .iter()
+        .copied()
+        .filter(|z| z.is_finite() && *z > 0.0)
+        .collect();
+    if d.is_empty() {
+        return None;
+    }
+    let m = d.len() / 2;
+    Some(*d.select_nth_unstable_by(m, f32::total_cmp).1)
+}
+
 /// A fixed depth map (ground truth from a synthetic scene or a dataset, or depth already read
 /// from a file): returned for a frame of the same size.
 #[derive(Debug, Clone)]

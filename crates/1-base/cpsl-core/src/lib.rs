@@ -32,7 +32,7 @@ pub mod resample;
 pub mod ycbcr;
 
 pub use camera::Camera;
-pub use depth::{DepthSource, DepthSourceError, FixedDepth};
+pub use depth::{median_depth, DepthSource, DepthSourceError, FixedDepth};
 pub use edc::{Edc, EdcError, EdcSample};
 pub use error::CoreError;
 pub use frame::{LayeredFrame, RefreshReason};

@@ -233,7 +233,8 @@ pub fn match_pair(
     // Owned copies: OpenCV's borrowed views do not pass as plain matrices.
     let l = Mat::new_rows_cols_with_bytes::<core::Vec3b>(h, w, left)?.try_clone()?;
     let r = Mat::new_rows_cols_with_bytes::<core::Vec3b>(h, w, right)?.try_clone()?;
-    let offsets = feature_offsets(&l, &r)?;
+    let l_grey = grey(&l)?;
+    let offsets = feature_offsets(&l_grey, &grey(&r)?)?;
     let vertical_offset = (offsets.len() >= MIN_MATCHES)
         .then(|| median(&mut offsets.iter().map(|o| o.1).collect::<Vec<_>>()));
     let mut shifted = Mat::default();
@@ -291,8 +292,7 @@ pub fn match_pair(
         )?;
         Ok(out)
     };
-    let l_unpadded = l;
-    let (l, r) = (pad(&l_unpadded)?, pad(r)?);
+    let (l, r) = (pad(&l)?, pad(r)?);
     let mut raw = Mat::default();
     sgbm.compute(&l, &r, &mut raw)?;
     // OpenCV marks failures with (least disparity - 1) * 16.
@@ -312,7 +312,7 @@ pub fn match_pair(
         .collect();
     // Flat areas (a black frame, a blank wall) match anywhere equally well: unmatched.
     if cfg.min_texture > 0.0 {
-        for (v, t) in values.iter_mut().zip(texture(&l_unpadded)?) {
+        for (v, t) in values.iter_mut().zip(texture(&l_grey)?) {
             if t < cfg.min_texture {
                 *v = f32::NAN;
             }
@@ -342,12 +342,12 @@ fn grey(m: &Mat) -> Result<Mat> {
     Ok(g)
 }
 
-/// Per pixel, the mean absolute horizontal grey gradient over 5x5 pixels (grey levels per
-/// pixel).
-fn texture(rgb: &Mat) -> Result<Vec<f32>> {
+/// Per pixel of a grey image, the mean absolute horizontal gradient over 5x5 pixels (grey
+/// levels per pixel).
+fn texture(grey: &Mat) -> Result<Vec<f32>> {
     let mut dx = Mat::default();
     imgproc::sobel(
-        &grey(rgb)?,
+        grey,
         &mut dx,
         core::CV_32F,
         1,
@@ -374,7 +374,8 @@ fn texture(rgb: &Mat) -> Result<Vec<f32>> {
 /// Fewest feature matches that decide the vertical offset and the search range.
 const MIN_MATCHES: usize = 20;
 
-/// `(x_left - x_right, y_right - y_left)` of cross-checked ORB matches between the views.
+/// `(x_left - x_right, y_right - y_left)` of cross-checked ORB matches between the views
+/// (grey).
 fn feature_offsets(l: &Mat, r: &Mat) -> Result<Vec<(f32, f32)>> {
     let mut orb = features2d::ORB::create(
         2000,
@@ -390,7 +391,7 @@ fn feature_offsets(l: &Mat, r: &Mat) -> Result<Vec<(f32, f32)>> {
     let mut detect = |m: &Mat| -> Result<(Vector<core::KeyPoint>, Mat)> {
         let mut kp = Vector::new();
         let mut desc = Mat::default();
-        orb.detect_and_compute(&grey(m)?, &core::no_array(), &mut kp, &mut desc, false)?;
+        orb.detect_and_compute(m, &core::no_array(), &mut kp, &mut desc, false)?;
         Ok((kp, desc))
     };
     let (kl, dl) = detect(l)?;

@@ -391,10 +391,13 @@ fn lk(a: &Mat, b: &Mat, p: &Vector<Point2f>) -> Result<(Vector<Point2f>, Vec<boo
     Ok((next, status.iter().map(|s| s != 0).collect()))
 }
 
-/// World-to-camera `(R, t)` of a camera-to-world pose.
-fn extrinsics(p: &Pose) -> (Mat3, Vec3) {
-    let r = p.rotation.transpose();
-    (r, -(r * p.translation))
+/// The camera-to-world pose of world-to-camera extrinsics `x_cam = R x_world + t`.
+fn from_extrinsics(r: Mat3, t: Vec3) -> Pose {
+    Pose {
+        rotation: r,
+        translation: t,
+    }
+    .inverse()
 }
 
 struct Solver {
@@ -601,13 +604,9 @@ impl Solver {
         if good < 20 {
             return Ok(None);
         }
-        // x_k = R x_0 + t (world = camera 0): camera-to-world is (R^T, -R^T t).
-        let rt = r.transpose();
+        // x_k = R x_0 + t (world = camera 0).
         self.poses[0] = Some(Pose::IDENTITY);
-        self.poses[k] = Some(Pose {
-            rotation: rt,
-            translation: -(rt * t),
-        });
+        self.poses[k] = Some(from_extrinsics(r, t));
         self.triangulate_between(0, k)?;
         if self.points.len() < 20 {
             self.poses[k] = None;
@@ -673,9 +672,7 @@ impl Solver {
             return None;
         }
         for (p, q) in obs {
-            let (r, t) = extrinsics(p);
-            let xc = r * x + t;
-            let (u, v) = self.cam.project(xc)?;
+            let (u, v) = self.cam.project(p.inverse().view_to_ref(x))?;
             if (u - q.x as f64).hypot(v - q.y as f64) > 2.0 {
                 return None;
             }
@@ -701,7 +698,10 @@ impl Solver {
         let (mut rvec, mut tvec) = (Mat::default(), Mat::default());
         let guess = match (refine, self.poses[f]) {
             (true, Some(p)) => {
-                let (r, t) = extrinsics(&p);
+                let Pose {
+                    rotation: r,
+                    translation: t,
+                } = p.inverse();
                 let rm = Mat::from_slice_2d(&r.0)?;
                 calib3d::rodrigues(&rm, &mut rvec, &mut core::no_array())?;
                 tvec = Mat::from_slice_2d(&[[t.x()], [t.y()], [t.z()]])?;
@@ -729,12 +729,7 @@ impl Solver {
         }
         let mut rm = Mat::default();
         calib3d::rodrigues(&rvec, &mut rm, &mut core::no_array())?;
-        let (r, t) = (mat3(&rm)?, vec3(&tvec)?);
-        let rt = r.transpose();
-        let pose = Pose {
-            rotation: rt,
-            translation: -(rt * t),
-        };
+        let pose = from_extrinsics(mat3(&rm)?, vec3(&tvec)?);
         if !pose.is_finite() {
             return Ok(false);
         }
@@ -827,7 +822,10 @@ impl Solver {
         let nf = self.normalised(&pf);
         // x_f = R x_g + s t in camera coordinates.
         let pose_g = self.poses[g].expect("g is placed");
-        let (rg, tg) = extrinsics(&pose_g);
+        let Pose {
+            rotation: rg,
+            translation: tg,
+        } = pose_g.inverse();
         let mut scales = Vec::new();
         for (i, id) in ids.iter().enumerate() {
             let Some(&x) = self.points.get(id) else {
@@ -859,12 +857,7 @@ impl Solver {
             return Ok(false);
         }
         // World-to-camera of f: R_f = R Rg, t_f = R tg + s t.
-        let (rf, tf) = (r * rg, r * tg + t * s);
-        let rt = rf.transpose();
-        self.poses[f] = Some(Pose {
-            rotation: rt,
-            translation: -(rt * tf),
-        });
+        self.poses[f] = Some(from_extrinsics(r * rg, r * tg + t * s));
         Ok(true)
     }
 
@@ -899,8 +892,7 @@ impl Solver {
         for (&id, &x) in &self.points {
             for &(f, u, v) in &self.tracks[id] {
                 if let Some(p) = self.poses[f as usize] {
-                    let (r, t) = extrinsics(&p);
-                    if let Some((pu, pv)) = self.cam.project(r * x + t) {
+                    if let Some((pu, pv)) = self.cam.project(p.inverse().view_to_ref(x)) {
                         e.push((pu - u as f64).hypot(pv - v as f64));
                     }
                 }

@@ -1,7 +1,7 @@
 //! Where a pipeline's depth, camera and layering configuration come from.
 
 use crate::error::{Context, PipelineError};
-use cpsl_core::{Camera, DepthSource, Limits};
+use cpsl_core::{median_depth, Camera, DepthSource, Limits};
 use cpsl_layering::{GeometryMode, LayeringConfig};
 use std::path::{Path, PathBuf};
 
@@ -165,11 +165,11 @@ impl StereoDepth {
             "too little texture for stereo ({:.1} % matched)",
             100.0 * matched
         );
-        let reference = self.last.as_deref().and_then(median);
+        let reference = self.last.as_deref().and_then(median_depth);
         let z = match &mut self.prior {
             Some(p) => {
                 let mut z = p.depth(left, width, height)?;
-                if let (Some(r), Some(m)) = (reference, median(&z)) {
+                if let (Some(r), Some(m)) = (reference, median_depth(&z)) {
                     z.iter_mut().for_each(|v| *v *= r / m);
                 }
                 self.note = format!("fallback: {why}; {}", p.name());
@@ -189,20 +189,6 @@ impl StereoDepth {
         };
         Ok(z)
     }
-}
-
-/// Median of the finite positive values.
-fn median(v: &[f32]) -> Option<f32> {
-    let mut d: Vec<f32> = v
-        .iter()
-        .copied()
-        .filter(|z| z.is_finite() && *z > 0.0)
-        .collect();
-    if d.is_empty() {
-        return None;
-    }
-    let n = d.len() / 2;
-    Some(*d.select_nth_unstable_by(n, f32::total_cmp).1)
 }
 
 impl VideoDepth {

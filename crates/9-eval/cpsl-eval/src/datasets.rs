@@ -295,18 +295,7 @@ pub fn align_median(estimate: &[f32], truth: &[f32]) -> Option<(Vec<f32>, f32)> 
 }
 
 /// Median of the finite positive values.
-pub fn median(v: &[f32]) -> Option<f32> {
-    let mut d: Vec<f32> = v
-        .iter()
-        .copied()
-        .filter(|z| z.is_finite() && *z > 0.0)
-        .collect();
-    if d.is_empty() {
-        return None;
-    }
-    let m = d.len() / 2;
-    Some(*d.select_nth_unstable_by(m, f32::total_cmp).1)
-}
+pub use cpsl_core::median_depth as median;
 
 /// A real handheld video with a camera pose per frame and no depth.
 #[derive(Debug, Clone)]

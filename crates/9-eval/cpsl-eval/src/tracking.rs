@@ -1,9 +1,10 @@
 //! Camera tracking and depth from the video itself ([`cpsl_track`]) scored on the fox: its
 //! frames (undistorted, a quarter of full size) are tracked without reading its poses, and
-//! the solved poses are compared with its COLMAP poses after a similarity alignment (both
-//! paths start at frame 0's camera; the scale is the median ratio of the camera distances
-//! from frame 0).
+//! the solved poses are compared with its COLMAP poses relative to frame 0's camera (where
+//! the solved path starts): rotations directly, translations by direction, so that the
+//! monocular scale does not enter.
 
+use crate::datasets::PosedVideo;
 use crate::error::EvalError;
 use cpsl_core::{Camera, Pose};
 use cpsl_track::{TrackConfig, Tracker, Trajectory};
@@ -39,18 +40,11 @@ pub struct TrackScore {
 
 use cpsl_track::rotation_deg as angle;
 
-/// Scores `est` (camera-to-world, world = frame 0) against `truth` (camera-to-world in any
-/// world frame).
-pub fn score(est: &Trajectory, truth: &[Pose]) -> (f64, f64) {
-    let rel = |i: usize| {
-        let (a, b) = (&truth[0], &truth[i]);
-        let rt = a.rotation.transpose();
-        Pose {
-            rotation: rt * b.rotation,
-            translation: rt * (b.translation - a.translation),
-        }
-    };
-    let far = (0..truth.len())
+/// Scores `est` (camera-to-world, world = frame 0) against `truth`'s poses: median rotation
+/// error and median translation-direction error, degrees.
+pub fn score(est: &Trajectory, truth: &PosedVideo) -> (f64, f64) {
+    let rel = |i: usize| truth.relative(0, i);
+    let far = (0..truth.poses.len())
         .map(|i| rel(i).translation.norm())
         .fold(0.0, f64::max);
     let (mut rot, mut dir) = (Vec::new(), Vec::new());
@@ -78,10 +72,7 @@ pub fn score(est: &Trajectory, truth: &[Pose]) -> (f64, f64) {
 }
 
 /// The fox's frames undistorted at `1/scale` of full size, and that camera.
-pub fn fox_frames(
-    data: &Path,
-    scale: u32,
-) -> Result<(crate::datasets::PosedVideo, Camera, Vec<Vec<u8>>)> {
+pub fn fox_frames(data: &Path, scale: u32) -> Result<(PosedVideo, Camera, Vec<Vec<u8>>)> {
     let video = crate::datasets::fox(data)?;
     let camera = video.camera.scaled(1.0 / scale as f64);
     let frames =
@@ -104,7 +95,7 @@ pub fn fox(data: &Path) -> Result<TrackScore> {
     let t0 = Instant::now();
     let est = track(&frames, camera, TrackConfig::default())?;
     let ms = t0.elapsed().as_secs_f64() * 1e3 / frames.len() as f64;
-    let (rotation_deg, translation_dir_deg) = score(&est, &video.poses);
+    let (rotation_deg, translation_dir_deg) = score(&est, &video);
     Ok(TrackScore {
         clip: "fox".into(),
         frames: frames.len(),
@@ -135,10 +126,11 @@ pub fn video_depth(
             "video depth in the evaluation needs frames no larger than the tracking size".into(),
         ));
     }
-    let grey: Vec<opencv_grey::Grey> = frames
+    let (w, h) = (camera.width, camera.height);
+    let grey: Vec<cpsl_track::Mat> = frames
         .iter()
-        .map(|f| opencv_grey::Grey::new(f, camera))
-        .collect::<Result<_>>()?;
+        .map(|f| cpsl_track::work_grey(f, w, h, (w, h)))
+        .collect::<std::result::Result<_, _>>()?;
     let placed: Vec<usize> = (0..frames.len())
         .filter(|&i| est.poses[i].is_some())
         .collect();
@@ -150,13 +142,13 @@ pub fn video_depth(
         near.sort_by_key(|&j| j.abs_diff(i));
         near.truncate(4);
         let pose = est.poses[i].expect("placed");
-        let nb: Vec<(&opencv_grey::Mat, &Pose)> = near
+        let nb: Vec<(&cpsl_track::Mat, &Pose)> = near
             .iter()
-            .map(|&j| (&grey[j].0, est.poses[j].as_ref().expect("placed")))
+            .map(|&j| (&grey[j], est.poses[j].as_ref().expect("placed")))
             .collect();
         let views = cpsl_track::mvs::depth_from_views(
             &cam,
-            (&grey[i].0, &pose),
+            (&grey[i], &pose),
             &nb,
             &cpsl_track::mvs::MvsConfig::default(),
         )?;
@@ -192,25 +184,4 @@ pub fn video_depth(
             100.0 * share
         ),
     ))
-}
-
-/// OpenCV grey images for the multi-view depth.
-mod opencv_grey {
-    use super::Result;
-    use cpsl_core::Camera;
-    pub use cpsl_track::Mat;
-
-    /// A working grey image.
-    pub struct Grey(pub Mat);
-
-    impl Grey {
-        pub fn new(rgb: &[u8], cam: Camera) -> Result<Self> {
-            Ok(Self(cpsl_track::work_grey(
-                rgb,
-                cam.width,
-                cam.height,
-                (cam.width, cam.height),
-            )?))
-        }
-    }
 }

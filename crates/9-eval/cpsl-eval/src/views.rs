@@ -419,21 +419,24 @@ fn mean(v: impl Iterator<Item = f64>) -> f64 {
     s / n.max(1) as f64
 }
 
-/// The depth to layer `ds` with, and its description; `None` when the dataset has no ground
-/// truth and `gt` was asked for.
-fn dataset_depth(ds: &Dataset, depth: &str) -> Result<Option<(Vec<f32>, String)>> {
+/// The depth to layer `ds` with and its description, or why the dataset is skipped (no
+/// ground truth for `gt`, no stereo pair for `stereo`).
+fn dataset_depth(
+    ds: &Dataset,
+    depth: &str,
+) -> Result<std::result::Result<(Vec<f32>, String), &'static str>> {
     if depth == "gt" {
         if ds.centre_depth.is_some() {
-            return Ok(None);
+            return Ok(Err("no ground-truth depth (use --depth model:fastdepth)"));
         }
-        return Ok(Some((ds.depth.clone(), "ground truth".to_string())));
+        return Ok(Ok((ds.depth.clone(), "ground truth".to_string())));
     }
     if depth == "stereo" {
-        if ds.centre_depth.is_some() {
-            return Ok(None);
+        if crate::stereo::pair(ds).is_none() {
+            return Ok(Err("no stereo pair (no view beside the reference)"));
         }
         let (z, _, desc) = crate::stereo::stereo_depth(ds, &cpsl_stereo::StereoConfig::default())?;
-        return Ok(Some((z, desc)));
+        return Ok(Ok((z, desc)));
     }
     let model = depth.strip_prefix("model:").unwrap_or(depth);
     let mut m: Box<dyn cpsl_core::DepthSource> =
@@ -448,7 +451,7 @@ fn dataset_depth(ds: &Dataset, depth: &str) -> Result<Option<(Vec<f32>, String)>
     };
     let (aligned, s) = align_median(&est, &truth)
         .ok_or_else(|| EvalError::Invalid(format!("{source}: no valid depth to align")))?;
-    Ok(Some((aligned, format!("{source}, median-scaled x{s:.3}"))))
+    Ok(Ok((aligned, format!("{source}, median-scaled x{s:.3}"))))
 }
 
 /// Evaluates the methods on the datasets `a` names, handing each row to `rows` as it is
@@ -479,12 +482,12 @@ pub fn evaluate_views(
     let mut crops = Vec::new();
     for name in names {
         let ds = datasets::load(&a.data, name).context_with(|| format!("loading {name}"))?;
-        let Some((depth, depth_name)) = dataset_depth(&ds, &a.depth)? else {
-            rows(Row::Skipped(
-                name,
-                "no ground-truth depth (use --depth model:fastdepth)",
-            ));
-            continue;
+        let (depth, depth_name) = match dataset_depth(&ds, &a.depth)? {
+            Ok(d) => d,
+            Err(why) => {
+                rows(Row::Skipped(name, why));
+                continue;
+            }
         };
         // Score the same pixels whatever the depth: co-visibility and depth-edge bands come
         // from the ground truth where the dataset has it.

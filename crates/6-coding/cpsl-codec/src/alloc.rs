@@ -2,40 +2,60 @@
 //! minimise `sum_k w_k D_k(r_k)` subject to `sum_k r_k <= R`.
 //!
 //! Each layer stream's rate and distortion are modelled as functions of the encoder's quality
-//! setting `q` (CRF) from trial encodes of the segment: `ln r_k(q)` and `ln D_k(q)` are
-//! piecewise linear through the measured points, and the rate also through each final
-//! encode's (rate roughly halves every 6 CRF steps but flattens towards a fixed cost at high
-//! `q`, so a line through two points extrapolates low; distortion grows geometrically). A
-//! stream has one such model per rung of the resolution ladder ([`crate::scale`]), its
-//! distortion measured at the frame size after upsampling, so that rungs compete on the same
-//! scale. The constrained problem is solved by Lagrangian relaxation on the grid of rungs and
-//! integer qualities: for a multiplier `lambda`, every layer independently picks the
-//! `(rung, q)` minimising `w_k D_k + lambda r_k`; `lambda` is bisected (in log space) to the
-//! smallest value whose total rate fits the budget, and what is left is spent greedily. When
-//! the encoded streams overshoot, [`correct`] adds their measured rates to the models and
-//! allocates again, no stream costing more than it did.
+//! setting `q` (CRF) from trial encodes of the segment's first frames: the key frame's bits
+//! `I(q)`, the mean bits of the other pictures `P(q)` and the distortion `D(q)`, each
+//! piecewise linear in its logarithm through the measured points (rate roughly halves every 6
+//! CRF steps but flattens towards a fixed cost at high `q`, so a line through two points
+//! extrapolates low; distortion grows geometrically). A segment of `n` frames costs
+//! `I(q) + (n - 1) P(q)`, so trials on a few frames predict a whole segment, and a model
+//! carried to the next segment is re-anchored on what the stream really cost
+//! ([`RdModel::anchor`]). A stream has one such model per rung of the resolution ladder
+//! ([`crate::scale`]), its distortion measured at the frame size after upsampling, so that
+//! rungs compete on the same scale. The constrained problem is solved by Lagrangian relaxation
+//! on the grid of rungs and integer qualities: for a multiplier `lambda`, every layer
+//! independently picks the `(rung, q)` minimising `w_k D_k + lambda r_k`; `lambda` is bisected
+//! (in log space) to the smallest value whose total rate fits the budget, and what is left is
+//! spent greedily.
 //!
-//! `D_k` is the visibility-weighted squared error of the decoded premultiplied RGBA against the
-//! source ([`distortion`]); `w_k` rises with the layer's saliency and its share of depth-edge
-//! samples in the Edge-Depth Cache ([`weight`]).
-
 use cpsl_core::PremulImage;
 
-/// A rate-distortion model of one layer stream, fitted to its trial encodes.
-///
-/// Rate and distortion are piecewise linear in `ln r` and `ln D` through the measured points:
-/// the trials, and for the rate also each final encode the correction rounds add
-/// ([`RdModel::anchor_rate`]), so that a quality between measured points is interpolated and
-/// only the ends extrapolate.
-#[derive(Debug, Clone, PartialEq)]
-pub struct RdModel {
-    /// Measured `(q, ln bits)`, sorted by quality, at least two.
-    rates: Vec<(f64, f64)>,
-    /// Measured `(q, ln distortion)`, sorted by quality, at least two.
-    distortions: Vec<(f64, f64)>,
+/// One trial encode of a stream: quality, the key frame's bits (with the container's), the
+/// mean bits of the other pictures, and the proxy distortion per frame.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Trial {
+    /// The quality (CRF).
+    pub q: f32,
+    /// Bits of the key frame and the container.
+    pub intra: f64,
+    /// Mean bits of the other pictures (`None`: the trial had only the key frame).
+    pub inter: Option<f64>,
+    /// Distortion ([`distortion`], per frame).
+    pub distortion: f64,
 }
 
-/// Smallest distortion the model takes (an empty layer codes without error).
+/// A rate-distortion model of one layer stream, fitted to its trial encodes, for a segment
+/// of [`RdModel::frames`] frames.
+///
+/// Key-frame bits, other pictures' bits and distortion are piecewise linear in their
+/// logarithms through the measured points: the trials, and for the rates also each final
+/// encode ([`RdModel::anchor`]), so that a quality between measured points is interpolated
+/// and only the ends extrapolate.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RdModel {
+    /// Measured `(q, ln bits)` of the key frame, sorted by quality, at least two.
+    intra: Vec<(f64, f64)>,
+    /// Measured `(q, ln mean bits)` of the other pictures, sorted by quality, at least two.
+    inter: Vec<(f64, f64)>,
+    /// Measured `(q, ln distortion)`, sorted by quality, at least two.
+    distortions: Vec<(f64, f64)>,
+    /// Frames of the segment the rate is for.
+    frames: usize,
+    /// Whether the other pictures' bits were measured (else they are guessed as a tenth of
+    /// the key frame's, which only a one-frame segment can afford).
+    inter_measured: bool,
+}
+
+/// Smallest value a logarithm is taken of (an empty layer codes without error).
 const MIN_D: f64 = 1e-4;
 
 /// Fewest quality steps between the points that set an end's extrapolation slope (nearer
@@ -46,45 +66,107 @@ const MIN_SPAN: f64 = 4.0;
 const MIN_SLOPE: f64 = 1e-3;
 
 impl RdModel {
-    /// Fits the model through `(q, bits, distortion)` measured at two or more distinct
-    /// qualities, in increasing order. Rates are forced to fall and distortions to rise with
+    /// Fits the model through trials at two or more distinct qualities, in increasing order,
+    /// for segments of `frames` frames. Rates are forced to fall and distortions to rise with
     /// `q`, as encoders behave.
     ///
     /// # Panics
-    /// With fewer than two points.
-    pub fn fit(points: &[(f32, f64, f64)]) -> Self {
-        assert!(points.len() >= 2, "an RD model needs two trials");
+    /// With fewer than two trials.
+    pub fn fit(trials: &[Trial], frames: usize) -> Self {
+        assert!(trials.len() >= 2, "an RD model needs two trials");
         let ln = |v: f64| v.max(MIN_D).ln();
-        let (mut rates, mut distortions) = (Vec::new(), Vec::new());
-        for &(q, r, d) in points {
-            let q = q as f64;
-            let (mut lr, mut ld) = (ln(r), ln(d));
-            if let (Some(&(pq, pr)), Some(&(_, pd))) = (rates.last(), distortions.last()) {
+        let mut m = Self {
+            intra: Vec::new(),
+            inter: Vec::new(),
+            distortions: Vec::new(),
+            frames: frames.max(1),
+            inter_measured: trials.iter().all(|t| t.inter.is_some()),
+        };
+        for t in trials {
+            let q = t.q as f64;
+            let inter = t.inter.unwrap_or(0.1 * t.intra);
+            let (mut li, mut lp, mut ld) = (ln(t.intra), ln(inter), ln(t.distortion));
+            if let Some(&(pq, pd)) = m.distortions.last() {
                 let dq: f64 = q - pq;
-                lr = lr.min(pr - MIN_SLOPE * dq);
+                li = li.min(m.intra.last().expect("as long").1 - MIN_SLOPE * dq);
+                lp = lp.min(m.inter.last().expect("as long").1 - MIN_SLOPE * dq);
                 ld = ld.max(pd + MIN_SLOPE * dq);
             }
-            rates.push((q, lr));
-            distortions.push((q, ld));
+            m.intra.push((q, li));
+            m.inter.push((q, lp));
+            m.distortions.push((q, ld));
         }
-        Self { rates, distortions }
+        m
     }
 
-    /// Adds a measured `bits` at quality `q` to the rate model (replacing one at the same
-    /// quality).
-    pub fn anchor_rate(&mut self, q: f32, bits: f64) {
-        let q = q as f64;
-        self.rates.retain(|p| (p.0 - q).abs() >= 0.5);
-        let at = self.rates.partition_point(|p| p.0 < q);
-        self.rates.insert(at, (q, bits.max(MIN_D).ln()));
+    /// The model for segments of `frames` frames.
+    pub fn for_frames(mut self, frames: usize) -> Self {
+        self.frames = frames.max(1);
+        self
     }
 
-    /// Modelled bits at quality `q`.
+    /// Frames of the segment the rate is for.
+    pub fn frames(&self) -> usize {
+        self.frames
+    }
+
+    /// Whether the model may serve a longer segment than its trials': the other pictures'
+    /// bits were measured.
+    pub fn carries(&self) -> bool {
+        self.inter_measured
+    }
+
+    /// Adds a trial (replacing a point at the same quality).
+    pub fn add(&mut self, t: &Trial) {
+        let q = t.q as f64;
+        let put = |points: &mut Vec<(f64, f64)>, v: f64| {
+            points.retain(|p| (p.0 - q).abs() >= 0.5);
+            let at = points.partition_point(|p| p.0 < q);
+            points.insert(at, (q, v.max(MIN_D).ln()));
+        };
+        put(&mut self.intra, t.intra);
+        if let Some(inter) = t.inter {
+            put(&mut self.inter, inter);
+        }
+        put(&mut self.distortions, t.distortion);
+    }
+
+    /// The highest quality value measured.
+    pub fn max_q(&self) -> f32 {
+        self.distortions.last().map_or(0.0, |p| p.0 as f32)
+    }
+
+    /// Re-anchors the rates on key-frame bits and mean bits of the other pictures measured
+    /// at quality `q` (`inter` is `None` when the segment had only its key frame): each rate
+    /// curve is scaled to run through its measurement, keeping its shape, so that content
+    /// that got simpler or busier shifts the whole curve.
+    pub fn anchor(&mut self, q: f32, intra: f64, inter: Option<f64>) {
+        let shift = |points: &mut Vec<(f64, f64)>, bits: f64| {
+            let by = bits.max(MIN_D).ln() - piecewise(points, q as f64, |s| s.min(-MIN_SLOPE));
+            points.iter_mut().for_each(|p| p.1 += by);
+        };
+        shift(&mut self.intra, intra);
+        if let Some(inter) = inter {
+            shift(&mut self.inter, inter);
+        }
+    }
+
+    /// Modelled key-frame bits and mean bits of the other pictures at quality `q`.
+    pub fn intra_inter(&self, q: f32) -> (f64, f64) {
+        let clamp = |s: f64| s.min(-MIN_SLOPE);
+        (
+            piecewise(&self.intra, q as f64, clamp).exp(),
+            piecewise(&self.inter, q as f64, clamp).exp(),
+        )
+    }
+
+    /// Modelled bits of a segment of [`RdModel::frames`] frames at quality `q`.
     pub fn rate(&self, q: f32) -> f64 {
-        piecewise(&self.rates, q as f64, |s| s.min(-MIN_SLOPE)).exp()
+        let (i, p) = self.intra_inter(q);
+        i + (self.frames - 1) as f64 * p
     }
 
-    /// Modelled distortion at quality `q`.
+    /// Modelled distortion per frame at quality `q`.
     pub fn distortion(&self, q: f32) -> f64 {
         piecewise(&self.distortions, q as f64, |s| s.max(MIN_SLOPE)).exp()
     }
@@ -126,27 +208,16 @@ pub struct Allocation {
 
 /// Chooses a rung and a quality per stream, qualities on the integer grid `[q_min, q_max]`,
 /// minimising `sum w_k D_k` with `sum r_k <= budget` (all in the models' units). `models[k]`
-/// holds stream `k`'s model per rung (at least one).
+/// holds stream `k`'s model per rung (at least one). After the Lagrangian search, what the
+/// budget has left is spent greedily, on the change that lowers `w_k D_k` most per extra bit:
+/// the multiplier's choices jump between discrete options, so the search alone may leave much
+/// unspent.
 pub fn allocate(
     models: &[Vec<RdModel>],
     weights: &[f32],
     budget: f64,
     q_min: f32,
     q_max: f32,
-) -> Allocation {
-    allocate_capped(models, weights, budget, (q_min, q_max), None)
-}
-
-/// [`allocate`], with stream `k` limited to choices whose modelled rate is at most
-/// `caps[k]` where caps are given. After the Lagrangian search, what the budget has left is
-/// spent greedily, on the change that lowers `w_k D_k` most per extra bit: the multiplier's
-/// choices jump between discrete options, so the search alone may leave much unspent.
-fn allocate_capped(
-    models: &[Vec<RdModel>],
-    weights: &[f32],
-    budget: f64,
-    (q_min, q_max): (f32, f32),
-    caps: Option<&[f64]>,
 ) -> Allocation {
     let grid: Vec<f32> = (q_min.ceil() as i32..=q_max.floor() as i32)
         .map(|q| q as f32)
@@ -155,14 +226,9 @@ fn allocate_capped(
     let cost = |k: usize, (r, q): (usize, f32)| weights[k] as f64 * models[k][r].distortion(q);
     let options = |k: usize| {
         let grid = &grid;
-        let cap = caps.map_or(f64::INFINITY, |c| c[k] * (1.0 + 1e-9));
-        (0..models[k].len())
-            .flat_map(move |r| grid.iter().map(move |&q| (r, q)))
-            .filter(move |&o| rate(k, o) <= cap)
+        (0..models[k].len()).flat_map(move |r| grid.iter().map(move |&q| (r, q)))
     };
-    // Never empty: under a cap (from `correct`), the stream's current choice, whose measured
-    // rate its model runs through, is within it.
-    let within = "a choice within the cap";
+    let within = "a stream has a rung and the grid a quality";
     let cheapest = |k: usize| {
         options(k)
             .min_by(|&a, &b| rate(k, a).total_cmp(&rate(k, b)))
@@ -230,68 +296,6 @@ fn allocate_capped(
     finish(choice, true)
 }
 
-/// The streams' codings as encoded: rung and quality per stream, and the measured bits.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Coding {
-    /// Rung per stream.
-    pub rung: Vec<usize>,
-    /// Quality per stream.
-    pub quality: Vec<f32>,
-    /// Measured bits per stream.
-    pub bits: Vec<f64>,
-}
-
-impl Coding {
-    /// Whether every stream is at its cheapest choice: quality `q_max` on rung `cheapest(k)`.
-    pub fn at_floor(&self, q_max: f32, cheapest: impl Fn(usize) -> usize) -> bool {
-        (0..self.rung.len()).all(|k| self.quality[k] >= q_max && self.rung[k] == cheapest(k))
-    }
-}
-
-/// The correction rounds after the first encode, at most `rounds`: while the measured bits
-/// exceed `budget` by more than 2 % and some stream can still go cheaper, every stream's
-/// measured bits join its rung's rate model ([`RdModel::anchor_rate`]), the allocation is
-/// redone, and the streams whose choice changed are encoded again by `encode` (given
-/// `(stream, rung, quality)` jobs, it returns their bits in order). Returns the number of
-/// encodes and whether every reallocation found the budget feasible.
-pub fn correct<E>(
-    models: &mut [Vec<RdModel>],
-    weights: &[f32],
-    budget: f64,
-    (q_min, q_max): (f32, f32),
-    coding: &mut Coding,
-    rounds: usize,
-    mut encode: impl FnMut(&[(usize, usize, f32)]) -> Result<Vec<f64>, E>,
-) -> Result<(usize, bool), E> {
-    let (mut encodes, mut feasible) = (0, true);
-    for _ in 0..rounds {
-        let at_floor = coding.at_floor(q_max, |k| models[k].len() - 1);
-        if coding.bits.iter().sum::<f64>() <= budget * 1.02 || at_floor {
-            break;
-        }
-        for (k, m) in models.iter_mut().enumerate() {
-            m[coding.rung[k]].anchor_rate(coding.quality[k], coding.bits[k]);
-        }
-        // Over the budget: no stream may cost more than it did, so that rounds cannot swap
-        // bits between streams back and forth.
-        let caps = coding.bits.clone();
-        let a = allocate_capped(models, weights, budget, (q_min, q_max), Some(&caps));
-        feasible &= a.feasible;
-        let jobs: Vec<(usize, usize, f32)> = (0..models.len())
-            .filter(|&k| (a.rung[k], a.quality[k]) != (coding.rung[k], coding.quality[k]))
-            .map(|k| (k, a.rung[k], a.quality[k]))
-            .collect();
-        if jobs.is_empty() {
-            break;
-        }
-        for (&(k, r, q), bits) in jobs.iter().zip(encode(&jobs)?) {
-            (coding.rung[k], coding.quality[k], coding.bits[k]) = (r, q, bits);
-        }
-        encodes += jobs.len();
-    }
-    Ok((encodes, feasible))
-}
-
 /// The allocation weight of a layer: `(1 + saliency) * (1 + edge_share)`, where `edge_share`
 /// is the layer's share of Edge-Depth Cache samples relative to the layer with the most.
 pub fn weight(saliency: f32, edge_samples: usize, max_edge_samples: usize) -> f32 {
@@ -340,12 +344,24 @@ pub fn distortion(src: &PremulImage, dec: &PremulImage, vis: &[u8]) -> f64 {
 mod tests {
     use super::*;
 
+    fn trial(q: f32, intra: f64, inter: f64, distortion: f64) -> Trial {
+        Trial {
+            q,
+            intra,
+            inter: Some(inter),
+            distortion,
+        }
+    }
+
+    /// A one-frame model: rate halves and distortion doubles every 6 steps.
     fn model(r_at_20: f64, d_at_20: f64) -> RdModel {
-        // Rate halves and distortion doubles every 6 steps.
-        RdModel::fit(&[
-            (20.0, r_at_20, d_at_20),
-            (26.0, r_at_20 / 2.0, d_at_20 * 2.0),
-        ])
+        RdModel::fit(
+            &[
+                trial(20.0, r_at_20, r_at_20 / 10.0, d_at_20),
+                trial(26.0, r_at_20 / 2.0, r_at_20 / 20.0, d_at_20 * 2.0),
+            ],
+            1,
+        )
     }
 
     #[test]
@@ -397,7 +413,13 @@ mod tests {
     fn a_budget_below_the_full_size_floor_goes_down_the_ladder() {
         // Rung 1 costs a quarter of the rate and carries a distortion floor of its own.
         let full = model(1e6, 10.0);
-        let half = RdModel::fit(&[(20.0, 2.5e5, 40.0), (26.0, 1.25e5, 60.0)]);
+        let half = RdModel::fit(
+            &[
+                trial(20.0, 2.5e5, 2.5e4, 40.0),
+                trial(26.0, 1.25e5, 1.25e4, 60.0),
+            ],
+            1,
+        );
         let models = vec![vec![full.clone(), half]; 2];
         let floor_full = 2.0 * full.rate(51.0);
         // Generous: full size. Below the full-size floor: the half rung, within the budget.
@@ -420,89 +442,75 @@ mod tests {
     }
 
     #[test]
-    fn anchored_rates_interpolate_and_extrapolate_from_points_apart() {
-        let mut m = model(1e6, 10.0);
-        let line_30 = m.rate(30.0);
-        m.anchor_rate(30.0, 2.0 * line_30);
-        assert!((m.rate(30.0) / (2.0 * line_30) - 1.0).abs() < 1e-9);
-        // Between 26 and 30: geometric interpolation; the trials stay as measured.
-        let mid = (m.rate(26.0) * m.rate(30.0)).sqrt();
-        assert!((m.rate(28.0) / mid - 1.0).abs() < 1e-9);
-        assert!((m.rate(20.0) / 1e6 - 1.0).abs() < 1e-9);
-        // A point 2 steps from the end does not set the slope beyond it: 26 (6 steps) does.
-        m.anchor_rate(32.0, 1.3 * line_30);
-        let slope = (m.rate(32.0) / m.rate(26.0)).ln() / 6.0;
-        assert!((m.rate(40.0) / (m.rate(32.0) * (8.0 * slope).exp()) - 1.0).abs() < 1e-9);
-        // Anchoring the same quality again replaces the point.
-        m.anchor_rate(32.0, 1.1 * line_30);
-        assert!((m.rate(32.0) / (1.1 * line_30) - 1.0).abs() < 1e-9);
+    fn a_segment_costs_its_key_frame_and_its_other_pictures() {
+        let m = RdModel::fit(
+            &[trial(20.0, 8e5, 1e5, 10.0), trial(32.0, 2e5, 2.5e4, 40.0)],
+            8,
+        );
+        assert!((m.rate(20.0) - (8e5 + 7.0 * 1e5)).abs() < 1e-3);
+        let long = m.clone().for_frames(30);
+        assert_eq!(long.frames(), 30);
+        assert!((long.rate(32.0) - (2e5 + 29.0 * 2.5e4)).abs() < 1e-3);
+        // Geometric in between; the distortion does not depend on the length.
+        let (i, p) = long.intra_inter(26.0);
+        assert!((i / 4e5 - 1.0).abs() < 1e-9 && (p / 5e4 - 1.0).abs() < 1e-9);
+        assert_eq!(m.distortion(26.0), long.distortion(26.0));
+        assert!(m.carries());
+        // Trials of a key frame alone serve a one-frame segment, and are not carried on.
+        let key = |q, intra| Trial {
+            q,
+            intra,
+            inter: None,
+            distortion: 1.0,
+        };
+        let one = RdModel::fit(&[key(20.0, 8e5), key(32.0, 2e5)], 1);
+        assert!(!one.carries());
+        assert!((one.rate(20.0) - 8e5).abs() < 1e-3);
     }
 
     #[test]
-    fn correction_rounds_bring_flattening_rates_within_the_budget() {
-        // Rates that flatten towards a fixed cost at high quality values, as encoders' do, so
-        // that lines through the full-size trials extrapolate low. Four streams, four rungs,
-        // each a quarter of the rate of the one above and blurrier, the smaller ones tried
-        // also at the worst quality.
-        let bits = |k: usize, r: usize, q: f32| {
-            (1.0 + k as f64) / 4f64.powi(r as i32) * (2e6 * (-0.12 * (q as f64 - 20.0)).exp() + 4e4)
-        };
-        let dist = |k: usize, r: usize, q: f32| {
-            (1.0 + k as f64) * ([0.0, 20.0, 50.0, 100.0][r] + (0.1 * (q as f64 - 20.0)).exp())
-        };
-        let fitted: Vec<Vec<RdModel>> = (0..4)
-            .map(|k| {
-                (0..4)
-                    .map(|r| {
-                        let trials: &[f32] = if r == 0 {
-                            &[20.0, 35.0]
-                        } else {
-                            &[20.0, 35.0, 51.0]
-                        };
-                        let points: Vec<_> = trials
-                            .iter()
-                            .map(|&q| (q, bits(k, r, q), dist(k, r, q)))
-                            .collect();
-                        RdModel::fit(&points)
-                    })
-                    .collect()
-            })
-            .collect();
-        let weights = [1.0; 4];
-        let measure = |jobs: &[(usize, usize, f32)]| -> Result<Vec<f64>, ()> {
-            Ok(jobs.iter().map(|&(k, r, q)| bits(k, r, q)).collect())
-        };
-        let mut missed = 0;
-        for budget in [1.4e6, 6e5, 2e5] {
-            let mut models = fitted.clone();
-            let a = allocate(&models, &weights, budget, 10.0, 51.0);
-            let jobs: Vec<_> = (0..4).map(|k| (k, a.rung[k], a.quality[k])).collect();
-            let mut coding = Coding {
-                bits: measure(&jobs).unwrap(),
-                rung: a.rung,
-                quality: a.quality,
-            };
-            missed += usize::from(coding.bits.iter().sum::<f64>() > 1.02 * budget);
-            let (_, feasible) = correct(
-                &mut models,
-                &weights,
-                budget,
-                (10.0, 51.0),
-                &mut coding,
-                4,
-                measure,
-            )
-            .unwrap();
-            let spent = coding.bits.iter().sum::<f64>();
+    fn added_trials_interpolate_and_extrapolate_from_points_apart() {
+        let mut m = model(1e6, 10.0).for_frames(2);
+        let (i30, p30) = m.intra_inter(30.0);
+        m.add(&trial(30.0, 2.0 * i30, 3.0 * p30, 50.0));
+        let (i, p) = m.intra_inter(30.0);
+        assert!((i / (2.0 * i30) - 1.0).abs() < 1e-9 && (p / (3.0 * p30) - 1.0).abs() < 1e-9);
+        assert!((m.distortion(30.0) / 50.0 - 1.0).abs() < 1e-9);
+        assert_eq!(m.max_q(), 30.0);
+        // Between 26 and 30: geometric interpolation; the first trials stay as measured.
+        let mid = (m.intra_inter(26.0).0 * m.intra_inter(30.0).0).sqrt();
+        assert!((m.intra_inter(28.0).0 / mid - 1.0).abs() < 1e-9);
+        assert!((m.intra_inter(20.0).0 / 1e6 - 1.0).abs() < 1e-9);
+        // A point 2 steps from the end does not set the slope beyond it: 26 (6 steps) does.
+        m.add(&trial(32.0, 1.3 * i30, p30, 60.0));
+        let at = |q: f32| m.intra_inter(q).0;
+        let slope = (at(32.0) / at(26.0)).ln() / 6.0;
+        assert!((at(40.0) / (at(32.0) * (8.0 * slope).exp()) - 1.0).abs() < 1e-9);
+        // Adding the same quality again replaces the point.
+        m.add(&trial(32.0, 1.1 * i30, p30, 60.0));
+        assert!((m.intra_inter(32.0).0 / (1.1 * i30) - 1.0).abs() < 1e-9);
+    }
 
-            assert!(feasible);
-            assert!(
-                spent <= 1.02 * budget && spent > 0.8 * budget,
-                "{budget}: {spent}"
-            );
-        }
-        // The first allocation misses at least once: the rounds are what the test checks.
-        assert!(missed > 0);
+    #[test]
+    fn anchoring_shifts_each_rate_curve_through_the_measurement() {
+        let mut m = model(1e6, 10.0).for_frames(5);
+        let before = |q: f32| m.clone().intra_inter(q);
+        let (i20, p20) = before(20.0);
+        let (i40, p40) = before(40.0);
+        let d = m.distortion(23.0);
+        let (i23, p23) = before(23.0);
+        m.anchor(23.0, 2.0 * i23, Some(0.5 * p23));
+        let (i, p) = m.intra_inter(23.0);
+        assert!((i / (2.0 * i23) - 1.0).abs() < 1e-9 && (p / (0.5 * p23) - 1.0).abs() < 1e-9);
+        // The whole curve moves; the distortion stays.
+        let (j20, q20) = m.intra_inter(20.0);
+        let (j40, q40) = m.intra_inter(40.0);
+        assert!((j20 / i20 - 2.0).abs() < 1e-9 && (j40 / i40 - 2.0).abs() < 1e-9);
+        assert!((q20 / p20 - 0.5).abs() < 1e-9 && (q40 / p40 - 0.5).abs() < 1e-9);
+        assert_eq!(m.distortion(23.0), d);
+        // A key frame alone moves only the key frame's curve.
+        m.anchor(23.0, i23, None);
+        assert!((m.intra_inter(23.0).1 / (0.5 * p23) - 1.0).abs() < 1e-9);
     }
 
     #[test]

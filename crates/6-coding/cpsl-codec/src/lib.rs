@@ -19,12 +19,12 @@ mod writer;
 pub mod yuv;
 
 pub use reader::{decode_segment, DecodedFrame, SegmentReader};
-pub use segment::{encode_segment, SegmentReport};
+pub use segment::{SegmentReport, TRIAL_FRAMES};
 pub use writer::{segment_budget, PackageWriter};
 
 pub use stream::{
     decode_pictures, decode_stream, encode_pictures, encode_stream, has_encoder, quality_range,
-    PictureReader, Sample,
+    PictureReader, Sample, StreamEncoder, Written,
 };
 
 use cpsl_package::{Codec, PackageError};
@@ -117,4 +117,7 @@ pub struct CodingOptions {
     pub rate: RateControl,
     /// Frames per second.
     pub fps: f64,
+    /// Most frames per segment (the GOP): the encoders' key-frame interval and, under a
+    /// budget, the length a segment's allocation plans for.
+    pub gop: u32,
 }

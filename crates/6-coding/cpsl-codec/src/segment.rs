@@ -1,21 +1,39 @@
-//! Coding one segment: streams mapped to tracks, pictures, the bit allocation under the
-//! segment's budget, the layer streams and the side stream.
+//! Coding one segment as its frames arrive: layers mapped to streams by track, the bit
+//! allocation under the segment's budget, one encoder per layer stream fed picture by picture,
+//! and the side stream.
+//!
+//! At constant quality the encoders open with the segment's first frame, so no frame waits.
+//! Under a budget each stream needs a rate-distortion model: one carried from the previous
+//! segment (by track, re-anchored on what the stream cost there), or, for a new stream or one
+//! whose cost drifted from its model, trial encodes of the segment's first [`TRIAL_FRAMES`]
+//! frames, the only frames ever held. The allocation is made for the segment's expected
+//! length; what it misses is repaid by the next segments (see [`crate::segment_budget`]).
 
-use crate::stream::{decode_pictures, encode_stream, quality_range};
-use crate::{alloc, scale, yuv, CodecError, CodingOptions, RateControl};
-use cpsl_core::{LayeredFrame, PremulImage, RefreshReason};
+use crate::alloc::{self, RdModel, Trial};
+use crate::stream::{quality_range, PictureReader, StreamEncoder, Written};
+use crate::{scale, yuv, CodecError, CodingOptions, RateControl};
+use cpsl_core::{Geometry, LayeredFrame, PremulImage, RefreshReason};
 use cpsl_package::{
     file_entry, segment_dir, Codec, Segment, SideFrame, SideLayer, SideStream, StreamEntry,
 };
 use rayon::prelude::*;
-use std::path::Path;
-use std::sync::OnceLock;
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+/// Frames a segment's trial encodes use: its first ones.
+pub const TRIAL_FRAMES: usize = 4;
+
+/// How far (as a ratio either way) a stream's cost may stray from its model before the model
+/// is fitted again.
+const DRIFT: f64 = 2.0;
 
 /// What coding one segment did.
 #[derive(Debug, Clone, PartialEq)]
 pub struct SegmentReport {
     /// The index of the segment's first frame.
     pub start: u32,
+    /// The segment's frames.
+    pub frames: u32,
     /// The budget of the segment in bits (`None` at constant quality).
     pub budget_bits: Option<f64>,
     /// Bits written (layer streams and side stream).
@@ -24,114 +42,81 @@ pub struct SegmentReport {
     pub quality: Vec<f32>,
     /// Downscale factor chosen per stream (see [`scale`]).
     pub scale: Vec<u32>,
-    /// Whether the budget could be met.
+    /// Whether the budget was met (within 10 %): the allocation found it within reach of its
+    /// models and the streams kept to them.
     pub feasible: bool,
     /// Whether every stream is at the cheapest coding: the worst quality at the smallest
     /// size of the ladder (an unmet budget is then below what any coding needs).
     pub at_floor: bool,
-    /// Encodes run (trials, final and corrections), over all streams.
+    /// Encodes run (trials and final), over all streams.
     pub encodes: usize,
+    /// Streams whose model was fitted by trial encodes in this segment (the others' came from
+    /// the segment before).
+    pub fitted: usize,
 }
 
-/// Assigns every layer of every frame to a stream: stream `k` carries the track of the first
-/// frame's layer `k`; later frames' layers follow their track (or their index where layers
-/// have no tracks).
-fn stream_map(frames: &[LayeredFrame]) -> Result<Vec<Vec<u8>>, CodecError> {
-    let first = &frames[0].set;
-    let tracks: Vec<Option<u32>> = first.layers().iter().map(|l| l.meta.track).collect();
-    frames
+/// A key under which a stream's models are carried to the next segment: its layers' track
+/// (`true`), and its index (`false`), which a stream of the next segment falls back on when
+/// its track is new (a layer at the same place in the depth order tends to hold like
+/// content; the drift check catches it when not).
+pub(crate) type StreamKey = (bool, u32);
+
+/// Models per stream key, one per rung of the ladder from full size down (a prefix).
+pub(crate) type Carried = HashMap<StreamKey, Vec<RdModel>>;
+
+/// The stream of each layer of `f`, given the tracks of the segment's streams (from its first
+/// frame): layers follow their track, or their index where layers have no tracks.
+fn map_frame(tracks: &[Option<u32>], f: &LayeredFrame) -> Result<Vec<u8>, CodecError> {
+    let bad = |reason: String| CodecError::Tracks {
+        frame: f.index,
+        reason,
+    };
+    let mut used = vec![false; tracks.len()];
+    f.set
+        .layers()
         .iter()
-        .map(|f| {
-            let bad = |reason: String| CodecError::Tracks {
-                frame: f.index,
-                reason,
-            };
-            let mut used = vec![false; tracks.len()];
-            f.set
-                .layers()
-                .iter()
-                .enumerate()
-                .map(|(i, l)| {
-                    let s = match l.meta.track {
-                        Some(t) => tracks.iter().position(|&u| u == Some(t)),
-                        None => (i < tracks.len() && tracks[i].is_none()).then_some(i),
-                    }
-                    .ok_or_else(|| {
-                        bad(format!(
-                            "layer {i} (track {:?}) is not in the segment's first frame",
-                            l.meta.track
-                        ))
-                    })?;
-                    if std::mem::replace(&mut used[s], true) {
-                        return Err(bad(format!("two layers map to stream {s}")));
-                    }
-                    Ok(s as u8)
-                })
-                .collect()
+        .enumerate()
+        .map(|(i, l)| {
+            let s = match l.meta.track {
+                Some(t) => tracks.iter().position(|&u| u == Some(t)),
+                None => (i < tracks.len() && tracks[i].is_none()).then_some(i),
+            }
+            .ok_or_else(|| {
+                bad(format!(
+                    "layer {i} (track {:?}) is not in the segment's first frame",
+                    l.meta.track
+                ))
+            })?;
+            if std::mem::replace(&mut used[s], true) {
+                return Err(bad(format!("two layers map to stream {s}")));
+            }
+            Ok(s as u8)
         })
         .collect()
 }
 
-/// Per stream, per frame: the layer's picture (`blank` where the frame lacks it).
-fn stream_pictures<'a>(
-    frames: &'a [LayeredFrame],
-    map: &[Vec<u8>],
-    n_streams: usize,
-    blank: &'a PremulImage,
-) -> Vec<Vec<&'a PremulImage>> {
-    let mut pictures: Vec<Vec<&PremulImage>> = vec![vec![blank; frames.len()]; n_streams];
-    for (fi, (f, m)) in frames.iter().zip(map).enumerate() {
-        for (l, &s) in f.set.layers().iter().zip(m) {
-            pictures[s as usize][fi] = &l.image;
-        }
-    }
-    pictures
-}
-
-/// The segment's side stream: per frame the layer-to-stream map, depths, confidence, refresh
-/// flags and the Edge-Depth Cache summary.
-fn side_stream(
-    number: usize,
-    frames: &[LayeredFrame],
-    map: &[Vec<u8>],
-    (w, h): (u32, u32),
-) -> SideStream {
-    let first = &frames[0];
-    SideStream {
-        segment: number as u32,
-        start: first.index,
-        streams: first.set.len() as u16,
-        width: w,
-        height: h,
-        frames: frames
+/// One frame's side information: the layer-to-stream map, depths, surfaces, confidence,
+/// refresh flag and the Edge-Depth Cache summary; `first` for the segment's first frame.
+fn side_frame(f: &LayeredFrame, map: &[u8], first: bool) -> SideFrame {
+    SideFrame {
+        index: f.index,
+        intra: first,
+        refresh: first.then(|| f.refresh.unwrap_or(RefreshReason::Gop)),
+        layers: f
+            .set
+            .layers()
             .iter()
             .zip(map)
             .enumerate()
-            .map(|(i, (f, m))| SideFrame {
-                index: f.index,
-                intra: i == 0,
-                refresh: if i == 0 {
-                    Some(f.refresh.unwrap_or(RefreshReason::Gop))
-                } else {
-                    None
-                },
-                layers: f
-                    .set
-                    .layers()
-                    .iter()
-                    .zip(m)
-                    .enumerate()
-                    .map(|(k, (l, &s))| SideLayer {
-                        stream: s,
-                        depth: l.depth as f32,
-                        geometry: l.geometry.clone(),
-                        confidence: f.confidence.get(k).copied().unwrap_or(1.0).clamp(0.0, 1.0),
-                        track: l.meta.track,
-                    })
-                    .collect(),
-                edc: cpsl_package::summarise_edc(&f.edc),
+            .map(|(k, (l, &s))| SideLayer {
+                stream: s,
+                depth: l.depth as f32,
+                geometry: l.geometry.clone(),
+                confidence: f.confidence.get(k).copied().unwrap_or(1.0).clamp(0.0, 1.0),
+                track: l.meta.track,
             })
             .collect(),
+        edc: cpsl_package::summarise_edc(&f.edc),
     }
 }
 
@@ -155,251 +140,40 @@ fn stream_weights(first: &LayeredFrame) -> Vec<f32> {
         .collect()
 }
 
-/// The first choice of rung and quality per stream: the given quality, or under a budget
-/// the allocation over rate-distortion models fitted from trial encodes (`fit`), first at
-/// full size and, only where full size would need a quality worse than the upper trial's, on
-/// the smaller rungs too (`prepare_smaller` makes their pictures first).
-fn choose_coding(
-    opts: &CodingOptions,
-    seconds: f64,
-    side_bits: f64,
-    weights: &[f32],
-    rungs: usize,
-    fit: impl Fn(&[usize]) -> Result<Vec<Vec<alloc::RdModel>>, CodecError>,
-    prepare_smaller: impl Fn(),
-) -> Result<Choice, CodecError> {
-    let n_streams = weights.len();
-    let (q_min, q_max, _) = quality_range(opts.codec);
-    Ok(match opts.rate {
-        RateControl::Quality(q) => Choice {
-            rung: vec![0; n_streams],
-            quality: vec![q.clamp(q_min, q_max); n_streams],
-            feasible: true,
-            budget: None,
-            encodes: 0,
-        },
-        RateControl::Budget(bps) => {
-            let budget = bps * seconds - side_bits;
-            let mut models = fit(&[0])?;
-            let mut encodes = 2 * n_streams;
-            let mut a = alloc::allocate(&models, weights, budget, q_min, q_max);
-            let upper = trial_qualities(opts.codec, 0)[1];
-            if rungs > 1 && !(a.feasible && a.quality.iter().all(|&q| q <= upper)) {
-                let lower: Vec<usize> = (1..rungs).collect();
-                prepare_smaller();
-                for (m, l) in models.iter_mut().zip(fit(&lower)?) {
-                    m.extend(l);
-                }
-                encodes += 3 * n_streams * lower.len();
-                a = alloc::allocate(&models, weights, budget, q_min, q_max);
-            }
-            Choice {
-                rung: a.rung,
-                quality: a.quality,
-                feasible: a.feasible,
-                budget: Some((bps * seconds, models)),
-                encodes,
-            }
-        }
-    })
-}
-
-/// What [`choose_coding`] chose.
-struct Choice {
-    rung: Vec<usize>,
-    quality: Vec<f32>,
-    feasible: bool,
-    /// The segment's total bits and the models, under a budget.
-    budget: Option<(f64, Vec<Vec<alloc::RdModel>>)>,
-    /// Trial encodes run.
-    encodes: usize,
-}
-
 /// Under a budget, the share of a segment's bits its side stream may take before mesh layers
 /// give up their grids.
 const GEOMETRY_SHARE: f64 = 0.1;
 
-/// Encodes `side`, first replacing mesh layers' grids by planes ([`cpsl_core::Layer::flattened`])
-/// while the stream is above `max_bits`: the stream whose grids cost the most first. Geometry
-/// competes with colour for the budget; a grid that would starve the layers' pictures goes.
-fn geometry_within(side: &mut SideStream, frames: &[LayeredFrame], max_bits: f64) -> Vec<u8> {
+/// Encodes `side`, first replacing mesh layers' grids by planes (`flat`, per frame and layer:
+/// [`cpsl_core::Layer::flattened`], made for mesh layers) while the stream is above
+/// `max_bits`: the stream whose grids cost the most first. Geometry competes with colour for
+/// the budget; a grid that would starve the layers' pictures goes.
+fn geometry_within(
+    side: &mut SideStream,
+    flat: &[Vec<Option<Geometry>>],
+    max_bits: f64,
+) -> Vec<u8> {
     let mut bytes = side.encode();
     while bytes.len() as f64 * 8.0 > max_bits {
         let mut cost = std::collections::BTreeMap::<u8, usize>::new();
         for l in side.frames.iter().flat_map(|f| &f.layers) {
-            if matches!(l.geometry, cpsl_core::Geometry::Mesh(_)) {
+            if matches!(l.geometry, Geometry::Mesh(_)) {
                 *cost.entry(l.stream).or_default() += cpsl_package::geometry_bytes(&l.geometry);
             }
         }
         let Some((&worst, _)) = cost.iter().max_by_key(|(_, &c)| c) else {
             break;
         };
-        for (sf, f) in side.frames.iter_mut().zip(frames) {
-            for (l, layer) in sf.layers.iter_mut().zip(f.set.layers()) {
-                if l.stream == worst {
-                    l.geometry = layer.flattened(f.set.camera());
+        for (sf, f) in side.frames.iter_mut().zip(flat) {
+            for (l, plane) in sf.layers.iter_mut().zip(f) {
+                if let (true, Some(p)) = (l.stream == worst, plane) {
+                    l.geometry = p.clone();
                 }
             }
         }
         bytes = side.encode();
     }
     bytes
-}
-
-/// Codes one segment into `root/seg_NNNNNN/` (layer streams and side stream) and returns its
-/// manifest entry. The first frame must be an I-frame, the others P-frames of the same layers.
-pub fn encode_segment(
-    root: &Path,
-    number: usize,
-    frames: &[LayeredFrame],
-    opts: &CodingOptions,
-) -> Result<(Segment, SegmentReport), CodecError> {
-    let first = frames.first().ok_or(CodecError::Empty)?;
-    let (w, h) = (first.set.camera().width, first.set.camera().height);
-    let map = stream_map(frames)?;
-    let n_streams = first.set.len();
-    let blank = PremulImage::new(w, h);
-    let pictures = stream_pictures(frames, &map, n_streams, &blank);
-    let dir_name = segment_dir(number);
-    let dir = root.join(&dir_name);
-    std::fs::create_dir_all(&dir).map_err(|source| CodecError::Io {
-        path: dir.clone(),
-        source,
-    })?;
-    let seconds = frames.len() as f64 / opts.fps;
-    let mut side = side_stream(number, frames, &map, (w, h));
-    let side_bytes = match opts.rate {
-        RateControl::Budget(bps) => {
-            geometry_within(&mut side, frames, GEOMETRY_SHARE * bps * seconds)
-        }
-        RateControl::Quality(_) => side.encode(),
-    };
-    let side_rel = format!("{dir_name}/side.bin");
-    let side_path = root.join(&side_rel);
-    std::fs::write(&side_path, &side_bytes).map_err(|source| CodecError::Io {
-        path: side_path,
-        source,
-    })?;
-    let weights = stream_weights(first);
-    let stream_rel = |k: usize| format!("{dir_name}/layer_{k:02}.mp4");
-    // The resolution ladder: only a budget may send a stream below full size.
-    let rungs = match opts.rate {
-        RateControl::Budget(_) => scale::rungs(w, h),
-        RateControl::Quality(_) => vec![1],
-    };
-    // The smaller pictures, made when the smaller rungs are first fitted (see below: before
-    // any parallel job can ask for them, so that no job waits on its own initialisation).
-    let scaled: OnceLock<Vec<Vec<Vec<PremulImage>>>> = OnceLock::new();
-    let pics = |k: usize, r: usize| -> Vec<&PremulImage> {
-        if r == 0 {
-            return pictures[k].clone();
-        }
-        let scaled = scaled.get_or_init(|| {
-            rungs[1..]
-                .iter()
-                .map(|&f| {
-                    pictures
-                        .iter()
-                        .map(|p| p.par_iter().map(|i| scale::downscale(i, f)).collect())
-                        .collect()
-                })
-                .collect()
-        });
-        scaled[r - 1][k].iter().collect()
-    };
-    let encode_one = |k: usize, r: usize, q: f32, path: &Path| {
-        encode_stream(path, &pics(k, r), opts.codec, q, opts.fps)
-    };
-    let (q_min, q_max, _) = quality_range(opts.codec);
-    let fit = |which: &[usize]| {
-        trial_models(
-            root,
-            &stream_rel,
-            &pictures,
-            &pics,
-            &rungs,
-            which,
-            frames,
-            &map,
-            opts,
-        )
-    };
-    let side_bits = side_bytes.len() as f64 * 8.0;
-    // The smaller pictures are made before the smaller rungs are fitted in parallel.
-    let choice = choose_coding(opts, seconds, side_bits, &weights, rungs.len(), fit, || {
-        pics(0, 1);
-    })?;
-    let (rung, quality, feasible, budget) =
-        (choice.rung, choice.quality, choice.feasible, choice.budget);
-    let mut encodes = choice.encodes;
-    let budget_bits = budget.as_ref().map(|b| b.0);
-    let encode_jobs = |jobs: &[(usize, usize, f32)]| -> Result<Vec<f64>, CodecError> {
-        jobs.par_iter()
-            .map(|&(k, r, q)| {
-                encode_one(k, r, q, &root.join(stream_rel(k))).map(|bytes| bytes as f64 * 8.0)
-            })
-            .collect()
-    };
-    let jobs: Vec<(usize, usize, f32)> = (0..n_streams).map(|k| (k, rung[k], quality[k])).collect();
-    let mut coding = alloc::Coding {
-        bits: encode_jobs(&jobs)?,
-        rung,
-        quality,
-    };
-    encodes += n_streams;
-    let mut feasible = feasible;
-    // Rates extrapolated beyond the trial qualities may miss, and a correction may move a
-    // stream to a rung whose model is not yet anchored: up to four correction rounds.
-    if let Some((total, mut models)) = budget {
-        let (n, ok) = alloc::correct(
-            &mut models,
-            &weights,
-            total - side_bits,
-            (q_min, q_max),
-            &mut coding,
-            4,
-            encode_jobs,
-        )?;
-        encodes += n;
-        feasible &= ok && coding.bits.iter().sum::<f64>() + side_bits <= total * 1.1;
-    }
-    let at_floor = coding.at_floor(q_max, |_| rungs.len() - 1);
-    let alloc::Coding {
-        rung,
-        quality,
-        bits: sizes,
-    } = coding;
-    let scale: Vec<u32> = rung.iter().map(|&r| rungs[r]).collect();
-    let mut streams = Vec::with_capacity(n_streams);
-    for k in 0..n_streams {
-        streams.push(StreamEntry {
-            file: file_entry(root, &stream_rel(k))?,
-            track: first.set.layers()[k].meta.track,
-            bitrate: (sizes[k] / seconds).round() as u64,
-            quality: quality[k],
-            scale: scale[k],
-            weight: weights[k],
-        });
-    }
-    let bits = sizes.iter().sum::<f64>() + side_bits;
-    Ok((
-        Segment {
-            start: first.index,
-            frames: frames.len() as u32,
-            streams,
-            side: file_entry(root, &side_rel)?,
-        },
-        SegmentReport {
-            start: first.index,
-            budget_bits,
-            bits,
-            quality,
-            scale,
-            feasible,
-            at_floor,
-            encodes,
-        },
-    ))
 }
 
 /// The qualities of the trial encodes of rung `rung`: a quarter and three fifths of the
@@ -419,72 +193,497 @@ fn trial_qualities(codec: Codec, rung: usize) -> Vec<f32> {
     q
 }
 
-/// Trial encodes per stream and rung `which` of the ladder `rungs` (at the
-/// [`trial_qualities`]), each decoded, brought back to the frame size and scored with the
-/// proxy distortion on up to 8 evenly spaced frames. Returns the models per stream, then per
-/// rung of `which`.
-#[allow(clippy::too_many_arguments)]
-fn trial_models<'a>(
-    root: &Path,
-    stream_rel: &(dyn Fn(usize) -> String + Sync),
-    pictures: &[Vec<&'a PremulImage>],
-    pics: &(dyn Fn(usize, usize) -> Vec<&'a PremulImage> + Sync),
-    rungs: &[u32],
-    which: &[usize],
-    frames: &[LayeredFrame],
-    map: &[Vec<u8>],
-    opts: &CodingOptions,
-) -> Result<Vec<Vec<alloc::RdModel>>, CodecError> {
-    let step = frames.len().div_ceil(8).max(1);
-    let sampled: Vec<usize> = (0..frames.len()).step_by(step).collect();
-    let (w, h) = (frames[0].set.camera().width, frames[0].set.camera().height);
-    // Visibility of each stream's layer in the sampled frames.
-    let n_streams = pictures.len();
-    let mut vis: Vec<Vec<Vec<u8>>> = vec![Vec::new(); n_streams];
-    for &fi in &sampled {
-        let layers = frames[fi].set.layers();
-        let mut seen = vec![false; n_streams];
-        for (k, &s) in map[fi].iter().enumerate() {
-            let front: Vec<&PremulImage> = layers[..k].iter().map(|l| &l.image).collect();
-            vis[s as usize].push(alloc::visibility(&front, w, h));
-            seen[s as usize] = true;
-        }
-        for (s, v) in vis.iter_mut().enumerate() {
-            if !seen[s] {
-                v.push(vec![0; (w * h) as usize]);
-            }
-        }
+/// The stacked picture of `img` at rung factor `factor` (1: full size).
+fn picture(img: &PremulImage, factor: u32) -> yuv::Yuv420 {
+    if factor == 1 {
+        yuv::stack(img)
+    } else {
+        yuv::stack(&scale::downscale(img, factor))
     }
-    let jobs: Vec<(usize, usize)> = (0..n_streams)
-        .flat_map(|k| which.iter().map(move |&r| (k, r)))
-        .collect();
-    let fitted: Vec<alloc::RdModel> = jobs
-        .into_par_iter()
-        .map(|(k, r)| {
-            let (sw, sh) = scale::scaled_size(w, h, rungs[r]);
-            let mut points = Vec::new();
-            for (t, q) in trial_qualities(opts.codec, r).into_iter().enumerate() {
-                let path = root.join(stream_rel(k).replace(".mp4", &format!(".trial{r}{t}.mp4")));
-                let bytes = encode_stream(&path, &pics(k, r), opts.codec, q, opts.fps);
-                let decoded = bytes.and_then(|b| decode_pictures(&path, sw, sh).map(|d| (b, d)));
-                let _ = std::fs::remove_file(&path);
-                let (bytes, decoded) = decoded?;
-                // Summed, not averaged per stream: a layer's share of the picture's error.
-                // Only the sampled pictures are converted back.
-                let mut e = 0.0;
-                for (j, &fi) in sampled.iter().enumerate() {
-                    let p = decoded.get(fi).ok_or_else(|| CodecError::Stream {
-                        path: path.clone(),
-                        reason: format!("{} pictures, {} expected", decoded.len(), frames.len()),
-                    })?;
-                    let dec = scale::upscale(yuv::unstack(p, sw, sh), w, h, rungs[r]);
-                    e += alloc::distortion(pictures[k][fi], &dec, &vis[k][j]);
+}
+
+/// A segment's share of a budget, from the writer: see [`crate::segment_budget`].
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct BudgetPlan {
+    /// Bits per second of the package.
+    pub bps: f64,
+    /// Frames coded before the segment.
+    pub done: u32,
+    /// Bits they took.
+    pub spent: f64,
+    /// The segment's expected length in frames (the GOP).
+    pub expected: usize,
+}
+
+impl BudgetPlan {
+    /// The segment's bits if it has `frames` frames.
+    fn bits(&self, fps: f64, frames: usize) -> f64 {
+        crate::segment_budget(self.bps, fps, self.done, self.spent, frames)
+    }
+}
+
+/// Trial encodes of one stream: its index, the rung, the qualities.
+type Job = (usize, usize, Vec<f32>);
+
+/// The rung and quality chosen per stream.
+struct Coding {
+    rung: Vec<usize>,
+    quality: Vec<f32>,
+    feasible: bool,
+}
+
+/// A finished segment: its manifest entry, its report, and the models to carry on.
+pub(crate) struct Finished {
+    pub segment: Segment,
+    pub report: SegmentReport,
+    pub carried: Carried,
+}
+
+/// A segment being coded: started at an I-frame, fed frame by frame, finished at the next
+/// I-frame or at the end of the video.
+pub(crate) struct SegmentEncoder {
+    root: PathBuf,
+    dir_name: String,
+    number: usize,
+    opts: CodingOptions,
+    size: (u32, u32),
+    start: u32,
+    /// Each stream's track (from the first frame).
+    tracks: Vec<Option<u32>>,
+    weights: Vec<f32>,
+    /// The ladder's downscale factors (only `[1]` at constant quality).
+    rungs: Vec<u32>,
+    budget: Option<BudgetPlan>,
+    /// Per stream, models for the first rungs of the ladder (none until fitted or carried).
+    models: Vec<Vec<RdModel>>,
+    /// Streams fitted by trial encodes here.
+    fitted: usize,
+    /// Frames waiting for the coding to be chosen, with their layer-to-stream maps.
+    pending: Vec<(LayeredFrame, Vec<u8>)>,
+    coding: Option<Coding>,
+    encoders: Vec<StreamEncoder>,
+    side: Vec<SideFrame>,
+    /// Per frame and layer, under a budget: the plane a mesh layer falls back to.
+    flat: Vec<Vec<Option<Geometry>>>,
+    frames: usize,
+    encodes: usize,
+    blank: PremulImage,
+}
+
+impl SegmentEncoder {
+    /// Starts segment `number` in `root` with its first frame; under a budget, the streams
+    /// whose track had a model in the segment before (`carried`) start from it.
+    pub fn start(
+        root: &Path,
+        number: usize,
+        first: LayeredFrame,
+        opts: CodingOptions,
+        budget: Option<BudgetPlan>,
+        carried: &Carried,
+    ) -> Result<Self, CodecError> {
+        let cam = *first.set.camera();
+        let dir_name = segment_dir(number);
+        let dir = root.join(&dir_name);
+        std::fs::create_dir_all(&dir).map_err(|source| CodecError::Io { path: dir, source })?;
+        let tracks: Vec<Option<u32>> = first.set.layers().iter().map(|l| l.meta.track).collect();
+        let models = tracks
+            .iter()
+            .enumerate()
+            .map(|(k, t)| {
+                let by_track = t.and_then(|t| carried.get(&(true, t)));
+                match budget {
+                    Some(_) => by_track
+                        .or_else(|| carried.get(&(false, k as u32)))
+                        .cloned()
+                        .unwrap_or_default(),
+                    None => Vec::new(),
                 }
-                let norm = 4.0 * (w * h) as f64 * sampled.len() as f64;
-                points.push((q, bytes as f64 * 8.0, e / norm));
+            })
+            .collect();
+        let rungs = match budget {
+            Some(_) => scale::rungs(cam.width, cam.height),
+            None => vec![1],
+        };
+        let mut s = Self {
+            root: root.to_path_buf(),
+            dir_name,
+            number,
+            opts,
+            size: (cam.width, cam.height),
+            start: first.index,
+            weights: stream_weights(&first),
+            tracks,
+            rungs,
+            budget,
+            models,
+            fitted: 0,
+            pending: Vec::new(),
+            coding: None,
+            encoders: Vec::new(),
+            side: Vec::new(),
+            flat: Vec::new(),
+            frames: 0,
+            encodes: 0,
+            blank: PremulImage::new(cam.width, cam.height),
+        };
+        s.push(first)?;
+        Ok(s)
+    }
+
+    /// The frames taken so far.
+    pub fn frames(&self) -> usize {
+        self.frames
+    }
+
+    /// Takes the segment's next frame: coded at once, or held until the coding is chosen.
+    pub fn push(&mut self, frame: LayeredFrame) -> Result<(), CodecError> {
+        let map = map_frame(&self.tracks, &frame)?;
+        self.side.push(side_frame(&frame, &map, self.frames == 0));
+        if self.budget.is_some() {
+            let cam = frame.set.camera();
+            let flat = frame
+                .set
+                .layers()
+                .iter()
+                .map(|l| matches!(l.geometry, Geometry::Mesh(_)).then(|| l.flattened(cam)));
+            self.flat.push(flat.collect());
+        }
+        self.frames += 1;
+        if self.coding.is_some() {
+            return self.feed(&frame, &map);
+        }
+        self.pending.push((frame, map));
+        self.choose(false).map(|_| ())
+    }
+
+    /// Sends one frame's pictures to the streams' encoders, in parallel.
+    fn feed(&mut self, frame: &LayeredFrame, map: &[u8]) -> Result<(), CodecError> {
+        let coding = self.coding.as_ref().expect("the coding is chosen");
+        let layers = frame.set.layers();
+        let (blank, rungs) = (&self.blank, &self.rungs);
+        self.encoders
+            .par_iter_mut()
+            .enumerate()
+            .try_for_each(|(k, e)| {
+                let img = map
+                    .iter()
+                    .position(|&s| s as usize == k)
+                    .map_or(blank, |li| &layers[li].image);
+                e.push(&picture(img, rungs[coding.rung[k]]))
+            })
+    }
+
+    /// The side stream's bits for `frames` frames, estimated from the frames so far.
+    fn side_estimate(&self, frames: usize) -> f64 {
+        let (w, h) = self.size;
+        let side = SideStream {
+            segment: self.number as u32,
+            start: self.start,
+            streams: self.tracks.len() as u16,
+            width: w,
+            height: h,
+            frames: self.side.clone(),
+        };
+        side.encode().len() as f64 * 8.0 * frames as f64 / self.side.len().max(1) as f64
+    }
+
+    /// Chooses every stream's rung and quality and opens the encoders, unless trial encodes
+    /// are needed and fewer than [`TRIAL_FRAMES`] frames are here (`finishing`: no more will
+    /// come). Returns whether the coding is chosen.
+    fn choose(&mut self, finishing: bool) -> Result<bool, CodecError> {
+        let n_streams = self.tracks.len();
+        let codec = self.opts.codec;
+        let (q_min, q_max, _) = quality_range(codec);
+        let coding = match (self.opts.rate, self.budget) {
+            (RateControl::Budget(_), Some(plan)) => {
+                let can_trial = finishing || self.pending.len() >= TRIAL_FRAMES;
+                let frames = match finishing {
+                    true => self.frames,
+                    false => plan.expected.max(self.frames),
+                };
+                // Mesh grids give way to planes beyond their share (see `geometry_within`).
+                let bits = plan.bits(self.opts.fps, frames);
+                let bits = bits - self.side_estimate(frames).min(GEOMETRY_SHARE * bits);
+                let lacking = |models: &[Vec<RdModel>], rungs: usize| -> Vec<Job> {
+                    (0..n_streams)
+                        .flat_map(|k| {
+                            (models[k].len()..rungs).map(move |r| (k, r, trial_qualities(codec, r)))
+                        })
+                        .collect()
+                };
+                let sized = |models: &[Vec<RdModel>]| -> Vec<Vec<RdModel>> {
+                    models
+                        .iter()
+                        .map(|m| m.iter().map(|r| r.clone().for_frames(frames)).collect())
+                        .collect()
+                };
+                let jobs = lacking(&self.models, 1);
+                if !jobs.is_empty() {
+                    if !can_trial {
+                        return Ok(false);
+                    }
+                    self.fit(&jobs)?;
+                }
+                // Down the ladder one rung at a time, for the streams that would take their
+                // smallest fitted rung at a quality worse than its upper trial's (all of them
+                // while the budget is out of reach); full size is then also tried at the worst
+                // quality, so that rates there are interpolated, not extrapolated.
+                let upper = |r: usize| trial_qualities(codec, r)[1];
+                let a = loop {
+                    let a =
+                        alloc::allocate(&sized(&self.models), &self.weights, bits, q_min, q_max);
+                    let mut jobs: Vec<Job> = Vec::new();
+                    for k in 0..n_streams {
+                        let (r, q) = (a.rung[k], a.quality[k]);
+                        let smallest = self.models[k].len() - 1;
+                        if smallest + 1 < self.rungs.len()
+                            && (!a.feasible || (r == smallest && q > upper(r)))
+                        {
+                            jobs.push((k, smallest + 1, trial_qualities(codec, smallest + 1)));
+                        }
+                        if r == 0 && q > upper(0) && self.models[k][0].max_q() < q_max {
+                            jobs.push((k, 0, vec![q_max]));
+                        }
+                    }
+                    if jobs.is_empty() {
+                        break a;
+                    }
+                    if !can_trial {
+                        return Ok(false);
+                    }
+                    self.fit(&jobs)?;
+                };
+                Coding {
+                    rung: a.rung,
+                    quality: a.quality,
+                    feasible: a.feasible,
+                }
             }
-            Ok(alloc::RdModel::fit(&points))
+            _ => {
+                let q = match self.opts.rate {
+                    RateControl::Quality(q) => q.clamp(q_min, q_max),
+                    RateControl::Budget(_) => unreachable!("a budget has a plan"),
+                };
+                Coding {
+                    rung: vec![0; n_streams],
+                    quality: vec![q; n_streams],
+                    feasible: true,
+                }
+            }
+        };
+        let (w, h) = self.size;
+        self.encoders = (0..n_streams)
+            .map(|k| {
+                let (sw, sh) = scale::scaled_size(w, h, self.rungs[coding.rung[k]]);
+                let (cw, ch) = yuv::coded_size(sw, sh);
+                let path = self.root.join(self.stream_rel(k));
+                let q = coding.quality[k];
+                StreamEncoder::create(&path, (cw, 2 * ch), codec, q, self.opts.fps, self.gop())
+            })
+            .collect::<Result<_, _>>()?;
+        self.encodes += n_streams;
+        self.coding = Some(coding);
+        for (f, map) in std::mem::take(&mut self.pending) {
+            self.feed(&f, &map)?;
+        }
+        Ok(true)
+    }
+
+    fn gop(&self) -> usize {
+        (self.opts.gop as usize).max(self.frames).max(1)
+    }
+
+    fn stream_rel(&self, k: usize) -> String {
+        format!("{}/layer_{k:02}.mp4", self.dir_name)
+    }
+
+    /// Trial encodes of the held frames, per job: stream, rung, qualities. Each is decoded,
+    /// brought back to the frame size and scored with the proxy distortion. A job for a rung
+    /// the stream has a model of adds its trials to it; the others (each stream's rungs in
+    /// increasing order, following those it has) add models.
+    fn fit(&mut self, jobs: &[Job]) -> Result<(), CodecError> {
+        let (w, h) = self.size;
+        let m = self.pending.len();
+        let (codec, fps, gop) = (self.opts.codec, self.opts.fps, self.gop());
+        let dir = self.root.join(&self.dir_name);
+        let (pending, blank, rungs) = (&self.pending, &self.blank, &self.rungs);
+        let fitted: Vec<Vec<Trial>> = jobs
+            .par_iter()
+            .map(|(k, r, qualities)| {
+                let (k, r) = (*k, *r);
+                let factor = rungs[r];
+                let (sw, sh) = scale::scaled_size(w, h, factor);
+                // The stream's layer in each held frame.
+                let srcs: Vec<&PremulImage> = pending
+                    .iter()
+                    .map(|(f, map)| {
+                        let at = map.iter().position(|&s| s as usize == k);
+                        at.map_or(blank, |li| &f.set.layers()[li].image)
+                    })
+                    .collect();
+                // How much of it shows there.
+                let vis: Vec<Vec<u8>> = pending
+                    .iter()
+                    .map(|(f, map)| match map.iter().position(|&s| s as usize == k) {
+                        Some(li) => {
+                            let front: Vec<&PremulImage> =
+                                f.set.layers()[..li].iter().map(|l| &l.image).collect();
+                            alloc::visibility(&front, w, h)
+                        }
+                        None => vec![0; (w * h) as usize],
+                    })
+                    .collect();
+                let pics: Vec<yuv::Yuv420> = srcs.iter().map(|i| picture(i, factor)).collect();
+                let size = (pics[0].width, pics[0].height);
+                let mut trials = Vec::new();
+                for (t, &q) in qualities.iter().enumerate() {
+                    let path = dir.join(format!("layer_{k:02}.trial{r}{t}.mp4"));
+                    let run = || -> Result<(Written, f64), CodecError> {
+                        let mut e = StreamEncoder::create(&path, size, codec, q, fps, gop)?;
+                        for p in &pics {
+                            e.push(p)?;
+                        }
+                        let written = e.finish()?;
+                        let mut reader = PictureReader::<u8>::open(&path, sw, sh)?;
+                        let mut err = 0.0;
+                        for (src, v) in srcs.iter().zip(&vis) {
+                            let p = reader.next_picture()?.ok_or_else(|| CodecError::Stream {
+                                path: path.clone(),
+                                reason: format!("fewer pictures than the {m} coded"),
+                            })?;
+                            let dec = scale::upscale(yuv::unstack(&p, sw, sh), w, h, factor);
+                            err += alloc::distortion(src, &dec, v);
+                        }
+                        Ok((written, err))
+                    };
+                    let result = run();
+                    let _ = std::fs::remove_file(&path);
+                    let (written, err) = result?;
+                    let (intra, inter) = written.intra_inter_bits();
+                    trials.push(Trial {
+                        q,
+                        intra,
+                        inter: (m > 1).then_some(inter),
+                        // Summed over the picture, not averaged per stream: a layer's share
+                        // of the frame's error.
+                        distortion: err / (4.0 * (w * h) as f64 * vis.len() as f64),
+                    });
+                }
+                Ok(trials)
+            })
+            .collect::<Result<_, CodecError>>()?;
+        let mut streams: Vec<usize> = jobs.iter().map(|j| j.0).collect();
+        streams.dedup();
+        self.fitted += streams
+            .iter()
+            .filter(|&&k| self.models[k].is_empty())
+            .count();
+        for ((k, r, _), trials) in jobs.iter().zip(fitted) {
+            self.encodes += trials.len();
+            match self.models[*k].get_mut(*r) {
+                Some(model) => trials.iter().for_each(|t| model.add(t)),
+                None => self.models[*k].push(RdModel::fit(&trials, m)),
+            }
+        }
+        Ok(())
+    }
+
+    /// Codes what is held, closes the streams, writes the side stream and returns the
+    /// segment's manifest entry, its report and, under a budget, the models for the next
+    /// segment: each stream's model anchored on what the stream cost, unless the cost strayed
+    /// from the model by more than [`DRIFT`] (the stream is then fitted again).
+    pub fn finish(mut self) -> Result<Finished, CodecError> {
+        if self.coding.is_none() {
+            self.choose(true)?;
+        }
+        let coding = self.coding.take().expect("chosen when finishing");
+        let written: Vec<Written> = std::mem::take(&mut self.encoders)
+            .into_par_iter()
+            .map(StreamEncoder::finish)
+            .collect::<Result<_, _>>()?;
+        let (w, h) = self.size;
+        let mut side = SideStream {
+            segment: self.number as u32,
+            start: self.start,
+            streams: self.tracks.len() as u16,
+            width: w,
+            height: h,
+            frames: std::mem::take(&mut self.side),
+        };
+        let (fps, frames) = (self.opts.fps, self.frames);
+        let budget_bits = self.budget.map(|p| p.bits(fps, frames));
+        let side_bytes = match budget_bits {
+            Some(bits) => geometry_within(&mut side, &self.flat, GEOMETRY_SHARE * bits),
+            None => side.encode(),
+        };
+        let side_rel = format!("{}/side.bin", self.dir_name);
+        let side_path = self.root.join(&side_rel);
+        std::fs::write(&side_path, &side_bytes).map_err(|source| CodecError::Io {
+            path: side_path,
+            source,
+        })?;
+        let seconds = frames as f64 / fps;
+        let root = &self.root;
+        let streams = written
+            .iter()
+            .enumerate()
+            .map(|(k, wr)| {
+                Ok(StreamEntry {
+                    file: file_entry(root, &self.stream_rel(k))?,
+                    track: self.tracks[k],
+                    bitrate: (wr.bytes as f64 * 8.0 / seconds).round() as u64,
+                    quality: coding.quality[k],
+                    scale: self.rungs[coding.rung[k]],
+                    weight: self.weights[k],
+                })
+            })
+            .collect::<Result<Vec<_>, CodecError>>()?;
+        let bits = written.iter().map(|wr| wr.bytes as f64 * 8.0).sum::<f64>()
+            + side_bytes.len() as f64 * 8.0;
+        let mut carried = Carried::new();
+        for (k, wr) in written.iter().enumerate() {
+            let (r, q) = (coding.rung[k], coding.quality[k]);
+            let Some(model) = self.models[k].get_mut(r) else {
+                continue;
+            };
+            let predicted = model.clone().for_frames(frames).rate(q);
+            let cost = wr.bytes as f64 * 8.0;
+            if (cost / predicted).ln().abs() > DRIFT.ln() {
+                continue;
+            }
+            let (intra, inter) = wr.intra_inter_bits();
+            model.anchor(q, intra, (frames > 1).then_some(inter));
+            if self.models[k].iter().all(RdModel::carries) {
+                if let Some(t) = self.tracks[k] {
+                    carried.insert((true, t), self.models[k].clone());
+                }
+                carried.insert((false, k as u32), std::mem::take(&mut self.models[k]));
+            }
+        }
+        let q_max = quality_range(self.opts.codec).1;
+        let cheapest = self.rungs.len() - 1;
+        let at_floor =
+            (0..written.len()).all(|k| coding.quality[k] >= q_max && coding.rung[k] == cheapest);
+        Ok(Finished {
+            segment: Segment {
+                start: self.start,
+                frames: frames as u32,
+                streams,
+                side: file_entry(root, &side_rel)?,
+            },
+            report: SegmentReport {
+                start: self.start,
+                frames: frames as u32,
+                budget_bits,
+                bits,
+                quality: coding.quality,
+                scale: coding.rung.iter().map(|&r| self.rungs[r]).collect(),
+                feasible: coding.feasible && budget_bits.is_none_or(|b| bits <= 1.1 * b),
+                at_floor,
+                encodes: self.encodes,
+                fitted: self.fitted,
+            },
+            carried,
         })
-        .collect::<Result<_, CodecError>>()?;
-    Ok(fitted.chunks(which.len()).map(<[_]>::to_vec).collect())
+    }
 }

@@ -158,103 +158,190 @@ pub fn encode_pictures<T: Sample>(
     crf: f32,
     fps: f64,
 ) -> Result<u64, CodecError> {
-    init()?;
     if count == 0 {
         return Err(CodecError::Empty);
     }
-    let name = encoder_name(codec);
-    let enc_codec = ffmpeg::encoder::find_by_name(name).ok_or(CodecError::MissingEncoder(name))?;
-    let mut octx = ffmpeg::format::output(&path).map_err(ff("creating the output"))?;
-    let global = octx
-        .format()
-        .flags()
-        .contains(ffmpeg::format::Flags::GLOBAL_HEADER);
-    let mut ost = octx.add_stream(enc_codec).map_err(ff("adding a stream"))?;
-    let mut enc = ffmpeg::codec::context::Context::new_with_codec(enc_codec)
-        .encoder()
-        .video()
-        .map_err(ff("creating the encoder"))?;
-    let pic = picture(0);
-    let rate = ffmpeg::Rational::from(fps);
-    enc.set_width(pic.width as u32);
-    enc.set_height(pic.height as u32);
-    enc.set_format(T::FORMAT);
-    enc.set_time_base(rate.invert());
-    enc.set_frame_rate(Some(rate));
-    enc.set_gop(count as u32);
-    enc.set_colorspace(ffmpeg::color::Space::BT709);
-    enc.set_color_range(ffmpeg::color::Range::MPEG);
-    enc.set_color_primaries(ffmpeg::color::Primaries::BT709);
-    enc.set_color_transfer_characteristic(ffmpeg::color::TransferCharacteristic::BT709);
-    if global {
-        enc.set_flags(ffmpeg::codec::Flags::GLOBAL_HEADER);
+    let first = picture(0);
+    let mut enc = StreamEncoder::create(path, (first.width, first.height), codec, crf, fps, count)?;
+    enc.push(&first)?;
+    for i in 1..count {
+        enc.push(&picture(i))?;
     }
-    let mut enc = enc
-        .open_as_with(enc_codec, options(codec, crf, count))
-        .map_err(ff("opening the encoder"))?;
-    ost.set_parameters(&enc);
-    ost.set_time_base(rate.invert());
-    let mut mux_opts = ffmpeg::Dictionary::new();
-    mux_opts.set("movflags", "+faststart");
-    // No muxer banner (the `encoder` tag naming the libavformat version): 37 bytes per
-    // stream and segment, and the same bytes whichever FFmpeg wrote them.
-    mux_opts.set("fflags", "+bitexact");
-    octx.write_header_with(mux_opts)
-        .map_err(ff("writing the header"))?;
-    let ost_tb = octx.stream(0).expect("stream 0").time_base();
-    let enc_tb = rate.invert();
-    let drain = |enc: &mut ffmpeg::encoder::Video,
-                 octx: &mut ffmpeg::format::context::Output|
-     -> Result<(), CodecError> {
-        let mut packet = ffmpeg::Packet::empty();
-        while enc.receive_packet(&mut packet).is_ok() {
-            if codec == Codec::H264 {
-                drop_user_data_sei(&mut packet);
-            }
-            packet.set_stream(0);
-            // One frame long: without a duration the MP4 edit list cuts the last frame.
-            packet.set_duration(1);
-            packet.rescale_ts(enc_tb, ost_tb);
-            packet
-                .write_interleaved(octx)
-                .map_err(ff("writing a packet"))?;
+    Ok(enc.finish()?.bytes)
+}
+
+/// What [`StreamEncoder::finish`] wrote.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Written {
+    /// The file's size in bytes.
+    pub bytes: u64,
+    /// Each coded picture's size in bytes, in decoding order (the key frame first).
+    pub packets: Vec<u64>,
+}
+
+impl Written {
+    /// Bits of the key frame with the container's (everything but the other pictures), and
+    /// the mean bits of the other pictures (0 when there are none).
+    pub fn intra_inter_bits(&self) -> (f64, f64) {
+        let rest = &self.packets[self.packets.len().min(1)..];
+        let rest_bytes: u64 = rest.iter().sum();
+        let intra = self.bytes.saturating_sub(rest_bytes) as f64 * 8.0;
+        (intra, rest_bytes as f64 * 8.0 / rest.len().max(1) as f64)
+    }
+}
+
+/// One layer stream being written picture by picture: the pictures go to the encoder as they
+/// come, so that nothing waits in memory for the rest of the segment. The first picture is
+/// the stream's only key frame.
+pub struct StreamEncoder<T: Sample = u8> {
+    path: PathBuf,
+    codec: Codec,
+    size: (usize, usize),
+    octx: ffmpeg::format::context::Output,
+    enc: ffmpeg::encoder::Video,
+    frame: ffmpeg::frame::Video,
+    enc_tb: ffmpeg::Rational,
+    ost_tb: ffmpeg::Rational,
+    pushed: i64,
+    packets: Vec<u64>,
+    sample: PhantomData<T>,
+}
+
+impl<T: Sample> StreamEncoder<T> {
+    /// Starts the MP4 file `path` for pictures of `size` (even), coded at quality `crf`, with
+    /// at most `max_frames` pictures between key frames (the segment's longest).
+    pub fn create(
+        path: &Path,
+        size: (usize, usize),
+        codec: Codec,
+        crf: f32,
+        fps: f64,
+        max_frames: usize,
+    ) -> Result<Self, CodecError> {
+        init()?;
+        let name = encoder_name(codec);
+        let enc_codec =
+            ffmpeg::encoder::find_by_name(name).ok_or(CodecError::MissingEncoder(name))?;
+        let mut octx = ffmpeg::format::output(&path).map_err(ff("creating the output"))?;
+        let global = octx
+            .format()
+            .flags()
+            .contains(ffmpeg::format::Flags::GLOBAL_HEADER);
+        let mut ost = octx.add_stream(enc_codec).map_err(ff("adding a stream"))?;
+        let mut enc = ffmpeg::codec::context::Context::new_with_codec(enc_codec)
+            .encoder()
+            .video()
+            .map_err(ff("creating the encoder"))?;
+        let rate = ffmpeg::Rational::from(fps);
+        enc.set_width(size.0 as u32);
+        enc.set_height(size.1 as u32);
+        enc.set_format(T::FORMAT);
+        enc.set_time_base(rate.invert());
+        enc.set_frame_rate(Some(rate));
+        enc.set_gop(max_frames.max(1) as u32);
+        enc.set_colorspace(ffmpeg::color::Space::BT709);
+        enc.set_color_range(ffmpeg::color::Range::MPEG);
+        enc.set_color_primaries(ffmpeg::color::Primaries::BT709);
+        enc.set_color_transfer_characteristic(ffmpeg::color::TransferCharacteristic::BT709);
+        if global {
+            enc.set_flags(ffmpeg::codec::Flags::GLOBAL_HEADER);
         }
-        Ok(())
-    };
-    let mut frame = ffmpeg::frame::Video::new(T::FORMAT, pic.width as u32, pic.height as u32);
-    frame.set_color_space(ffmpeg::color::Space::BT709);
-    frame.set_color_range(ffmpeg::color::Range::MPEG);
-    frame.set_color_primaries(ffmpeg::color::Primaries::BT709);
-    frame.set_color_transfer_characteristic(ffmpeg::color::TransferCharacteristic::BT709);
-    for i in 0..count {
-        let next = if i == 0 { None } else { Some(picture(i)) };
-        let p = next.as_ref().unwrap_or(&pic);
-        if (p.width, p.height) != (pic.width, pic.height) {
+        let enc = enc
+            .open_as_with(enc_codec, options(codec, crf, max_frames))
+            .map_err(ff("opening the encoder"))?;
+        ost.set_parameters(&enc);
+        ost.set_time_base(rate.invert());
+        let mut mux_opts = ffmpeg::Dictionary::new();
+        mux_opts.set("movflags", "+faststart");
+        // No muxer banner (the `encoder` tag naming the libavformat version): 37 bytes per
+        // stream and segment, and the same bytes whichever FFmpeg wrote them.
+        mux_opts.set("fflags", "+bitexact");
+        octx.write_header_with(mux_opts)
+            .map_err(ff("writing the header"))?;
+        let ost_tb = octx.stream(0).expect("stream 0").time_base();
+        let mut frame = ffmpeg::frame::Video::new(T::FORMAT, size.0 as u32, size.1 as u32);
+        frame.set_color_space(ffmpeg::color::Space::BT709);
+        frame.set_color_range(ffmpeg::color::Range::MPEG);
+        frame.set_color_primaries(ffmpeg::color::Primaries::BT709);
+        frame.set_color_transfer_characteristic(ffmpeg::color::TransferCharacteristic::BT709);
+        Ok(Self {
+            path: path.to_path_buf(),
+            codec,
+            size,
+            octx,
+            enc,
+            frame,
+            enc_tb: rate.invert(),
+            ost_tb,
+            pushed: 0,
+            packets: Vec::new(),
+            sample: PhantomData,
+        })
+    }
+
+    /// Codes the next picture.
+    pub fn push(&mut self, p: &Yuv420<T>) -> Result<(), CodecError> {
+        if (p.width, p.height) != self.size {
             return Err(CodecError::Size {
-                expected: (pic.width as u32, pic.height as u32),
+                expected: (self.size.0 as u32, self.size.1 as u32),
                 found: (p.width as u32, p.height as u32),
             });
         }
-        fill_frame(&mut frame, p);
-        frame.set_pts(Some(i as i64));
-        frame.set_kind(if i == 0 {
+        fill_frame(&mut self.frame, p);
+        self.frame.set_pts(Some(self.pushed));
+        self.frame.set_kind(if self.pushed == 0 {
             ffmpeg::picture::Type::I
         } else {
             ffmpeg::picture::Type::None
         });
-        enc.send_frame(&frame).map_err(ff("encoding"))?;
-        drain(&mut enc, &mut octx)?;
+        self.enc.send_frame(&self.frame).map_err(ff("encoding"))?;
+        self.pushed += 1;
+        self.drain()
     }
-    enc.send_eof().map_err(ff("flushing the encoder"))?;
-    drain(&mut enc, &mut octx)?;
-    octx.write_trailer().map_err(ff("writing the trailer"))?;
-    drop(octx);
-    std::fs::metadata(path)
-        .map(|m| m.len())
-        .map_err(|e| CodecError::Io {
-            path: path.to_path_buf(),
-            source: e,
-        })
+
+    fn drain(&mut self) -> Result<(), CodecError> {
+        let mut packet = ffmpeg::Packet::empty();
+        while self.enc.receive_packet(&mut packet).is_ok() {
+            if self.codec == Codec::H264 {
+                drop_user_data_sei(&mut packet);
+            }
+            self.packets.push(packet.size() as u64);
+            packet.set_stream(0);
+            // One frame long: without a duration the MP4 edit list cuts the last frame.
+            packet.set_duration(1);
+            packet.rescale_ts(self.enc_tb, self.ost_tb);
+            packet
+                .write_interleaved(&mut self.octx)
+                .map_err(ff("writing a packet"))?;
+        }
+        Ok(())
+    }
+
+    /// Flushes the encoder and closes the file.
+    pub fn finish(mut self) -> Result<Written, CodecError> {
+        if self.pushed == 0 {
+            return Err(CodecError::Empty);
+        }
+        self.enc.send_eof().map_err(ff("flushing the encoder"))?;
+        self.drain()?;
+        self.octx
+            .write_trailer()
+            .map_err(ff("writing the trailer"))?;
+        let Self {
+            path,
+            packets,
+            octx,
+            ..
+        } = self;
+        drop(octx);
+        let bytes = std::fs::metadata(&path)
+            .map(|m| m.len())
+            .map_err(|source| CodecError::Io {
+                path: path.clone(),
+                source,
+            })?;
+        Ok(Written { bytes, packets })
+    }
 }
 
 /// Removes from an H.264 packet every SEI NAL unit that opens with a user-data-unregistered

@@ -1,7 +1,8 @@
-//! Writing a package: frames pushed in, a segment coded per group of pictures, the budget
-//! shared out across segments, the manifest, and the staged folder moved into place.
+//! Writing a package: frames pushed in and coded as they arrive, a segment per group of
+//! pictures, the budget shared out across segments, the manifest, and the staged folder moved
+//! into place.
 
-use crate::segment::{encode_segment, SegmentReport};
+use crate::segment::{BudgetPlan, Carried, SegmentEncoder, SegmentReport};
 use crate::{yuv, CodecError, CodingOptions, RateControl};
 use cpsl_core::LayeredFrame;
 use cpsl_package::Segment;
@@ -29,11 +30,16 @@ pub struct PackageWriter {
     layers: u32,
     opts: CodingOptions,
     segments: Vec<Segment>,
+    /// Frames of the finished segments.
     frames: u32,
     /// Bits written so far (layer and side streams).
     spent: f64,
-    /// Frames of the segment being gathered by [`PackageWriter::push`].
-    pending: Vec<LayeredFrame>,
+    /// The segment being coded.
+    open: Option<SegmentEncoder>,
+    /// Rate-distortion models carried from the last finished segment.
+    carried: Carried,
+    /// Frames still to come, the next one included, when known.
+    left: Option<u32>,
 }
 
 impl PackageWriter {
@@ -62,58 +68,109 @@ impl PackageWriter {
             segments: Vec::new(),
             frames: 0,
             spent: 0.0,
-            pending: Vec::new(),
+            open: None,
+            carried: Carried::new(),
+            left: None,
         })
     }
 
-    /// Takes the next frame. An I-frame closes the segment gathered so far, which is coded
-    /// then and its report returned; [`PackageWriter::flush`] or [`PackageWriter::finish`]
-    /// codes the last one.
+    /// Tells the writer how many frames are still to come, the next one included (`None`:
+    /// unknown, the default), so that under a budget the last segment is planned for the
+    /// frames it will have rather than a whole group of pictures.
+    pub fn set_frames_left(&mut self, left: Option<u32>) {
+        self.left = left.filter(|&n| n > 0);
+    }
+
+    /// Takes the next frame and codes it (under a budget, the first frames of a segment may
+    /// wait for its trial encodes). An I-frame closes the segment before it, whose report is
+    /// returned then; [`PackageWriter::flush`] or [`PackageWriter::finish`] closes the last.
     pub fn push(&mut self, frame: LayeredFrame) -> Result<Option<SegmentReport>, CodecError> {
-        let report = match frame.refresh {
-            Some(_) => self.flush()?,
-            None => None,
-        };
-        self.pending.push(frame);
-        Ok(report)
-    }
-
-    /// Codes the frames pushed since the last segment, if any, as a segment.
-    pub fn flush(&mut self) -> Result<Option<SegmentReport>, CodecError> {
-        if self.pending.is_empty() {
-            return Ok(None);
-        }
-        let frames = std::mem::take(&mut self.pending);
-        self.push_segment(&frames).map(Some)
-    }
-
-    /// Codes the next segment (its first frame must follow the previous segment's last).
-    pub fn push_segment(&mut self, frames: &[LayeredFrame]) -> Result<SegmentReport, CodecError> {
-        if frames.first().map(|f| f.index) != Some(self.frames) {
+        let expected = self.frames + self.open.as_ref().map_or(0, |o| o.frames() as u32);
+        if frame.index != expected {
             return Err(CodecError::Tracks {
-                frame: frames.first().map_or(0, |f| f.index),
+                frame: frame.index,
+                reason: format!("frames must be pushed in order; frame {expected} expected"),
+            });
+        }
+        match (&mut self.open, frame.refresh) {
+            (Some(open), None) => {
+                open.push(frame)?;
+                Ok(None)
+            }
+            _ => {
+                let report = self.flush()?;
+                self.start(frame)?;
+                Ok(report)
+            }
+        }
+    }
+
+    /// Opens the next segment with `first`.
+    fn start(&mut self, first: LayeredFrame) -> Result<(), CodecError> {
+        let budget = match self.opts.rate {
+            RateControl::Budget(bps) => Some(BudgetPlan {
+                bps,
+                done: self.frames,
+                spent: self.spent,
+                expected: self
+                    .left
+                    .map_or(self.opts.gop, |n| n.min(self.opts.gop))
+                    .max(1) as usize,
+            }),
+            RateControl::Quality(_) => None,
+        };
+        let number = self.segments.len();
+        let root = self.stage.path();
+        self.open = Some(SegmentEncoder::start(
+            root,
+            number,
+            first,
+            self.opts,
+            budget,
+            &self.carried,
+        )?);
+        Ok(())
+    }
+
+    /// Closes the segment being coded, if any.
+    pub fn flush(&mut self) -> Result<Option<SegmentReport>, CodecError> {
+        let Some(open) = self.open.take() else {
+            return Ok(None);
+        };
+        let done = open.finish()?;
+        self.frames += done.segment.frames;
+        self.spent += done.report.bits;
+        self.segments.push(done.segment);
+        self.carried = done.carried;
+        Ok(Some(done.report))
+    }
+
+    /// Codes `frames` as the next segment, whatever their refresh flags (its first frame must
+    /// follow the previous segment's last).
+    pub fn push_segment(&mut self, frames: &[LayeredFrame]) -> Result<SegmentReport, CodecError> {
+        let (first, rest) = frames.split_first().ok_or(CodecError::Empty)?;
+        self.flush()?;
+        if first.index != self.frames {
+            return Err(CodecError::Tracks {
+                frame: first.index,
                 reason: format!(
                     "segments must be contiguous; frame {} expected",
                     self.frames
                 ),
             });
         }
-        let opts = match self.opts.rate {
-            RateControl::Budget(bps) => {
-                let fps = self.opts.fps;
-                let bits = segment_budget(bps, fps, self.frames, self.spent, frames.len());
-                CodingOptions {
-                    rate: RateControl::Budget(bits * fps / frames.len() as f64),
-                    ..self.opts
-                }
+        self.start(first.clone())?;
+        let open = self.open.as_mut().expect("just started");
+        for f in rest {
+            if f.index != first.index + open.frames() as u32 {
+                return Err(CodecError::Tracks {
+                    frame: f.index,
+                    reason: "a segment's frames must be contiguous".into(),
+                });
             }
-            RateControl::Quality(_) => self.opts,
-        };
-        let (seg, report) = encode_segment(self.stage.path(), self.segments.len(), frames, &opts)?;
-        self.frames += seg.frames;
-        self.spent += report.bits;
-        self.segments.push(seg);
-        Ok(report)
+            open.push(f.clone())?;
+        }
+        Ok(self.flush()?.expect("a segment is open"))
     }
 
     /// Codes the pending frames ([`PackageWriter::flush`]; their report is dropped: flush

@@ -15,6 +15,7 @@ use std::path::Path;
 const W: u32 = 320;
 const H: u32 = 240;
 const FPS: f64 = 10.0;
+const GOP: u32 = 6;
 
 /// Layered frames of the synthetic clip, grouped into segments (GOP 6).
 fn segments(frames: usize) -> Vec<Vec<LayeredFrame>> {
@@ -25,7 +26,7 @@ fn segments(frames: usize) -> Vec<Vec<LayeredFrame>> {
 fn segments_at(w: u32, h: u32, frames: usize) -> Vec<Vec<LayeredFrame>> {
     let scene = Scene::default_scene(w, h);
     let gop = GopConfig {
-        gop: 6,
+        gop: GOP as usize,
         ..GopConfig::default()
     };
     let mut lay = VideoLayerer::new(scene.camera, LayeringConfig::default(), gop).unwrap();
@@ -91,6 +92,7 @@ fn package_round_trip_meets_budget_and_quality() {
         codec: Codec::H264,
         rate: RateControl::Budget(budget),
         fps: FPS,
+        gop: GOP,
     };
     let reports = write(&out, &segs, opts);
     eprintln!("{reports:?}");
@@ -102,9 +104,18 @@ fn package_round_trip_meets_budget_and_quality() {
         let b = r.budget_bits.unwrap();
         assert!(r.bits <= 1.1 * b, "segment spent {} bits of {b}", r.bits);
         // Generous for this size: full size, chosen without fitting the half-size rung (its
-        // 12 trial encodes would bring the count to 30 or more).
-        assert!(r.scale.iter().all(|&s| s == 1) && r.encodes < 30, "{r:?}");
+        // 18 trial encodes would bring the count to 36).
+        assert!(r.scale.iter().all(|&s| s == 1) && r.encodes <= 18, "{r:?}");
     }
+    // The first segment fits every stream by trial encodes; the next starts from the models
+    // it carried on, and codes each stream once.
+    assert_eq!(reports[0].fitted, reports[0].quality.len());
+    assert!(
+        reports[1].fitted < reports[1].quality.len(),
+        "{:?}",
+        reports[1]
+    );
+    assert!(reports[1].encodes < reports[0].encodes);
     let rate = m.bitrate();
     assert!(
         rate <= 1.1 * budget,
@@ -187,6 +198,7 @@ fn a_budget_below_the_full_size_floor_codes_smaller_streams() {
         codec: Codec::H264,
         rate,
         fps: FPS,
+        gop: GOP,
     };
     // The floor: every stream at full size and the lowest quality.
     let floor_pkg = dir.path().join("floor.cpsl");
@@ -241,6 +253,7 @@ fn verify_detects_a_flipped_byte_in_every_part() {
         codec: Codec::H264,
         rate: RateControl::Quality(30.0),
         fps: FPS,
+        gop: GOP,
     };
     write(&out, &segs, opts);
     let mut files = vec![out.join("manifest.json")];
@@ -332,6 +345,7 @@ fn a_package_archive_reads_like_its_folder() {
         codec: Codec::H264,
         rate: RateControl::Quality(30.0),
         fps: FPS,
+        gop: GOP,
     };
     write(&folder, &segs, opts);
     let archive = dir.path().join("clip.tar.cpsl");
@@ -441,4 +455,26 @@ fn every_codec_carries_ten_bit_pictures() {
         let e = decode_pictures::<u8>(&path, w, h).unwrap_err().to_string();
         assert!(e.contains("YUV420P10LE"), "{e}");
     }
+}
+
+#[test]
+fn frames_out_of_order_are_refused() {
+    let segs = segments(3);
+    let frames: Vec<LayeredFrame> = segs.into_iter().flatten().collect();
+    let dir = tempfile::tempdir().unwrap();
+    let opts = CodingOptions {
+        codec: Codec::H264,
+        rate: RateControl::Quality(30.0),
+        fps: FPS,
+        gop: GOP,
+    };
+    let out = dir.path().join("clip.cpsl");
+    let mut w = PackageWriter::create(&out, *frames[0].set.camera(), 6, opts).unwrap();
+    w.push(frames[0].clone()).unwrap();
+    let e = w.push(frames[2].clone()).unwrap_err().to_string();
+    assert!(e.contains("frame 1 expected"), "{e}");
+    // The refused frame changed nothing: the right one is taken.
+    w.push(frames[1].clone()).unwrap();
+    w.push(frames[2].clone()).unwrap();
+    assert_eq!(w.finish().unwrap().frames, 3);
 }

@@ -35,6 +35,7 @@ fn seeks_anywhere_and_opens_every_source() {
         codec: Codec::H264,
         rate: RateControl::Quality(12.0),
         fps: 10.0,
+        gop: 4,
     };
     let mut writer = PackageWriter::create(&path, *sets[0].camera(), 2, opts).unwrap();
     for (i, s) in sets.iter().enumerate() {

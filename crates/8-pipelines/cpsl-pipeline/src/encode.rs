@@ -126,7 +126,7 @@ fn warn_over_budget(r: &SegmentReport, progress: &dyn Progress) {
                 if r.at_floor {
                     "the cheapest coding, lowest quality at the smallest size, needs more"
                 } else {
-                    "the allocator's correction rounds did not reach it"
+                    "the streams cost more than their models said; the next segments make up for it"
                 }
             ),
         });
@@ -174,12 +174,14 @@ pub fn encode(
                     codec: job.codec,
                     rate: *rate,
                     fps,
+                    gop: job.video.gop.gop as u32,
                 };
                 writers.push(PackageWriter::create(path, *f.set.camera(), layers, opts)?);
             }
         }
         let t = Instant::now();
         let index = f.index;
+        let left = r.frames_left.map(|n| n as u32);
         // Every writer but the last gets a copy; the last takes the frame.
         let n = writers.len();
         let mut frame = Some(f);
@@ -188,6 +190,7 @@ pub fn encode(
                 true => frame.take().expect("the last writer takes the frame"),
                 false => frame.clone().expect("kept for the last writer"),
             };
+            writer.set_frames_left(left);
             let report = writer
                 .push(f)
                 .context_with(|| format!("coding the segment before frame {index}"))?;

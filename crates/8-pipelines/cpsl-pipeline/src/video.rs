@@ -56,6 +56,8 @@ pub struct FrameRecord {
     pub ms: f64,
     /// Where this frame's depth came from, when the source says (stereo and its fallbacks).
     pub depth_note: Option<String>,
+    /// Frames still to come, this one included, when the input says how many it has.
+    pub frames_left: Option<usize>,
 }
 
 /// The progress stage of layering a video.
@@ -131,6 +133,7 @@ pub fn layer_video(
             decoder_motion,
             ms: t.elapsed().as_secs_f64() * 1e3,
             depth_note,
+            frames_left: total.map(|n| n.saturating_sub(count)),
         })?;
         count += 1;
         progress.event(ProgressEvent::Advance {

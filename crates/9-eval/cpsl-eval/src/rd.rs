@@ -497,6 +497,7 @@ fn code(
         codec,
         rate,
         fps: FPS,
+        gop: segments.iter().map(Vec::len).max().unwrap_or(1) as u32,
     };
     let mut writer = PackageWriter::create(&path, cam, k, opts)?;
     for s in segments {

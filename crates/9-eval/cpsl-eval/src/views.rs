@@ -161,6 +161,7 @@ impl RoundTrip {
                 codec,
                 rate,
                 fps: CODED_FPS,
+                gop: 1,
             },
             dir,
             _temp: temp,

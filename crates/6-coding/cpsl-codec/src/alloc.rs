@@ -136,6 +136,14 @@ impl RdModel {
         self.distortions.last().map_or(0.0, |p| p.0 as f32)
     }
 
+    /// The best quality the model is trusted at: [`MIN_SPAN`] steps beyond its best measured
+    /// one (rates grow faster than a line towards the best qualities).
+    pub fn best_q(&self) -> f32 {
+        self.distortions
+            .first()
+            .map_or(0.0, |p| (p.0 - MIN_SPAN) as f32)
+    }
+
     /// Re-anchors the rates on key-frame bits and mean bits of the other pictures measured
     /// at quality `q` (`inter` is `None` when the segment had only its key frame): each rate
     /// curve is scaled to run through its measurement, keeping its shape, so that content
@@ -208,7 +216,8 @@ pub struct Allocation {
 
 /// Chooses a rung and a quality per stream, qualities on the integer grid `[q_min, q_max]`,
 /// minimising `sum w_k D_k` with `sum r_k <= budget` (all in the models' units). `models[k]`
-/// holds stream `k`'s model per rung (at least one). After the Lagrangian search, what the
+/// holds stream `k`'s model per rung (at least one), each trusted only up to its
+/// [`RdModel::best_q`]. After the Lagrangian search, what the
 /// budget has left is spent greedily, on the change that lowers `w_k D_k` most per extra bit:
 /// the multiplier's choices jump between discrete options, so the search alone may leave much
 /// unspent.
@@ -226,7 +235,12 @@ pub fn allocate(
     let cost = |k: usize, (r, q): (usize, f32)| weights[k] as f64 * models[k][r].distortion(q);
     let options = |k: usize| {
         let grid = &grid;
-        (0..models[k].len()).flat_map(move |r| grid.iter().map(move |&q| (r, q)))
+        (0..models[k].len()).flat_map(move |r| {
+            let best = models[k][r].best_q();
+            grid.iter()
+                .filter(move |&&q| q >= best)
+                .map(move |&q| (r, q))
+        })
     };
     let within = "a stream has a rung and the grid a quality";
     let cheapest = |k: usize| {
@@ -383,8 +397,10 @@ mod tests {
         assert!(c.quality.iter().all(|&q| q == 51.0));
         assert!(c.rung.iter().all(|&r| r == 0));
         // A generous budget gets the best quality.
+        // A generous budget gets the best quality the models are trusted at: four steps
+        // beyond their best trial (20).
         let d = allocate(&models, &weights, 1e12, 10.0, 51.0);
-        assert!(d.quality.iter().all(|&q| q == 10.0));
+        assert!(d.quality.iter().all(|&q| q == 16.0), "{d:?}");
     }
 
     #[test]

@@ -40,4 +40,5 @@ for case in "1280x720 3M" "1920x1080 6M"; do
   $cpsl bench play "$pkg" --json > "out/bench/play_$1.json"
   $cpsl bench play "$pkg"
 done
+bash scripts/bench-encode.sh
 bash scripts/bench-serve.sh

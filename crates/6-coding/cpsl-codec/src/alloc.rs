@@ -110,6 +110,14 @@ impl RdModel {
         self.frames
     }
 
+    /// The model with `other`'s other-picture rates (measured over whole segments) in place
+    /// of its own.
+    pub fn with_inter_of(mut self, other: &RdModel) -> Self {
+        self.inter.clone_from(&other.inter);
+        self.inter_measured = other.inter_measured;
+        self
+    }
+
     /// Whether the model may serve a longer segment than its trials': the other pictures'
     /// bits were measured.
     pub fn carries(&self) -> bool {
@@ -228,6 +236,29 @@ pub fn allocate(
     q_min: f32,
     q_max: f32,
 ) -> Allocation {
+    allocate_within(models, weights, budget, (q_min, q_max), None)
+}
+
+/// [`allocate`], stream `k` limited to the choices whose modelled rate is at most `caps[k]`
+/// (the models must offer each stream one: after [`RdModel::anchor`] on a measured coding,
+/// that coding is).
+pub fn allocate_capped(
+    models: &[Vec<RdModel>],
+    weights: &[f32],
+    budget: f64,
+    (q_min, q_max): (f32, f32),
+    caps: &[f64],
+) -> Allocation {
+    allocate_within(models, weights, budget, (q_min, q_max), Some(caps))
+}
+
+fn allocate_within(
+    models: &[Vec<RdModel>],
+    weights: &[f32],
+    budget: f64,
+    (q_min, q_max): (f32, f32),
+    caps: Option<&[f64]>,
+) -> Allocation {
     let grid: Vec<f32> = (q_min.ceil() as i32..=q_max.floor() as i32)
         .map(|q| q as f32)
         .collect();
@@ -235,12 +266,15 @@ pub fn allocate(
     let cost = |k: usize, (r, q): (usize, f32)| weights[k] as f64 * models[k][r].distortion(q);
     let options = |k: usize| {
         let grid = &grid;
-        (0..models[k].len()).flat_map(move |r| {
-            let best = models[k][r].best_q();
-            grid.iter()
-                .filter(move |&&q| q >= best)
-                .map(move |&q| (r, q))
-        })
+        let cap = caps.map_or(f64::INFINITY, |c| c[k] * (1.0 + 1e-9));
+        (0..models[k].len())
+            .flat_map(move |r| {
+                let best = models[k][r].best_q();
+                grid.iter()
+                    .filter(move |&&q| q >= best)
+                    .map(move |&q| (r, q))
+            })
+            .filter(move |&o| rate(k, o) <= cap)
     };
     let within = "a stream has a rung and the grid a quality";
     let cheapest = |k: usize| {
@@ -401,6 +435,19 @@ mod tests {
         // beyond their best trial (20).
         let d = allocate(&models, &weights, 1e12, 10.0, 51.0);
         assert!(d.quality.iter().all(|&q| q == 16.0), "{d:?}");
+    }
+
+    #[test]
+    fn capped_streams_cost_no_more_than_their_caps() {
+        let models = vec![vec![model(1e6, 10.0)]; 3];
+        let weights = [4.0, 1.0, 1.0];
+        let free = allocate(&models, &weights, 1.2e6, 10.0, 51.0);
+        // Stream 0 capped below its free choice: cheaper for it, the rest goes to the others.
+        let caps = [0.5 * free.bits[0], 1e12, 1e12];
+        let a = allocate_capped(&models, &weights, 1.2e6, (10.0, 51.0), &caps);
+        assert!(a.feasible && a.bits[0] <= caps[0], "{a:?}");
+        assert!(a.quality[0] > free.quality[0] && a.quality[1] <= free.quality[1]);
+        assert!(a.bits.iter().sum::<f64>() <= 1.2e6);
     }
 
     #[test]

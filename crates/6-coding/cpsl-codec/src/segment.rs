@@ -1,13 +1,16 @@
 //! Coding one segment as its frames arrive: layers mapped to streams by track, the bit
-//! allocation under the segment's budget, one encoder per layer stream fed picture by picture,
-//! and the side stream.
+//! allocation under the segment's budget, the layer streams, and the side stream.
 //!
-//! At constant quality the encoders open with the segment's first frame, so no frame waits.
-//! Under a budget each stream needs a rate-distortion model: one carried from the previous
-//! segment (by track, re-anchored on what the stream cost there), or, for a new stream or one
-//! whose cost drifted from its model, trial encodes of the segment's first [`TRIAL_FRAMES`]
-//! frames, the only frames ever held. The allocation is made for the segment's expected
-//! length; what it misses is repaid by the next segments (see [`crate::segment_budget`]).
+//! At constant quality the encoders open with the segment's first frame and take each
+//! picture as it comes, so no frame waits (unless the encoders would not fit in memory
+//! together: see [`concurrent_encoders`]). Under a budget each stream needs a rate-distortion
+//! model: one carried from the previous segment (by track, re-anchored on what the stream
+//! cost there), or, for a new stream, one whose cost drifted from its model, or any after a
+//! refresh for changed content, trial encodes of the segment's first [`TRIAL_FRAMES`] frames,
+//! the only frames held in memory. The allocation is made for the segment's expected length;
+//! the pictures go to raw files as they arrive and are coded when the segment ends, with one
+//! correction round if they overshoot; what is still missed is repaid by the next segments
+//! (see [`crate::segment_budget`]).
 
 use crate::alloc::{self, RdModel, Trial};
 use crate::stream::{quality_range, PictureReader, StreamEncoder, Written};
@@ -22,11 +25,6 @@ use std::path::{Path, PathBuf};
 
 /// Frames a segment's trial encodes use: its first ones.
 pub const TRIAL_FRAMES: usize = 4;
-
-/// The other pictures of a whole segment cost this share of what the first few cost in a
-/// trial (the encoder's lookahead sees the short trial end; measured on `testsrc2` at 720p
-/// and 1080p: 0.84 and 0.89 of the trials' mean, per stream from 0.53 to 1.26).
-const TRIAL_INTER: f64 = 0.85;
 
 /// How far (as a ratio either way) a stream's cost may stray from its model before the model
 /// is fitted again.
@@ -66,8 +64,27 @@ pub struct SegmentReport {
 /// content; the drift check catches it when not).
 pub(crate) type StreamKey = (bool, u32);
 
-/// Models per stream key, one per rung of the ladder from full size down (a prefix).
-pub(crate) type Carried = HashMap<StreamKey, Vec<RdModel>>;
+/// What a segment hands the next under a budget.
+#[derive(Debug, Clone)]
+pub(crate) struct Carried {
+    /// Models per stream key, one per rung of the ladder from full size down (a prefix).
+    models: HashMap<StreamKey, Vec<RdModel>>,
+    /// What the other pictures of whole segments cost against their trials' estimate: the
+    /// first pictures after a key frame differ little from it, so trials on them misjudge the
+    /// rest (0.85 of it on `testsrc2`, where the pictures stay alike; 1.8 times on the fox,
+    /// whose layers drift from their key frame). Trials' other-picture bits are scaled by it;
+    /// 1 until a segment measures it.
+    inter_scale: f64,
+}
+
+impl Default for Carried {
+    fn default() -> Self {
+        Self {
+            models: HashMap::new(),
+            inter_scale: 1.0,
+        }
+    }
+}
 
 /// The stream of each layer of `f`, given the tracks of the segment's streams (from its first
 /// frame): layers follow their track, or their index where layers have no tracks.
@@ -289,45 +306,82 @@ impl Sink {
         }
     }
 
-    /// Closes the stream (coding a spilled one from its file, which is then removed).
-    fn finish(self, codec: Codec, fps: f64, gop: usize) -> Result<Written, CodecError> {
+    /// Closes the stream, coding a spilled one from its file, which is returned to code
+    /// again (the caller removes it).
+    fn finish(
+        self,
+        codec: Codec,
+        fps: f64,
+        gop: usize,
+    ) -> Result<(Written, Option<Raw>), CodecError> {
         match self {
-            Self::Encoder(e) => e.finish(),
+            Self::Encoder(e) => Ok((e.finish()?, None)),
             Self::Spill {
                 file,
                 raw,
                 out,
-                size: (w, h),
+                size,
                 quality,
                 pictures,
             } => {
-                use std::io::Read;
-                let io = |source| CodecError::Io {
+                let flushed = file.into_inner().map_err(|e| CodecError::Io {
                     path: raw.clone(),
-                    source,
+                    source: e.into_error(),
+                });
+                drop(flushed?);
+                let raw = Raw {
+                    raw,
+                    out,
+                    size,
+                    pictures,
                 };
-                drop(file.into_inner().map_err(|e| io(e.into_error()))?);
-                let mut e = StreamEncoder::create(&out, (w, h), codec, quality, fps, gop)?;
-                let mut input = std::io::BufReader::new(std::fs::File::open(&raw).map_err(io)?);
-                for _ in 0..pictures {
-                    let mut plane = |n: usize| -> Result<Vec<u8>, CodecError> {
-                        let mut v = vec![0; n];
-                        input.read_exact(&mut v).map_err(io)?;
-                        Ok(v)
-                    };
-                    let (y, u, v) = (plane(w * h)?, plane(w * h / 4)?, plane(w * h / 4)?);
-                    e.push(&yuv::Yuv420 {
-                        width: w,
-                        height: h,
-                        y,
-                        u,
-                        v,
-                    })?;
-                }
-                let _ = std::fs::remove_file(&raw);
-                e.finish()
+                Ok((raw.encode(codec, quality, fps, gop)?, Some(raw)))
             }
         }
+    }
+}
+
+/// A stream's pictures in a raw file, and the stream file they are coded into.
+struct Raw {
+    raw: PathBuf,
+    out: PathBuf,
+    size: (usize, usize),
+    pictures: usize,
+}
+
+impl Raw {
+    /// Codes the pictures into the stream file at `quality`.
+    fn encode(
+        &self,
+        codec: Codec,
+        quality: f32,
+        fps: f64,
+        gop: usize,
+    ) -> Result<Written, CodecError> {
+        use std::io::Read;
+        let io = |source| CodecError::Io {
+            path: self.raw.clone(),
+            source,
+        };
+        let (w, h) = self.size;
+        let mut e = StreamEncoder::create(&self.out, (w, h), codec, quality, fps, gop)?;
+        let mut input = std::io::BufReader::new(std::fs::File::open(&self.raw).map_err(io)?);
+        for _ in 0..self.pictures {
+            let mut plane = |n: usize| -> Result<Vec<u8>, CodecError> {
+                let mut v = vec![0; n];
+                input.read_exact(&mut v).map_err(io)?;
+                Ok(v)
+            };
+            let (y, u, v) = (plane(w * h)?, plane(w * h / 4)?, plane(w * h / 4)?);
+            e.push(&yuv::Yuv420 {
+                width: w,
+                height: h,
+                y,
+                u,
+                v,
+            })?;
+        }
+        e.finish()
     }
 }
 
@@ -385,6 +439,14 @@ pub(crate) struct SegmentEncoder {
     budget: Option<BudgetPlan>,
     /// Per stream, models for the first rungs of the ladder (none until fitted or carried).
     models: Vec<Vec<RdModel>>,
+    /// Per stream, the models of the segment before when a refresh for changed content keeps
+    /// them from carrying over: their other-picture rates, measured over a whole segment,
+    /// replace the trials'.
+    history: Vec<Vec<RdModel>>,
+    /// Per stream, whether its other-picture rates come from this segment's trials.
+    fresh: Vec<bool>,
+    /// See [`Carried::inter_scale`].
+    inter_scale: f64,
     /// Streams fitted by trial encodes here.
     fitted: usize,
     /// Frames waiting for the coding to be chosen, with their layer-to-stream maps.
@@ -418,19 +480,27 @@ impl SegmentEncoder {
         let dir = root.join(&dir_name);
         std::fs::create_dir_all(&dir).map_err(|source| CodecError::Io { path: dir, source })?;
         let tracks: Vec<Option<u32>> = first.set.layers().iter().map(|l| l.meta.track).collect();
-        let models = tracks
+        // A refresh for lost confidence or cracks says the content changed: models do not
+        // carry over it, though their other pictures' rates still serve (see `history`).
+        let carries = matches!(first.refresh, None | Some(RefreshReason::Gop));
+        let found: Vec<Vec<RdModel>> = tracks
             .iter()
             .enumerate()
             .map(|(k, t)| {
-                let by_track = t.and_then(|t| carried.get(&(true, t)));
-                match budget {
-                    Some(_) => by_track
-                        .or_else(|| carried.get(&(false, k as u32)))
-                        .cloned()
-                        .unwrap_or_default(),
-                    None => Vec::new(),
-                }
+                let by_track = t.and_then(|t| carried.models.get(&(true, t)));
+                let found = by_track.or_else(|| carried.models.get(&(false, k as u32)));
+                found
+                    .filter(|_| budget.is_some())
+                    .cloned()
+                    .unwrap_or_default()
             })
+            .collect();
+        let (models, history) = match carries {
+            true => (found, vec![Vec::new(); tracks.len()]),
+            false => (vec![Vec::new(); tracks.len()], found),
+        };
+        let fresh = (0..tracks.len())
+            .map(|k| models[k].is_empty() && history[k].is_empty())
             .collect();
         let rungs = match budget {
             Some(_) => scale::rungs(cam.width, cam.height),
@@ -448,6 +518,9 @@ impl SegmentEncoder {
             rungs,
             budget,
             models,
+            history,
+            fresh,
+            inter_scale: carried.inter_scale,
             fitted: 0,
             pending: Vec::new(),
             coding: None,
@@ -605,7 +678,9 @@ impl SegmentEncoder {
             }
         };
         let (w, h) = self.size;
-        let spill = self.parallel < n_streams;
+        // Under a budget the pictures are kept (on disk) for a correction round; so are they
+        // when the encoders would not fit in memory together.
+        let spill = self.parallel < n_streams || self.budget.is_some();
         self.sinks = (0..n_streams)
             .map(|k| {
                 let (sw, sh) = scale::scaled_size(w, h, self.rungs[coding.rung[k]]);
@@ -652,6 +727,7 @@ impl SegmentEncoder {
         let (codec, fps, gop) = (self.opts.codec, self.opts.fps, self.gop());
         let dir = self.root.join(&self.dir_name);
         let (pending, blank, rungs) = (&self.pending, &self.blank, &self.rungs);
+        let inter_scale = self.inter_scale;
         let pool = pool(self.parallel)?;
         let fitted: Vec<Vec<Trial>> = pool.install(|| {
             jobs.par_iter()
@@ -710,7 +786,7 @@ impl SegmentEncoder {
                         trials.push(Trial {
                             q,
                             intra,
-                            inter: (m > 1).then_some(TRIAL_INTER * inter),
+                            inter: (m > 1).then_some(inter_scale * inter),
                             // Summed over the picture, not averaged per stream: a layer's share
                             // of the frame's error.
                             distortion: err / (4.0 * (w * h) as f64 * m as f64),
@@ -730,9 +806,67 @@ impl SegmentEncoder {
             self.encodes += trials.len();
             match self.models[*k].get_mut(*r) {
                 Some(model) => trials.iter().for_each(|t| model.add(t)),
-                None => self.models[*k].push(RdModel::fit(&trials, m)),
+                None => {
+                    let model = RdModel::fit(&trials, m);
+                    let model = match self.history[*k].get(*r) {
+                        Some(h) => model.with_inter_of(h),
+                        None => model,
+                    };
+                    self.models[*k].push(model);
+                }
             }
         }
+        Ok(())
+    }
+
+    /// Under a budget, when the coded streams (with the side stream, estimated) overshoot the
+    /// segment's budget by more than 5 %: one correction round. Every stream's model is
+    /// anchored on what it cost, the qualities are allocated again on the same rungs with no
+    /// stream allowed to cost more than it did, and the streams whose quality changed are
+    /// coded again from their kept pictures (`raws`).
+    fn correct(
+        &mut self,
+        coding: &mut Coding,
+        written: &mut [Written],
+        raws: &[Option<Raw>],
+    ) -> Result<(), CodecError> {
+        let (Some(plan), RateControl::Budget(_)) = (self.budget, self.opts.rate) else {
+            return Ok(());
+        };
+        let (fps, frames, codec) = (self.opts.fps, self.frames, self.opts.codec);
+        let bits = plan.bits(fps, frames);
+        let bits = bits - self.side_estimate(frames).min(GEOMETRY_SHARE * bits);
+        let spent: Vec<f64> = written.iter().map(|w| w.bytes as f64 * 8.0).collect();
+        if spent.iter().sum::<f64>() <= 1.05 * bits {
+            return Ok(());
+        }
+        let mut models = Vec::with_capacity(written.len());
+        for (k, wr) in written.iter().enumerate() {
+            let Some(m) = self.models[k].get(coding.rung[k]) else {
+                return Ok(());
+            };
+            let mut m = m.clone().for_frames(frames);
+            let (intra, inter) = wr.intra_inter_bits();
+            m.anchor(coding.quality[k], intra, (frames > 1).then_some(inter));
+            models.push(vec![m]);
+        }
+        let (q_min, q_max, _) = quality_range(codec);
+        let a = alloc::allocate_capped(&models, &self.weights, bits, (q_min, q_max), &spent);
+        let jobs: Vec<(usize, f32, &Raw)> = (0..written.len())
+            .filter(|&k| a.quality[k] != coding.quality[k])
+            .filter_map(|k| Some((k, a.quality[k], raws[k].as_ref()?)))
+            .collect();
+        let gop = self.gop();
+        let again: Vec<Written> = pool(self.parallel)?.install(|| {
+            jobs.par_iter()
+                .map(|&(_, q, raw)| raw.encode(codec, q, fps, gop))
+                .collect::<Result<_, _>>()
+        })?;
+        for (&(k, q, _), wr) in jobs.iter().zip(again) {
+            coding.quality[k] = q;
+            written[k] = wr;
+        }
+        self.encodes += jobs.len();
         Ok(())
     }
 
@@ -744,14 +878,37 @@ impl SegmentEncoder {
         if self.coding.is_none() {
             self.choose(true)?;
         }
-        let coding = self.coding.take().expect("chosen when finishing");
+        let mut coding = self.coding.take().expect("chosen when finishing");
         let (codec, fps, gop) = (self.opts.codec, self.opts.fps, self.gop());
-        let written: Vec<Written> = pool(self.parallel)?.install(|| {
-            std::mem::take(&mut self.sinks)
-                .into_par_iter()
-                .map(|s| s.finish(codec, fps, gop))
-                .collect::<Result<_, _>>()
-        })?;
+        let pool = pool(self.parallel)?;
+        let (mut written, raws): (Vec<Written>, Vec<Option<Raw>>) = pool
+            .install(|| {
+                std::mem::take(&mut self.sinks)
+                    .into_par_iter()
+                    .map(|s| s.finish(codec, fps, gop))
+                    .collect::<Result<Vec<_>, _>>()
+            })?
+            .into_iter()
+            .unzip();
+        let frames = self.frames;
+        // What the other pictures cost against the trials' estimate, bits-weighted in logs.
+        let (mut log_ratio, mut weight) = (0.0, 0.0);
+        for (k, wr) in written.iter().enumerate() {
+            let (inter, model) = (wr.intra_inter_bits().1, self.models[k].get(coding.rung[k]));
+            let Some(trial) = model.map(|m| m.intra_inter(coding.quality[k]).1) else {
+                continue;
+            };
+            if self.fresh[k] && frames > 1 && inter > 0.0 && trial > 0.0 {
+                let w = inter * (frames - 1) as f64;
+                log_ratio += w * (inter / trial).ln();
+                weight += w;
+            }
+        }
+        let corrected = self.correct(&mut coding, &mut written, &raws);
+        for r in raws.iter().flatten() {
+            let _ = std::fs::remove_file(&r.raw);
+        }
+        corrected?;
         let (w, h) = self.size;
         let mut side = SideStream {
             segment: self.number as u32,
@@ -761,7 +918,6 @@ impl SegmentEncoder {
             height: h,
             frames: std::mem::take(&mut self.side),
         };
-        let (fps, frames) = (self.opts.fps, self.frames);
         let budget_bits = self.budget.map(|p| p.bits(fps, frames));
         let side_bytes = match budget_bits {
             Some(bits) => geometry_within(&mut side, &self.flat, GEOMETRY_SHARE * bits),
@@ -791,7 +947,10 @@ impl SegmentEncoder {
             .collect::<Result<Vec<_>, CodecError>>()?;
         let bits = written.iter().map(|wr| wr.bytes as f64 * 8.0).sum::<f64>()
             + side_bytes.len() as f64 * 8.0;
-        let mut carried = Carried::new();
+        let mut carried = Carried {
+            models: HashMap::new(),
+            inter_scale: self.inter_scale,
+        };
         for (k, wr) in written.iter().enumerate() {
             let (r, q) = (coding.rung[k], coding.quality[k]);
             let Some(model) = self.models[k].get_mut(r) else {
@@ -799,17 +958,21 @@ impl SegmentEncoder {
             };
             let predicted = model.clone().for_frames(frames).rate(q);
             let cost = wr.bytes as f64 * 8.0;
+            let (intra, inter) = wr.intra_inter_bits();
             if (cost / predicted).ln().abs() > DRIFT.ln() {
                 continue;
             }
-            let (intra, inter) = wr.intra_inter_bits();
             model.anchor(q, intra, (frames > 1).then_some(inter));
             if self.models[k].iter().all(RdModel::carries) {
                 if let Some(t) = self.tracks[k] {
-                    carried.insert((true, t), self.models[k].clone());
+                    carried.models.insert((true, t), self.models[k].clone());
                 }
-                carried.insert((false, k as u32), std::mem::take(&mut self.models[k]));
+                let models = std::mem::take(&mut self.models[k]);
+                carried.models.insert((false, k as u32), models);
             }
+        }
+        if weight > 0.0 {
+            carried.inter_scale = (self.inter_scale * (log_ratio / weight).exp()).clamp(0.25, 4.0);
         }
         let q_max = quality_range(self.opts.codec).1;
         let cheapest = self.rungs.len() - 1;
@@ -867,7 +1030,14 @@ mod tests {
             for p in &pictures {
                 sink.push(p).unwrap();
             }
-            written.push(sink.finish(Codec::H264, 30.0, 8).unwrap());
+            let (w, raw) = sink.finish(Codec::H264, 30.0, 8).unwrap();
+            assert_eq!(raw.is_some(), spill);
+            if let Some(raw) = raw {
+                // Coded again from the kept pictures: the same stream.
+                assert_eq!(raw.encode(Codec::H264, 30.0, 30.0, 8).unwrap(), w);
+                std::fs::remove_file(&raw.raw).unwrap();
+            }
+            written.push(w);
             // Only the stream is left.
             let left: Vec<_> = std::fs::read_dir(dir.path()).unwrap().collect();
             assert_eq!(left.len(), written.len(), "{left:?}");

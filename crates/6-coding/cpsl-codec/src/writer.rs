@@ -69,7 +69,7 @@ impl PackageWriter {
             frames: 0,
             spent: 0.0,
             open: None,
-            carried: Carried::new(),
+            carried: Carried::default(),
             left: None,
         })
     }
@@ -159,7 +159,11 @@ impl PackageWriter {
                 ),
             });
         }
-        self.start(first.clone())?;
+        // The segment's length is known: its allocation plans for it.
+        let left = self.left.replace(frames.len() as u32);
+        let started = self.start(first.clone());
+        self.left = left;
+        started?;
         let open = self.open.as_mut().expect("just started");
         for f in rest {
             if f.index != first.index + open.frames() as u32 {

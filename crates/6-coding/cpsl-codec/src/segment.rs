@@ -820,12 +820,14 @@ impl SegmentEncoder {
     }
 
     /// Under a budget, when the coded streams (with the side stream, estimated) overshoot the
-    /// segment's budget by more than 5 %: one correction round. Every stream's model is
+    /// segment's budget by more than 5 %, or, in the `last` segment, fall short of it by more
+    /// than 5 %: one correction round. Every stream's model is
     /// anchored on what it cost, the qualities are allocated again on the same rungs with no
     /// stream allowed to cost more than it did, and the streams whose quality changed are
     /// coded again from their kept pictures (`raws`).
     fn correct(
         &mut self,
+        last: bool,
         coding: &mut Coding,
         written: &mut [Written],
         raws: &[Option<Raw>],
@@ -837,7 +839,11 @@ impl SegmentEncoder {
         let bits = plan.bits(fps, frames);
         let bits = bits - self.side_estimate(frames).min(GEOMETRY_SHARE * bits);
         let spent: Vec<f64> = written.iter().map(|w| w.bytes as f64 * 8.0).collect();
-        if spent.iter().sum::<f64>() <= 1.05 * bits {
+        let total: f64 = spent.iter().sum();
+        // Short of the budget, only the last segment corrects: no later one spends it. Over
+        // it, no stream may then cost more than it did.
+        let under = last && total < 0.95 * bits;
+        if total <= 1.05 * bits && !under {
             return Ok(());
         }
         let mut models = Vec::with_capacity(written.len());
@@ -851,7 +857,10 @@ impl SegmentEncoder {
             models.push(vec![m]);
         }
         let (q_min, q_max, _) = quality_range(codec);
-        let a = alloc::allocate_capped(&models, &self.weights, bits, (q_min, q_max), &spent);
+        let a = match under {
+            true => alloc::allocate(&models, &self.weights, bits, q_min, q_max),
+            false => alloc::allocate_capped(&models, &self.weights, bits, (q_min, q_max), &spent),
+        };
         let jobs: Vec<(usize, f32, &Raw)> = (0..written.len())
             .filter(|&k| a.quality[k] != coding.quality[k])
             .filter_map(|k| Some((k, a.quality[k], raws[k].as_ref()?)))
@@ -874,7 +883,7 @@ impl SegmentEncoder {
     /// segment's manifest entry, its report and, under a budget, the models for the next
     /// segment: each stream's model anchored on what the stream cost, unless the cost strayed
     /// from the model by more than [`DRIFT`] (the stream is then fitted again).
-    pub fn finish(mut self) -> Result<Finished, CodecError> {
+    pub fn finish(mut self, last: bool) -> Result<Finished, CodecError> {
         if self.coding.is_none() {
             self.choose(true)?;
         }
@@ -904,7 +913,7 @@ impl SegmentEncoder {
                 weight += w;
             }
         }
-        let corrected = self.correct(&mut coding, &mut written, &raws);
+        let corrected = self.correct(last, &mut coding, &mut written, &raws);
         for r in raws.iter().flatten() {
             let _ = std::fs::remove_file(&r.raw);
         }

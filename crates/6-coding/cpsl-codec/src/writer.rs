@@ -98,7 +98,7 @@ impl PackageWriter {
                 Ok(None)
             }
             _ => {
-                let report = self.flush()?;
+                let report = self.close(false)?;
                 self.start(frame)?;
                 Ok(report)
             }
@@ -132,12 +132,18 @@ impl PackageWriter {
         Ok(())
     }
 
-    /// Closes the segment being coded, if any.
+    /// Closes the segment being coded, if any (the video's last when the frames left, as
+    /// told by [`PackageWriter::set_frames_left`], say so).
     pub fn flush(&mut self) -> Result<Option<SegmentReport>, CodecError> {
+        self.close(self.left.is_some_and(|n| n <= 1))
+    }
+
+    /// Closes the segment being coded, if any; `last`: no frame follows it.
+    fn close(&mut self, last: bool) -> Result<Option<SegmentReport>, CodecError> {
         let Some(open) = self.open.take() else {
             return Ok(None);
         };
-        let done = open.finish()?;
+        let done = open.finish(last)?;
         self.frames += done.segment.frames;
         self.spent += done.report.bits;
         self.segments.push(done.segment);
@@ -149,7 +155,7 @@ impl PackageWriter {
     /// follow the previous segment's last).
     pub fn push_segment(&mut self, frames: &[LayeredFrame]) -> Result<SegmentReport, CodecError> {
         let (first, rest) = frames.split_first().ok_or(CodecError::Empty)?;
-        self.flush()?;
+        self.close(false)?;
         if first.index != self.frames {
             return Err(CodecError::Tracks {
                 frame: first.index,
@@ -174,13 +180,13 @@ impl PackageWriter {
             }
             open.push(f.clone())?;
         }
-        Ok(self.flush()?.expect("a segment is open"))
+        Ok(self.close(false)?.expect("a segment is open"))
     }
 
     /// Codes the pending frames ([`PackageWriter::flush`]; their report is dropped: flush
     /// first to see it), writes the manifest and moves the package into place.
     pub fn finish(mut self) -> Result<cpsl_package::PackageManifest, CodecError> {
-        self.flush()?;
+        self.close(true)?;
         if self.segments.is_empty() {
             return Err(CodecError::Empty);
         }

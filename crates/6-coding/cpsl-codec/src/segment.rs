@@ -819,9 +819,8 @@ impl SegmentEncoder {
         Ok(())
     }
 
-    /// Under a budget, when the coded streams (with the side stream, estimated) overshoot the
-    /// segment's budget by more than 5 %, or, in the `last` segment, fall short of it by more
-    /// than 5 %: one correction round. Every stream's model is
+    /// Under a budget, when the `last` segment's coded streams (with the side stream,
+    /// estimated) miss its budget by more than 5 % either way: one correction round. Every stream's model is
     /// anchored on what it cost, the qualities are allocated again on the same rungs with no
     /// stream allowed to cost more than it did, and the streams whose quality changed are
     /// coded again from their kept pictures (`raws`).
@@ -840,10 +839,12 @@ impl SegmentEncoder {
         let bits = bits - self.side_estimate(frames).min(GEOMETRY_SHARE * bits);
         let spent: Vec<f64> = written.iter().map(|w| w.bytes as f64 * 8.0).collect();
         let total: f64 = spent.iter().sum();
-        // Short of the budget, only the last segment corrects: no later one spends it. Over
-        // it, no stream may then cost more than it did.
-        let under = last && total < 0.95 * bits;
-        if total <= 1.05 * bits && !under {
+        // Only the last segment corrects: the bit reservoir evens out the others, and a
+        // correction keeps each stream's rung, so that over the budget it can only coarsen
+        // the streams (measured on the fox: 0.1 to 0.45 dB lower at equal rate when every
+        // segment corrected). Over the budget, no stream may then cost more than it did.
+        let under = total < 0.95 * bits;
+        if !last || (total <= 1.05 * bits && !under) {
             return Ok(());
         }
         let mut models = Vec::with_capacity(written.len());

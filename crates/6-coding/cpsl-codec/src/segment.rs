@@ -633,7 +633,9 @@ impl SegmentEncoder {
                 // Down the ladder one rung at a time, for the streams that would take their
                 // smallest fitted rung at a quality worse than its upper trial's (all of them
                 // while the budget is out of reach); full size is then also tried at the worst
-                // quality, so that rates there are interpolated, not extrapolated.
+                // quality, and a stream that would take the best quality its model is trusted
+                // at also at the range's best, so that rates there are interpolated, not
+                // extrapolated.
                 let upper = |r: usize| trial_qualities(codec, r)[1];
                 let a = loop {
                     let a =
@@ -649,6 +651,12 @@ impl SegmentEncoder {
                         }
                         if r == 0 && q > upper(0) && self.models[k][0].max_q() < q_max {
                             jobs.push((k, 0, vec![q_max]));
+                        }
+                        // A generous budget: the best quality the model is trusted at is
+                        // taken, so the range's best end is tried too.
+                        let m = &self.models[k][r];
+                        if q <= m.best_q() && m.min_q() > q_min {
+                            jobs.push((k, r, vec![q_min]));
                         }
                     }
                     if jobs.is_empty() {

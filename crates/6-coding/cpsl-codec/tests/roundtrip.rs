@@ -103,9 +103,10 @@ fn package_round_trip_meets_budget_and_quality() {
     for r in &reports {
         let b = r.budget_bits.unwrap();
         assert!(r.bits <= 1.1 * b, "segment spent {} bits of {b}", r.bits);
-        // Generous for this size: full size, chosen without fitting the half-size rung (its
-        // 18 trial encodes would bring the count to 36).
-        assert!(r.scale.iter().all(|&s| s == 1) && r.encodes <= 18, "{r:?}");
+        // Generous for this size: full size (two trials per stream, a third at the best
+        // quality where the budget reaches it, and the final encode), chosen without fitting
+        // the half-size rung (its 18 trial encodes would bring the count to 42).
+        assert!(r.scale.iter().all(|&s| s == 1) && r.encodes <= 24, "{r:?}");
     }
     // The first segment fits every stream by trial encodes; the next starts from the models
     // it carried on, and codes each stream once.

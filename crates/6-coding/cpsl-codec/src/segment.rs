@@ -358,13 +358,25 @@ impl Raw {
         fps: f64,
         gop: usize,
     ) -> Result<Written, CodecError> {
+        self.encode_to(&self.out, codec, quality, fps, gop)
+    }
+
+    /// [`Raw::encode`] into the file `to`.
+    fn encode_to(
+        &self,
+        to: &Path,
+        codec: Codec,
+        quality: f32,
+        fps: f64,
+        gop: usize,
+    ) -> Result<Written, CodecError> {
         use std::io::Read;
         let io = |source| CodecError::Io {
             path: self.raw.clone(),
             source,
         };
         let (w, h) = self.size;
-        let mut e = StreamEncoder::create(&self.out, (w, h), codec, quality, fps, gop)?;
+        let mut e = StreamEncoder::create(to, (w, h), codec, quality, fps, gop)?;
         let mut input = std::io::BufReader::new(std::fs::File::open(&self.raw).map_err(io)?);
         for _ in 0..self.pictures {
             let mut plane = |n: usize| -> Result<Vec<u8>, CodecError> {
@@ -875,16 +887,34 @@ impl SegmentEncoder {
             .filter_map(|k| Some((k, a.quality[k], raws[k].as_ref()?)))
             .collect();
         let gop = self.gop();
+        let retry = |raw: &Raw| raw.out.with_extension("retry.mp4");
         let again: Vec<Written> = pool(self.parallel)?.install(|| {
             jobs.par_iter()
-                .map(|&(_, q, raw)| raw.encode(codec, q, fps, gop))
+                .map(|&(_, q, raw)| raw.encode_to(&retry(raw), codec, q, fps, gop))
                 .collect::<Result<_, _>>()
         })?;
-        for (&(k, q, _), wr) in jobs.iter().zip(again) {
-            coding.quality[k] = q;
-            written[k] = wr;
-        }
         self.encodes += jobs.len();
+        // Taken if it spends less (over the budget) or stays within it (short of it: the
+        // models may overshoot on the way up).
+        let before: f64 = jobs.iter().map(|j| spent[j.0]).sum();
+        let after: f64 = again.iter().map(|w| w.bytes as f64 * 8.0).sum();
+        let keep = match under {
+            true => total - before + after <= 1.05 * bits,
+            false => after <= before,
+        };
+        for (&(k, q, raw), wr) in jobs.iter().zip(again) {
+            let io = |source| CodecError::Io {
+                path: raw.out.clone(),
+                source,
+            };
+            if keep {
+                std::fs::rename(retry(raw), &raw.out).map_err(io)?;
+                coding.quality[k] = q;
+                written[k] = wr;
+            } else {
+                std::fs::remove_file(retry(raw)).map_err(io)?;
+            }
+        }
         Ok(())
     }
 

@@ -8,9 +8,9 @@
 //! cost there), or, for a new stream, one whose cost drifted from its model, or any after a
 //! refresh for changed content, trial encodes of the segment's first [`TRIAL_FRAMES`] frames,
 //! the only frames held in memory. The allocation is made for the segment's expected length;
-//! the pictures go to raw files as they arrive and are coded when the segment ends, with one
-//! correction round if they overshoot; what is still missed is repaid by the next segments
-//! (see [`crate::segment_budget`]).
+//! the pictures go to raw files as they arrive and are coded when the segment ends; what a
+//! segment misses is repaid by the next ones (see [`crate::segment_budget`]), and the last gets
+//! one correction round from its files.
 
 use crate::alloc::{self, RdModel, Trial};
 use crate::stream::{quality_range, PictureReader, StreamEncoder, Written};

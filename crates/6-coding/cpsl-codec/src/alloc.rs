@@ -149,7 +149,7 @@ impl RdModel {
         self.distortions.first().map_or(0.0, |p| p.0 as f32)
     }
 
-    /// The best quality the model is trusted at: [`MIN_SPAN`] steps beyond its best measured
+    /// The best quality the model is trusted at: 4 steps (`MIN_SPAN`) beyond its best measured
     /// one (rates grow faster than a line towards the best qualities).
     pub fn best_q(&self) -> f32 {
         self.distortions

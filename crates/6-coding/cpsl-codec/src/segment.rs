@@ -201,7 +201,7 @@ fn geometry_within(
 /// The qualities of the trial encodes of rung `rung`: a quarter and three fifths of the
 /// quality range, and for the smaller rungs also the range's end. The smaller rungs are tried
 /// only when full size would need a quality beyond its upper trial's (see
-/// [`encode_segment`]), so that is where they are used: measured there, they are
+/// `SegmentEncoder::choose`), so that is where they are used: measured there, they are
 /// interpolated, not extrapolated (rates flatten at the worst qualities).
 fn trial_qualities(codec: Codec, rung: usize) -> Vec<f32> {
     let (q_min, q_max, _) = quality_range(codec);
@@ -468,6 +468,8 @@ pub(crate) struct SegmentEncoder {
     sinks: Vec<Sink>,
     /// How many encoders may run at once (see [`concurrent_encoders`]).
     parallel: usize,
+    /// The threads trial and spilled encodes run on: at most `parallel`.
+    pool: rayon::ThreadPool,
     side: Vec<SideFrame>,
     /// Per frame and layer, under a budget: the plane a mesh layer falls back to.
     flat: Vec<Vec<Option<Geometry>>>,
@@ -518,6 +520,7 @@ impl SegmentEncoder {
             Some(_) => scale::rungs(cam.width, cam.height),
             None => vec![1],
         };
+        let parallel = concurrent_encoders(cam.width, cam.height);
         let mut s = Self {
             root: root.to_path_buf(),
             dir_name,
@@ -537,7 +540,8 @@ impl SegmentEncoder {
             pending: Vec::new(),
             coding: None,
             sinks: Vec::new(),
-            parallel: concurrent_encoders(cam.width, cam.height),
+            parallel,
+            pool: pool(parallel)?,
             side: Vec::new(),
             flat: Vec::new(),
             frames: 0,
@@ -591,18 +595,26 @@ impl SegmentEncoder {
             })
     }
 
-    /// The side stream's bits for `frames` frames, estimated from the frames so far.
-    fn side_estimate(&self, frames: usize) -> f64 {
-        let (w, h) = self.size;
-        let side = SideStream {
+    /// The segment's side stream with `frames`.
+    fn side_stream(&self, frames: Vec<SideFrame>) -> SideStream {
+        SideStream {
             segment: self.number as u32,
             start: self.start,
             streams: self.tracks.len() as u16,
-            width: w,
-            height: h,
-            frames: self.side.clone(),
-        };
-        side.encode().len() as f64 * 8.0 * frames as f64 / self.side.len().max(1) as f64
+            width: self.size.0,
+            height: self.size.1,
+            frames,
+        }
+    }
+
+    /// The bits of the plan for a segment of `frames` frames left to the layer streams: the
+    /// side stream's bits are estimated from the frames so far, and mesh grids give way to
+    /// planes beyond their share (see `geometry_within`).
+    fn layer_bits(&self, plan: &BudgetPlan, frames: usize) -> f64 {
+        let bits = plan.bits(self.opts.fps, frames);
+        let side = self.side_stream(self.side.clone()).encode().len() as f64 * 8.0;
+        let side = side * frames as f64 / self.side.len().max(1) as f64;
+        bits - side.min(GEOMETRY_SHARE * bits)
     }
 
     /// Chooses every stream's rung and quality and opens the encoders, unless trial encodes
@@ -619,9 +631,7 @@ impl SegmentEncoder {
                     true => self.frames,
                     false => plan.expected.max(self.frames),
                 };
-                // Mesh grids give way to planes beyond their share (see `geometry_within`).
-                let bits = plan.bits(self.opts.fps, frames);
-                let bits = bits - self.side_estimate(frames).min(GEOMETRY_SHARE * bits);
+                let bits = self.layer_bits(&plan, frames);
                 let lacking = |models: &[Vec<RdModel>], rungs: usize| -> Vec<Job> {
                     (0..n_streams)
                         .flat_map(|k| {
@@ -748,8 +758,7 @@ impl SegmentEncoder {
         let dir = self.root.join(&self.dir_name);
         let (pending, blank, rungs) = (&self.pending, &self.blank, &self.rungs);
         let inter_scale = self.inter_scale;
-        let pool = pool(self.parallel)?;
-        let fitted: Vec<Vec<Trial>> = pool.install(|| {
+        let fitted: Vec<Vec<Trial>> = self.pool.install(|| {
             jobs.par_iter()
                 .map(|(k, r, qualities)| {
                     let (k, r) = (*k, *r);
@@ -855,8 +864,7 @@ impl SegmentEncoder {
             return Ok(());
         };
         let (fps, frames, codec) = (self.opts.fps, self.frames, self.opts.codec);
-        let bits = plan.bits(fps, frames);
-        let bits = bits - self.side_estimate(frames).min(GEOMETRY_SHARE * bits);
+        let bits = self.layer_bits(&plan, frames);
         let spent: Vec<f64> = written.iter().map(|w| w.bytes as f64 * 8.0).collect();
         let total: f64 = spent.iter().sum();
         // Only the last segment corrects: the bit reservoir evens out the others, and a
@@ -888,7 +896,7 @@ impl SegmentEncoder {
             .collect();
         let gop = self.gop();
         let retry = |raw: &Raw| raw.out.with_extension("retry.mp4");
-        let again: Vec<Written> = pool(self.parallel)?.install(|| {
+        let again: Vec<Written> = self.pool.install(|| {
             jobs.par_iter()
                 .map(|&(_, q, raw)| raw.encode_to(&retry(raw), codec, q, fps, gop))
                 .collect::<Result<_, _>>()
@@ -928,10 +936,11 @@ impl SegmentEncoder {
         }
         let mut coding = self.coding.take().expect("chosen when finishing");
         let (codec, fps, gop) = (self.opts.codec, self.opts.fps, self.gop());
-        let pool = pool(self.parallel)?;
-        let (mut written, raws): (Vec<Written>, Vec<Option<Raw>>) = pool
+        let sinks = std::mem::take(&mut self.sinks);
+        let (mut written, raws): (Vec<Written>, Vec<Option<Raw>>) = self
+            .pool
             .install(|| {
-                std::mem::take(&mut self.sinks)
+                sinks
                     .into_par_iter()
                     .map(|s| s.finish(codec, fps, gop))
                     .collect::<Result<Vec<_>, _>>()
@@ -957,15 +966,8 @@ impl SegmentEncoder {
             let _ = std::fs::remove_file(&r.raw);
         }
         corrected?;
-        let (w, h) = self.size;
-        let mut side = SideStream {
-            segment: self.number as u32,
-            start: self.start,
-            streams: self.tracks.len() as u16,
-            width: w,
-            height: h,
-            frames: std::mem::take(&mut self.side),
-        };
+        let side_frames = std::mem::take(&mut self.side);
+        let mut side = self.side_stream(side_frames);
         let budget_bits = self.budget.map(|p| p.bits(fps, frames));
         let side_bytes = match budget_bits {
             Some(bits) => geometry_within(&mut side, &self.flat, GEOMETRY_SHARE * bits),

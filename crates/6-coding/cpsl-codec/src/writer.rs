@@ -99,23 +99,21 @@ impl PackageWriter {
             }
             _ => {
                 let report = self.close(false)?;
-                self.start(frame)?;
+                self.start(frame, self.left)?;
                 Ok(report)
             }
         }
     }
 
-    /// Opens the next segment with `first`.
-    fn start(&mut self, first: LayeredFrame) -> Result<(), CodecError> {
+    /// Opens the next segment with `first`; `left`: the frames still to come, `first`
+    /// included, when known (a budget plans for at most these).
+    fn start(&mut self, first: LayeredFrame, left: Option<u32>) -> Result<(), CodecError> {
         let budget = match self.opts.rate {
             RateControl::Budget(bps) => Some(BudgetPlan {
                 bps,
                 done: self.frames,
                 spent: self.spent,
-                expected: self
-                    .left
-                    .map_or(self.opts.gop, |n| n.min(self.opts.gop))
-                    .max(1) as usize,
+                expected: left.map_or(self.opts.gop, |n| n.min(self.opts.gop)).max(1) as usize,
             }),
             RateControl::Quality(_) => None,
         };
@@ -166,10 +164,7 @@ impl PackageWriter {
             });
         }
         // The segment's length is known: its allocation plans for it.
-        let left = self.left.replace(frames.len() as u32);
-        let started = self.start(first.clone());
-        self.left = left;
-        started?;
+        self.start(first.clone(), Some(frames.len() as u32))?;
         let open = self.open.as_mut().expect("just started");
         for f in rest {
             if f.index != first.index + open.frames() as u32 {

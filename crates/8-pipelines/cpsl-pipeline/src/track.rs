@@ -27,10 +27,7 @@ pub fn track_video(
     let info = src.info().clone();
     let cam = camera.camera(info.width, info.height)?;
     let mut tracker = Tracker::new(cam, TrackConfig::default())?;
-    let total = match (info.frames, max_frames) {
-        (Some(n), Some(m)) => Some(n.min(m)),
-        (n, m) => n.or(m),
-    };
+    let total = crate::video::frames_to_read(info.frames, max_frames);
     progress.event(ProgressEvent::Start {
         stage: TRACKING,
         total: total.map(|n| n as u64),

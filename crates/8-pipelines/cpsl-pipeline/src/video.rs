@@ -60,6 +60,14 @@ pub struct FrameRecord {
     pub frames_left: Option<usize>,
 }
 
+/// How many frames a run will read: the input's count (when it says) capped by `max_frames`.
+pub(crate) fn frames_to_read(input: Option<usize>, max_frames: Option<usize>) -> Option<usize> {
+    match (input, max_frames) {
+        (Some(n), Some(m)) => Some(n.min(m)),
+        (n, m) => n.or(m),
+    }
+}
+
 /// The progress stage of layering a video.
 pub const LAYERING: &str = "layering";
 
@@ -84,10 +92,7 @@ pub fn layer_video(
     let mut cfg = job.layering;
     cfg.cues.allow_missing_depth = true;
     let mut layerer = VideoLayerer::new(cam, cfg, job.gop)?;
-    let total = match (info.frames, job.max_frames) {
-        (Some(n), Some(m)) => Some(n.min(m)),
-        (n, m) => n.or(m),
-    };
+    let total = frames_to_read(info.frames, job.max_frames);
     progress.event(ProgressEvent::Start {
         stage: LAYERING,
         total: total.map(|n| n as u64),

@@ -11,6 +11,7 @@
 //! layers to streams and carries depths, confidence, refresh flags and the Edge-Depth Cache.
 
 pub mod alloc;
+mod fmp4;
 mod reader;
 pub mod scale;
 mod segment;
@@ -24,7 +25,7 @@ pub use writer::{segment_budget, PackageWriter};
 
 pub use stream::{
     decode_pictures, decode_stream, encode_pictures, encode_stream, has_encoder, quality_range,
-    PictureReader, Sample, StreamEncoder, Written,
+    write_init, Container, PictureReader, Sample, StreamEncoder, Written,
 };
 
 use cpsl_package::{Codec, PackageError};

@@ -177,6 +177,9 @@ pub struct Written {
     pub bytes: u64,
     /// Each coded picture's size in bytes, in decoding order (the key frame first).
     pub packets: Vec<u64>,
+    /// A fragment's in-band configuration (parameter sets, sequence header), what its init
+    /// segment's configuration record is made from ([`write_init`]); empty for an MP4 file.
+    pub headers: Vec<u8>,
 }
 
 impl Written {
@@ -190,6 +193,26 @@ impl Written {
     }
 }
 
+/// How a layer stream is stored.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Container {
+    /// A movie fragment with in-band parameter sets, read with the package's init segment
+    /// for its picture size ([`crate::fmp4`]; package version 4).
+    #[default]
+    Fragment,
+    /// A self-contained MP4 file (package versions 1 to 3).
+    Mp4,
+}
+
+/// Where an encoder's packets go.
+enum Out {
+    Mp4 {
+        octx: ffmpeg::format::context::Output,
+        ost_tb: ffmpeg::Rational,
+    },
+    Fragment(Vec<crate::fmp4::Coded>),
+}
+
 /// One layer stream being written picture by picture: the pictures go to the encoder as they
 /// come, so that nothing waits in memory for the rest of the segment. The first picture is
 /// the stream's only key frame.
@@ -197,21 +220,35 @@ pub struct StreamEncoder<T: Sample = u8> {
     path: PathBuf,
     codec: Codec,
     size: (usize, usize),
-    octx: ffmpeg::format::context::Output,
+    out: Out,
     enc: ffmpeg::encoder::Video,
     frame: ffmpeg::frame::Video,
     enc_tb: ffmpeg::Rational,
-    ost_tb: ffmpeg::Rational,
     pushed: i64,
     packets: Vec<u64>,
     sample: PhantomData<T>,
 }
 
 impl<T: Sample> StreamEncoder<T> {
-    /// Starts the MP4 file `path` for pictures of `size` (even), coded at quality `crf`, with
-    /// at most `max_frames` pictures between key frames (the segment's longest).
+    /// Starts the stream file `path` (a self-contained MP4 file) for pictures of `size`
+    /// (even), coded at quality `crf`, with at most `max_frames` pictures between key frames
+    /// (the segment's longest).
     pub fn create(
         path: &Path,
+        size: (usize, usize),
+        codec: Codec,
+        crf: f32,
+        fps: f64,
+        max_frames: usize,
+    ) -> Result<Self, CodecError> {
+        Self::create_as(path, Container::Mp4, size, codec, crf, fps, max_frames)
+    }
+
+    /// [`StreamEncoder::create`] in the `container`: a fragment keeps its parameter sets in
+    /// band and is written when the stream finishes.
+    pub fn create_as(
+        path: &Path,
+        container: Container,
         size: (usize, usize),
         codec: Codec,
         crf: f32,
@@ -222,12 +259,12 @@ impl<T: Sample> StreamEncoder<T> {
         let name = encoder_name(codec);
         let enc_codec =
             ffmpeg::encoder::find_by_name(name).ok_or(CodecError::MissingEncoder(name))?;
-        let mut octx = ffmpeg::format::output(&path).map_err(ff("creating the output"))?;
-        let global = octx
-            .format()
-            .flags()
-            .contains(ffmpeg::format::Flags::GLOBAL_HEADER);
-        let mut ost = octx.add_stream(enc_codec).map_err(ff("adding a stream"))?;
+        let mut octx = match container {
+            Container::Mp4 => {
+                Some(ffmpeg::format::output(&path).map_err(ff("creating the output"))?)
+            }
+            Container::Fragment => None,
+        };
         let mut enc = ffmpeg::codec::context::Context::new_with_codec(enc_codec)
             .encoder()
             .video()
@@ -243,22 +280,35 @@ impl<T: Sample> StreamEncoder<T> {
         enc.set_color_range(ffmpeg::color::Range::MPEG);
         enc.set_color_primaries(ffmpeg::color::Primaries::BT709);
         enc.set_color_transfer_characteristic(ffmpeg::color::TransferCharacteristic::BT709);
-        if global {
+        // A fragment keeps its parameter sets in band: no global header.
+        if octx.as_ref().is_some_and(|o| {
+            o.format()
+                .flags()
+                .contains(ffmpeg::format::Flags::GLOBAL_HEADER)
+        }) {
             enc.set_flags(ffmpeg::codec::Flags::GLOBAL_HEADER);
         }
         let enc = enc
             .open_as_with(enc_codec, options(codec, crf, max_frames))
             .map_err(ff("opening the encoder"))?;
-        ost.set_parameters(&enc);
-        ost.set_time_base(rate.invert());
-        let mut mux_opts = ffmpeg::Dictionary::new();
-        mux_opts.set("movflags", "+faststart");
-        // No muxer banner (the `encoder` tag naming the libavformat version): 37 bytes per
-        // stream and segment, and the same bytes whichever FFmpeg wrote them.
-        mux_opts.set("fflags", "+bitexact");
-        octx.write_header_with(mux_opts)
-            .map_err(ff("writing the header"))?;
-        let ost_tb = octx.stream(0).expect("stream 0").time_base();
+        let out = match octx.take() {
+            Some(mut octx) => {
+                let mut ost = octx.add_stream(enc_codec).map_err(ff("adding a stream"))?;
+                ost.set_parameters(&enc);
+                ost.set_time_base(rate.invert());
+                let mut mux_opts = ffmpeg::Dictionary::new();
+                mux_opts.set("movflags", "+faststart");
+                // No muxer banner (the `encoder` tag naming the libavformat version): 37
+                // bytes per stream and segment, and the same bytes whichever FFmpeg wrote
+                // them.
+                mux_opts.set("fflags", "+bitexact");
+                octx.write_header_with(mux_opts)
+                    .map_err(ff("writing the header"))?;
+                let ost_tb = octx.stream(0).expect("stream 0").time_base();
+                Out::Mp4 { octx, ost_tb }
+            }
+            None => Out::Fragment(Vec::new()),
+        };
         let mut frame = ffmpeg::frame::Video::new(T::FORMAT, size.0 as u32, size.1 as u32);
         frame.set_color_space(ffmpeg::color::Space::BT709);
         frame.set_color_range(ffmpeg::color::Range::MPEG);
@@ -268,11 +318,10 @@ impl<T: Sample> StreamEncoder<T> {
             path: path.to_path_buf(),
             codec,
             size,
-            octx,
+            out,
             enc,
             frame,
             enc_tb: rate.invert(),
-            ost_tb,
             pushed: 0,
             packets: Vec::new(),
             sample: PhantomData,
@@ -305,14 +354,27 @@ impl<T: Sample> StreamEncoder<T> {
             if self.codec == Codec::H264 {
                 drop_user_data_sei(&mut packet);
             }
-            self.packets.push(packet.size() as u64);
-            packet.set_stream(0);
-            // One frame long: without a duration the MP4 edit list cuts the last frame.
-            packet.set_duration(1);
-            packet.rescale_ts(self.enc_tb, self.ost_tb);
-            packet
-                .write_interleaved(&mut self.octx)
-                .map_err(ff("writing a packet"))?;
+            match &mut self.out {
+                Out::Mp4 { octx, ost_tb } => {
+                    self.packets.push(packet.size() as u64);
+                    packet.set_stream(0);
+                    // One frame long: without a duration the MP4 edit list cuts the last frame.
+                    packet.set_duration(1);
+                    packet.rescale_ts(self.enc_tb, *ost_tb);
+                    packet
+                        .write_interleaved(octx)
+                        .map_err(ff("writing a packet"))?;
+                }
+                Out::Fragment(samples) => {
+                    let data = crate::fmp4::to_sample(self.codec, packet.data().unwrap_or(&[]));
+                    self.packets.push(data.len() as u64);
+                    samples.push(crate::fmp4::Coded {
+                        data,
+                        pts: packet.pts().unwrap_or(samples.len() as i64),
+                        key: packet.is_key(),
+                    });
+                }
+            }
         }
         Ok(())
     }
@@ -324,24 +386,116 @@ impl<T: Sample> StreamEncoder<T> {
         }
         self.enc.send_eof().map_err(ff("flushing the encoder"))?;
         self.drain()?;
-        self.octx
-            .write_trailer()
-            .map_err(ff("writing the trailer"))?;
         let Self {
             path,
             packets,
-            octx,
+            out,
+            codec,
             ..
         } = self;
-        drop(octx);
-        let bytes = std::fs::metadata(&path)
-            .map(|m| m.len())
-            .map_err(|source| CodecError::Io {
-                path: path.clone(),
-                source,
-            })?;
-        Ok(Written { bytes, packets })
+        let io = |source| CodecError::Io {
+            path: path.clone(),
+            source,
+        };
+        let headers = match out {
+            Out::Mp4 { mut octx, .. } => {
+                octx.write_trailer().map_err(ff("writing the trailer"))?;
+                drop(octx);
+                Vec::new()
+            }
+            Out::Fragment(samples) => {
+                std::fs::write(&path, crate::fmp4::fragment(&samples)).map_err(io)?;
+                crate::fmp4::headers(codec, &samples[0].data)
+            }
+        };
+        let bytes = std::fs::metadata(&path).map(|m| m.len()).map_err(io)?;
+        Ok(Written {
+            bytes,
+            packets,
+            headers,
+        })
     }
+}
+
+/// The MP4 sample entry of a codec whose parameter sets may be in band.
+fn in_band_tag(codec: Codec) -> &'static [u8; 4] {
+    match codec {
+        Codec::H264 => b"avc3",
+        Codec::H265 => b"hev1",
+        Codec::Av1 => b"av01",
+        Codec::Vp9 => b"vp09",
+    }
+}
+
+/// Writes the init segment (`ftyp` + `moov`) for fragments of `codec` pictures of `size`
+/// at `fps` frames per second, its configuration record made from `headers` (a fragment's
+/// in-band configuration, [`Written::headers`]): FFmpeg's MP4 muxer writes it, with the
+/// sample duration and flags the fragments leave out as the track's defaults.
+#[allow(unsafe_code)] // FFmpeg's codec parameters have no safe setters for a tag or extradata.
+pub fn write_init<T: Sample>(
+    path: &Path,
+    codec: Codec,
+    size: (usize, usize),
+    fps: f64,
+    headers: &[u8],
+) -> Result<u64, CodecError> {
+    use ffmpeg::ffi;
+    init()?;
+    let name = encoder_name(codec);
+    let enc_codec = ffmpeg::encoder::find_by_name(name).ok_or(CodecError::MissingEncoder(name))?;
+    let rate = ffmpeg::Rational::from(fps);
+    let mut octx = ffmpeg::format::output_as(&path, "mp4").map_err(ff("creating the init"))?;
+    {
+        let mut ost = octx.add_stream(enc_codec).map_err(ff("adding a stream"))?;
+        ost.set_time_base(rate.invert());
+        let tag = in_band_tag(codec);
+        // SAFETY: the stream and its codec parameters belong to `octx`, alive here; the
+        // extradata is allocated with FFmpeg's allocator (padded as it requires) and freed
+        // with the parameters.
+        unsafe {
+            let par = (*ost.as_mut_ptr()).codecpar;
+            (*par).codec_type = ffi::AVMediaType::AVMEDIA_TYPE_VIDEO;
+            (*par).codec_id = enc_codec.id().into();
+            (*par).codec_tag = u32::from_le_bytes(*tag);
+            (*par).width = size.0 as i32;
+            (*par).height = size.1 as i32;
+            (*par).format = ffi::AVPixelFormat::from(T::FORMAT) as i32;
+            (*par).color_range = ffi::AVColorRange::AVCOL_RANGE_MPEG;
+            (*par).color_primaries = ffi::AVColorPrimaries::AVCOL_PRI_BT709;
+            (*par).color_trc = ffi::AVColorTransferCharacteristic::AVCOL_TRC_BT709;
+            (*par).color_space = ffi::AVColorSpace::AVCOL_SPC_BT709;
+            if !headers.is_empty() {
+                let pad = ffi::AV_INPUT_BUFFER_PADDING_SIZE as usize;
+                let buf = ffi::av_mallocz(headers.len() + pad) as *mut u8;
+                if buf.is_null() {
+                    return Err(CodecError::Ffmpeg("out of memory".into()));
+                }
+                std::ptr::copy_nonoverlapping(headers.as_ptr(), buf, headers.len());
+                (*par).extradata = buf;
+                (*par).extradata_size = headers.len() as i32;
+            }
+        }
+    }
+    let mut opts = ffmpeg::Dictionary::new();
+    opts.set("movflags", "frag_keyframe+empty_moov+default_base_moof");
+    opts.set("fflags", "+bitexact");
+    opts.set("video_track_timescale", &rate.numerator().to_string());
+    octx.write_header_with(opts)
+        .map_err(ff("writing the init"))?;
+    drop(octx);
+    let io = |source| CodecError::Io {
+        path: path.to_path_buf(),
+        source,
+    };
+    let written = std::fs::read(path).map_err(io)?;
+    let init = crate::fmp4::finish_init(&written, rate.denominator() as u32).map_err(|reason| {
+        CodecError::Stream {
+            path: path.to_path_buf(),
+            reason,
+        }
+    })?;
+    std::fs::write(path, &init).map_err(io)?;
+    Ok(init.len() as u64)
 }
 
 /// Removes from an H.264 packet every SEI NAL unit that opens with a user-data-unregistered
@@ -358,43 +512,10 @@ fn drop_user_data_sei(packet: &mut ffmpeg::Packet) {
     }
 }
 
-/// The NAL units of an H.264 access unit: (start, payload start, end) of each, the start
-/// including its start code or length prefix. `None` if `data` is neither Annex B (start
-/// codes) nor tiled by 4-byte length prefixes.
-fn nal_units(data: &[u8]) -> Option<Vec<(usize, usize, usize)>> {
-    let mut units = Vec::new();
-    if data.starts_with(&[0, 0, 1]) || data.starts_with(&[0, 0, 0, 1]) {
-        // Annex B: emulation prevention keeps 00 00 01 out of the payloads.
-        let codes: Vec<usize> = (0..data.len().saturating_sub(2))
-            .filter(|&i| data[i..i + 3] == [0, 0, 1])
-            .collect();
-        for (k, &c) in codes.iter().enumerate() {
-            let start = if c > 0 && data[c - 1] == 0 { c - 1 } else { c };
-            let end = codes
-                .get(k + 1)
-                .map_or(data.len(), |&n| if data[n - 1] == 0 { n - 1 } else { n });
-            units.push((start, c + 3, end));
-        }
-        return Some(units);
-    }
-    let mut at = 0;
-    while at < data.len() {
-        let b = data.get(at..at + 4)?;
-        let len = u32::from_be_bytes([b[0], b[1], b[2], b[3]]) as usize;
-        let end = at + 4 + len;
-        if len == 0 || end > data.len() {
-            return None;
-        }
-        units.push((at, at + 4, end));
-        at = end;
-    }
-    Some(units)
-}
-
 /// Moves the NAL units of `data` to keep to its front and returns their length (the whole
 /// length when nothing is dropped or the data does not parse).
 fn drop_user_data_nals(data: &mut [u8]) -> usize {
-    let Some(units) = nal_units(data) else {
+    let Some(units) = crate::fmp4::nal_units(data) else {
         return data.len();
     };
     let mut out = 0;
@@ -472,20 +593,47 @@ pub fn decode_pictures<T: Sample>(
     Ok(out)
 }
 
+/// Where a reader's packets come from.
+enum Source {
+    /// FFmpeg's demuxer of a self-contained file.
+    Demux {
+        input: ffmpeg::format::context::Input,
+        index: usize,
+    },
+    /// A movie fragment's samples, in decoding order.
+    Fragment {
+        data: Vec<u8>,
+        samples: Vec<crate::fmp4::Sample>,
+        codec: Codec,
+        next: usize,
+    },
+}
+
 /// Reads the stacked pictures of one stream one at a time, decoding only as far as the next
 /// picture needs: a player holds one picture per stream, not a whole segment.
 pub struct PictureReader<T: Sample = u8> {
     path: PathBuf,
-    input: ffmpeg::format::context::Input,
-    index: usize,
+    source: Source,
     dec: ffmpeg::decoder::Video,
     frame: ffmpeg::frame::Video,
     drained: bool,
+    /// A picture decoded ahead (a fragment's first, to check its size on opening).
+    ahead: Option<Yuv420<T>>,
     sample: PhantomData<T>,
 }
 
+fn decoder_id(codec: Codec) -> ffmpeg::codec::Id {
+    match codec {
+        Codec::H264 => ffmpeg::codec::Id::H264,
+        Codec::H265 => ffmpeg::codec::Id::HEVC,
+        Codec::Av1 => ffmpeg::codec::Id::AV1,
+        Codec::Vp9 => ffmpeg::codec::Id::VP9,
+    }
+}
+
 impl<T: Sample> PictureReader<T> {
-    /// Opens the stream of `width x height` images at `path`, checking its picture size.
+    /// Opens the stream of `width x height` images at `path` (a self-contained MP4 file),
+    /// checking its picture size.
     pub fn open(path: &Path, width: u32, height: u32) -> Result<Self, CodecError> {
         init()?;
         let bad = |reason: String| CodecError::Stream {
@@ -503,22 +651,77 @@ impl<T: Sample> PictureReader<T> {
         let dec = ctx.decoder().video().map_err(|e| bad(e.to_string()))?;
         let (cw, ch) = crate::yuv::coded_size(width, height);
         if (dec.width() as usize, dec.height() as usize) != (cw, 2 * ch) {
-            return Err(bad(format!(
-                "pictures are {}x{}, a {width}x{height} layer needs {cw}x{}",
-                dec.width(),
-                dec.height(),
-                2 * ch
+            return Err(bad(size_reason(
+                (dec.width() as usize, dec.height() as usize),
+                width,
+                height,
             )));
         }
         Ok(Self {
             path: path.to_path_buf(),
-            input,
-            index,
+            source: Source::Demux { input, index },
             dec,
             frame: ffmpeg::frame::Video::empty(),
             drained: false,
+            ahead: None,
             sample: PhantomData,
         })
+    }
+
+    /// Opens the stream at `path` in `container` ([`PictureReader::open`] for an MP4 file;
+    /// a fragment of `codec` is checked by decoding its first picture).
+    pub fn open_as(
+        path: &Path,
+        container: Container,
+        codec: Codec,
+        width: u32,
+        height: u32,
+    ) -> Result<Self, CodecError> {
+        if container == Container::Mp4 {
+            return Self::open(path, width, height);
+        }
+        init()?;
+        let bad = |reason: String| CodecError::Stream {
+            path: path.to_path_buf(),
+            reason,
+        };
+        let data = std::fs::read(path).map_err(|source| CodecError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        let samples = crate::fmp4::parse_fragment(&data).map_err(bad)?;
+        if !samples[0].key {
+            return Err(bad("the first picture is not a key picture".into()));
+        }
+        let id = decoder_id(codec);
+        let found = ffmpeg::decoder::find(id).ok_or(CodecError::MissingEncoder(codec.name()))?;
+        let dec = ffmpeg::codec::context::Context::new_with_codec(found)
+            .decoder()
+            .video()
+            .map_err(|e| bad(e.to_string()))?;
+        let mut reader = Self {
+            path: path.to_path_buf(),
+            source: Source::Fragment {
+                data,
+                samples,
+                codec,
+                next: 0,
+            },
+            dec,
+            frame: ffmpeg::frame::Video::empty(),
+            drained: false,
+            ahead: None,
+            sample: PhantomData,
+        };
+        let first = reader
+            .next_picture()?
+            .ok_or_else(|| bad("no pictures".into()))?;
+        let (cw, ch) = crate::yuv::coded_size(width, height);
+        if (first.width, first.height) != (cw, 2 * ch) {
+            return Err(bad(size_reason((first.width, first.height), width, height)));
+        }
+        reader.ahead = Some(first);
+        Ok(reader)
     }
 
     fn bad(&self, reason: String) -> CodecError {
@@ -530,6 +733,9 @@ impl<T: Sample> PictureReader<T> {
 
     /// The next picture in display order, or `None` after the last.
     pub fn next_picture(&mut self) -> Result<Option<Yuv420<T>>, CodecError> {
+        if let Some(p) = self.ahead.take() {
+            return Ok(Some(p));
+        }
         loop {
             match self.dec.receive_frame(&mut self.frame) {
                 Ok(()) => {
@@ -550,21 +756,62 @@ impl<T: Sample> PictureReader<T> {
                 return Ok(None);
             }
             // The decoder wants input: the next packet of the stream, or the end.
-            let mut packet = ffmpeg::Packet::empty();
-            match packet.read(&mut self.input) {
-                Ok(()) if packet.stream() == self.index => self
+            match self.next_packet()? {
+                Some(packet) => self
                     .dec
                     .send_packet(&packet)
                     .map_err(|e| self.bad(e.to_string()))?,
-                Ok(()) => {}
-                Err(ffmpeg::Error::Eof) => {
+                None => {
                     self.dec.send_eof().map_err(|e| self.bad(e.to_string()))?;
                     self.drained = true;
                 }
-                Err(e) => return Err(self.bad(e.to_string())),
             }
         }
     }
+
+    /// The stream's next packet, `None` at its end.
+    fn next_packet(&mut self) -> Result<Option<ffmpeg::Packet>, CodecError> {
+        match &mut self.source {
+            Source::Demux { input, index } => loop {
+                let mut packet = ffmpeg::Packet::empty();
+                match packet.read(input) {
+                    Ok(()) if packet.stream() == *index => return Ok(Some(packet)),
+                    Ok(()) => {}
+                    Err(ffmpeg::Error::Eof) => return Ok(None),
+                    Err(e) => return Err(self.bad(e.to_string())),
+                }
+            },
+            Source::Fragment {
+                data,
+                samples,
+                codec,
+                next,
+            } => {
+                let Some(s) = samples.get(*next) else {
+                    return Ok(None);
+                };
+                let mut packet =
+                    ffmpeg::Packet::copy(&crate::fmp4::to_decoder(*codec, &data[s.range.clone()]));
+                packet.set_dts(Some(*next as i64));
+                packet.set_pts(Some(*next as i64 + s.offset));
+                if s.key {
+                    packet.set_flags(ffmpeg::packet::Flags::KEY);
+                }
+                *next += 1;
+                Ok(Some(packet))
+            }
+        }
+    }
+}
+
+fn size_reason(found: (usize, usize), width: u32, height: u32) -> String {
+    let (cw, ch) = crate::yuv::coded_size(width, height);
+    format!(
+        "pictures are {}x{}, a {width}x{height} layer needs {cw}x{}",
+        found.0,
+        found.1,
+        2 * ch
+    )
 }
 
 #[cfg(test)]

@@ -1,7 +1,7 @@
 // Frame-locked decoding of one segment's layer streams with WebCodecs: one VideoDecoder per
 // stream, fed in decoding order a few frames ahead of what is shown, outputs keyed by
 // presentation index, so that frame i of every stream is available together.
-import { demux } from "./mp4.js";
+import { demux, demuxFragment, toAnnexB } from "./mp4.js";
 /** Frames fed beyond the one asked for (covers the encoder's reordering depth). */
 const LOOKAHEAD = 6;
 class StreamDecoder {
@@ -15,9 +15,10 @@ class StreamDecoder {
     ready = new Map();
     error = null;
     wake = null;
-    constructor(data) {
+    /** `data`: a progressive MP4, or a movie fragment whose init segment is `init`. */
+    constructor(data, init) {
         this.data = data;
-        this.track = demux(data);
+        this.track = init ? demuxFragment(init, data) : demux(data);
         const byCts = this.track.samples.map((s, i) => ({ i, cts: s.cts })).sort((a, b) => a.cts - b.cts);
         const rank = new Map();
         byCts.forEach((s, r) => rank.set(s.i, r));
@@ -81,10 +82,11 @@ class StreamDecoder {
                 return f;
             if (this.fed < this.order.length && (this.fed <= i + LOOKAHEAD || stalled) && this.decoder.decodeQueueSize < 4) {
                 const s = this.track.samples[this.order[this.fed].sample];
+                const bytes = new Uint8Array(this.data, s.offset, s.size);
                 this.decoder.decode(new EncodedVideoChunk({
                     type: s.key ? "key" : "delta",
                     timestamp: this.order[this.fed].index,
-                    data: new Uint8Array(this.data, s.offset, s.size),
+                    data: this.track.annexB ? toAnnexB(bytes) : bytes,
                 }));
                 this.fed++;
                 stalled = false;
@@ -121,9 +123,10 @@ export class SegmentDecoder {
     constructor(streams) {
         this.streams = streams;
     }
-    /** Demuxes and configures a decoder per stream (`data[k]` is stream k's MP4). */
-    static async open(data, frames) {
-        const streams = data.map((d) => new StreamDecoder(d));
+    /** Demuxes and configures a decoder per stream (`data[k]` is stream k's MP4 or fragment,
+     * `inits[k]` the fragment's init segment). */
+    static async open(data, frames, inits = []) {
+        const streams = data.map((d, k) => new StreamDecoder(d, inits[k]));
         for (const [k, s] of streams.entries())
             if (s.frames !== frames)
                 throw new Error(`layer stream ${k} has ${s.frames} frames, the segment ${frames}`);

@@ -52,6 +52,8 @@ class Player {
     next = null;
     /** Measured download throughput, bits per second (exponential average). */
     throughput = 0;
+    /** Init segments by URL, fetched once and checked against their manifest entries. */
+    inits = new Map();
     fixedVariant;
     variant = 0;
     frame = 0;
@@ -145,8 +147,30 @@ class Player {
         const side = await parseSide(bufs[bufs.length - 1]);
         if (side.length !== seg.frames)
             throw new Error(`segment ${i}: side stream has ${side.length} frames, the manifest ${seg.frames}`);
-        const decoder = await SegmentDecoder.open(bufs.slice(0, -1), seg.frames);
+        const inits = await Promise.all(seg.streams.map((s) => this.initOf(variant, s.init)));
+        const decoder = await SegmentDecoder.open(bufs.slice(0, -1), seg.frames, inits);
         return { index: i, variant: v, decoder, side, scales: seg.streams.map((s) => s.scale ?? 1) };
+    }
+    /** The init segment `path` of `variant` (none for self-contained streams). */
+    initOf(variant, path) {
+        if (!path)
+            return Promise.resolve(undefined);
+        const entry = variant.manifest.inits?.find((f) => f.path === path);
+        if (!entry)
+            return Promise.reject(new Error(`init segment ${path} is not in the manifest`));
+        const url = new URL(path, variant.base).href;
+        let p = this.inits.get(url);
+        if (!p) {
+            p = fetchOk(url).then(async (r) => {
+                const b = await r.arrayBuffer();
+                if (b.byteLength !== entry.bytes)
+                    throw new Error(`${path}: ${b.byteLength} bytes, the manifest says ${entry.bytes}`);
+                return b;
+            });
+            p.catch(() => this.inits.delete(url));
+            this.inits.set(url, p);
+        }
+        return p;
     }
     /** Adaptive choice: the best variant whose bitrate fits 70 % of the measured throughput. */
     chooseVariant() {

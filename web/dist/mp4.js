@@ -1,5 +1,6 @@
-// A small MP4 demuxer for the layer streams cpsl writes (one video track, progressive MP4):
-// the decoder configuration and every sample's place, size, key flag and timestamps.
+// A small MP4 demuxer for the layer streams cpsl writes (one video track; a progressive MP4
+// file, or a movie fragment after its init segment): the decoder configuration and every
+// sample's place, size, key flag and timestamps.
 function* boxes(v, start, end) {
     let p = start;
     while (p + 8 <= end) {
@@ -29,9 +30,8 @@ function child(v, parent, path) {
     return b;
 }
 const hex2 = (n) => n.toString(16).padStart(2, "0");
-/** Parses a progressive MP4 with one video track. */
-export function demux(buf) {
-    const v = new DataView(buf);
+/** The video track of a `moov`: its sample table box, timescale and sample description. */
+function videoTrack(v, buf) {
     const top = { type: "", start: 0, end: buf.byteLength, body: 0 };
     const moov = child(v, top, ["moov"]);
     const trak = [...boxes(v, moov.body, moov.end)].find((b) => {
@@ -45,9 +45,8 @@ export function demux(buf) {
     const mdhd = child(v, trak, ["mdia", "mdhd"]);
     const timescale = v.getUint8(mdhd.body) === 1 ? v.getUint32(mdhd.body + 20) : v.getUint32(mdhd.body + 12);
     const stbl = child(v, trak, ["mdia", "minf", "stbl"]);
-    const get = (t) => [...boxes(v, stbl.body, stbl.end)].find((b) => b.type === t);
     // Sample description: the codec and its configuration record.
-    const stsd = get("stsd");
+    const stsd = [...boxes(v, stbl.body, stbl.end)].find((b) => b.type === "stsd");
     if (!stsd)
         throw new Error("mp4: no stsd");
     const entry = boxes(v, stsd.body + 8, stsd.end).next().value;
@@ -77,6 +76,13 @@ export function demux(buf) {
     }
     if (!codec)
         throw new Error(`mp4: unsupported sample entry '${entry.type}'`);
+    return { stbl, timescale, codec, description, width, height };
+}
+/** Parses a progressive MP4 with one video track. */
+export function demux(buf) {
+    const v = new DataView(buf);
+    const { stbl, timescale, codec, description, width, height } = videoTrack(v, buf);
+    const get = (t) => [...boxes(v, stbl.body, stbl.end)].find((b) => b.type === t);
     // Sizes.
     const stsz = get("stsz");
     if (!stsz)
@@ -144,4 +150,91 @@ export function demux(buf) {
         dts: dts[i],
     }));
     return { codec, description, width, height, timescale, samples };
+}
+/**
+ * Parses a movie fragment (`moof` + `mdat`, as cpsl package version 4 writes each layer
+ * stream) with the init segment (`ftyp` + `moov`) that goes before it. Sample offsets are in
+ * `frag`. H.264 and H.265 fragments carry their parameter sets in band (`avc3`, `hev1`), so
+ * `annexB` is set: the samples are to be decoded with start codes and no description.
+ */
+export function demuxFragment(init, frag) {
+    const iv = new DataView(init);
+    const { timescale, codec, description, width, height } = videoTrack(iv, init);
+    const top = { type: "", start: 0, end: init.byteLength, body: 0 };
+    const trex = child(iv, top, ["moov", "mvex", "trex"]);
+    const defaultDuration = iv.getUint32(trex.body + 12);
+    const defaultFlags = iv.getUint32(trex.body + 20);
+    const v = new DataView(frag);
+    const all = [...boxes(v, 0, frag.byteLength)];
+    const moof = all.find((b) => b.type === "moof");
+    if (!moof)
+        throw new Error("mp4: no movie fragment ('moof')");
+    const traf = child(v, moof, ["traf"]);
+    const tfhd = child(v, traf, ["tfhd"]);
+    const tfFlags = v.getUint32(tfhd.body) & 0xffffff;
+    let at = tfhd.body + 8;
+    let base = moof.start;
+    if (tfFlags & 0x1) {
+        base = Number(v.getBigUint64(at));
+        at += 8;
+    }
+    if (tfFlags & 0x2)
+        at += 4;
+    const duration = tfFlags & 0x8 ? v.getUint32(at) : defaultDuration;
+    if (tfFlags & 0x8)
+        at += 4;
+    if (tfFlags & 0x10)
+        at += 4;
+    const flagsDefault = tfFlags & 0x20 ? v.getUint32(at) : defaultFlags;
+    const samples = [];
+    let next = base;
+    let dts = 0;
+    for (const trun of boxes(v, traf.body, traf.end)) {
+        if (trun.type !== "trun")
+            continue;
+        const head = v.getUint32(trun.body);
+        const [version, flags] = [head >>> 24, head & 0xffffff];
+        const count = v.getUint32(trun.body + 4);
+        let p = trun.body + 8;
+        if (flags & 0x1) {
+            next = base + v.getInt32(p);
+            p += 4;
+        }
+        let first = null;
+        if (flags & 0x4) {
+            first = v.getUint32(p);
+            p += 4;
+        }
+        const per = [0x100, 0x200, 0x400, 0x800].filter((f) => flags & f).length * 4;
+        if (!(flags & 0x200))
+            throw new Error("mp4: a track run without sample sizes");
+        if (p + count * per > trun.end)
+            throw new Error(`mp4: a track run of ${count} samples is cut`);
+        for (let i = 0; i < count; i++) {
+            const d = flags & 0x100 ? v.getUint32((p += 4) - 4) : duration;
+            const size = v.getUint32((p += 4) - 4);
+            const f = flags & 0x400 ? v.getUint32((p += 4) - 4) : i === 0 && first !== null ? first : flagsDefault;
+            const off = flags & 0x800 ? (version ? v.getInt32((p += 4) - 4) : v.getUint32((p += 4) - 4)) : 0;
+            if (next + size > frag.byteLength)
+                throw new Error(`mp4: sample ${samples.length} lies past the end of the fragment`);
+            samples.push({ offset: next, size, key: (f & 0x10000) === 0, cts: dts + off, dts });
+            next += size;
+            dts += d;
+        }
+    }
+    if (!samples.length)
+        throw new Error("mp4: the fragment has no samples");
+    const annexB = codec.startsWith("avc") || codec.startsWith("hev") || codec.startsWith("hvc");
+    return { codec, description: annexB ? undefined : description, width, height, timescale, samples, annexB };
+}
+/** A sample of 4-byte length-prefixed NAL units with start codes instead (same length). */
+export function toAnnexB(sample) {
+    const out = sample.slice();
+    const v = new DataView(out.buffer, out.byteOffset, out.byteLength);
+    for (let p = 0; p + 4 <= out.length;) {
+        const len = v.getUint32(p);
+        v.setUint32(p, 1);
+        p += 4 + len;
+    }
+    return out;
 }

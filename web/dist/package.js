@@ -7,16 +7,20 @@ function scalesOf(version) {
 export function checkManifest(m) {
     if (m.format !== "cpsl-package")
         throw new Error(`not a cpsl package (format '${m.format}')`);
-    if (!(m.version >= 1 && m.version <= 3))
-        throw new Error(`package version ${m.version}: this player reads versions 1 to 3`);
+    if (!(m.version >= 1 && m.version <= 4))
+        throw new Error(`package version ${m.version}: this player reads versions 1 to 4`);
     if (m.layout?.kind !== "colour-over-alpha")
         throw new Error(`layout '${m.layout?.kind}' is not supported`);
     if (!m.segments?.length)
         throw new Error("the package has no segments");
+    const inits = new Set((m.inits ?? []).map((f) => f.path));
     for (const s of m.segments)
-        for (const t of s.streams)
+        for (const t of s.streams) {
             if (!scalesOf(m.version).includes(t.scale ?? 1))
                 throw new Error(`stream ${t.file.path}: scale ${t.scale} is not one of ${scalesOf(m.version).join(", ")} (version ${m.version} packages)`);
+            if (m.version >= 4 && !(t.init && inits.has(t.init)))
+                throw new Error(`stream ${t.file.path}: no init segment listed for it`);
+        }
     return m;
 }
 /** Bits per second of a segment's files. */

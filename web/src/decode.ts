@@ -2,7 +2,7 @@
 // stream, fed in decoding order a few frames ahead of what is shown, outputs keyed by
 // presentation index, so that frame i of every stream is available together.
 
-import { demux, type Track } from "./mp4.js";
+import { demux, demuxFragment, toAnnexB, type Track } from "./mp4.js";
 
 /** Frames fed beyond the one asked for (covers the encoder's reordering depth). */
 const LOOKAHEAD = 6;
@@ -19,9 +19,10 @@ class StreamDecoder {
   private error: Error | null = null;
   private wake: (() => void) | null = null;
 
-  constructor(data: ArrayBuffer) {
+  /** `data`: a progressive MP4, or a movie fragment whose init segment is `init`. */
+  constructor(data: ArrayBuffer, init?: ArrayBuffer) {
     this.data = data;
-    this.track = demux(data);
+    this.track = init ? demuxFragment(init, data) : demux(data);
     const byCts = this.track.samples.map((s, i) => ({ i, cts: s.cts })).sort((a, b) => a.cts - b.cts);
     const rank = new Map<number, number>();
     byCts.forEach((s, r) => rank.set(s.i, r));
@@ -88,11 +89,12 @@ class StreamDecoder {
       if (f) return f;
       if (this.fed < this.order.length && (this.fed <= i + LOOKAHEAD || stalled) && this.decoder.decodeQueueSize < 4) {
         const s = this.track.samples[this.order[this.fed].sample];
+        const bytes = new Uint8Array(this.data, s.offset, s.size);
         this.decoder.decode(
           new EncodedVideoChunk({
             type: s.key ? "key" : "delta",
             timestamp: this.order[this.fed].index,
-            data: new Uint8Array(this.data, s.offset, s.size),
+            data: this.track.annexB ? toAnnexB(bytes) : bytes,
           }),
         );
         this.fed++;
@@ -131,9 +133,10 @@ export class SegmentDecoder {
     this.streams = streams;
   }
 
-  /** Demuxes and configures a decoder per stream (`data[k]` is stream k's MP4). */
-  static async open(data: ArrayBuffer[], frames: number): Promise<SegmentDecoder> {
-    const streams = data.map((d) => new StreamDecoder(d));
+  /** Demuxes and configures a decoder per stream (`data[k]` is stream k's MP4 or fragment,
+   * `inits[k]` the fragment's init segment). */
+  static async open(data: ArrayBuffer[], frames: number, inits: (ArrayBuffer | undefined)[] = []): Promise<SegmentDecoder> {
+    const streams = data.map((d, k) => new StreamDecoder(d, inits[k]));
     for (const [k, s] of streams.entries())
       if (s.frames !== frames) throw new Error(`layer stream ${k} has ${s.frames} frames, the segment ${frames}`);
     await Promise.all(streams.map((s) => s.configure()));

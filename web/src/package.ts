@@ -15,6 +15,8 @@ export interface StreamEntry {
   bitrate: number;
   /** Downscale factor the stream was coded at (1, 2, 4 or 8; 8 from version 3; absent: 1). */
   scale?: number;
+  /** The init segment that goes before the stream's fragment (version 4; one of `inits`). */
+  init?: string;
 }
 
 export interface Segment {
@@ -34,6 +36,8 @@ export interface Manifest {
   codec: "h264" | "h265" | "av1" | "vp9";
   layout: { kind: string; coded_width: number; coded_height: number };
   budget?: number;
+  /** Init segments of the layer streams' fragments (version 4). */
+  inits?: FileEntry[];
   segments: Segment[];
 }
 
@@ -46,11 +50,15 @@ function scalesOf(version: number): number[] {
 /** Checks what the player relies on; throws a readable error otherwise. */
 export function checkManifest(m: Manifest): Manifest {
   if (m.format !== "cpsl-package") throw new Error(`not a cpsl package (format '${m.format}')`);
-  if (!(m.version >= 1 && m.version <= 3)) throw new Error(`package version ${m.version}: this player reads versions 1 to 3`);
+  if (!(m.version >= 1 && m.version <= 4)) throw new Error(`package version ${m.version}: this player reads versions 1 to 4`);
   if (m.layout?.kind !== "colour-over-alpha") throw new Error(`layout '${m.layout?.kind}' is not supported`);
   if (!m.segments?.length) throw new Error("the package has no segments");
+  const inits = new Set((m.inits ?? []).map((f) => f.path));
   for (const s of m.segments)
-    for (const t of s.streams) if (!scalesOf(m.version).includes(t.scale ?? 1)) throw new Error(`stream ${t.file.path}: scale ${t.scale} is not one of ${scalesOf(m.version).join(", ")} (version ${m.version} packages)`);
+    for (const t of s.streams) {
+      if (!scalesOf(m.version).includes(t.scale ?? 1)) throw new Error(`stream ${t.file.path}: scale ${t.scale} is not one of ${scalesOf(m.version).join(", ")} (version ${m.version} packages)`);
+      if (m.version >= 4 && !(t.init && inits.has(t.init))) throw new Error(`stream ${t.file.path}: no init segment listed for it`);
+    }
   return m;
 }
 

@@ -291,6 +291,7 @@ fn clip(a: &DemoArgs, scene: &Scene, bars: &Bars) -> Result<()> {
             stereo: None,
         },
         codec: a.codec.into(),
+        container: cpsl_codec::Container::Fragment,
         fps: Some(CLIP_FPS),
         target: EncodeTarget::Package(package.clone(), RateControl::Budget(a.bitrate)),
     };

@@ -5,7 +5,7 @@ use crate::progress::Bars;
 use crate::video::VideoLayeringArgs;
 use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
-use cpsl_codec::RateControl;
+use cpsl_codec::{Container, RateControl};
 use cpsl_core::Geometry;
 use cpsl_package::{Codec, Package};
 use cpsl_pipeline::encode::{encode, EncodeJob, EncodeTarget};
@@ -33,6 +33,26 @@ impl From<CodecArg> for Codec {
             CodecArg::H265 => Codec::H265,
             CodecArg::Av1 => Codec::Av1,
             CodecArg::Vp9 => Codec::Vp9,
+        }
+    }
+}
+
+/// How the layer streams are stored.
+#[derive(ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ContainerArg {
+    /// Movie fragments with in-band parameter sets and one init segment per picture size
+    /// (package version 4): about 80 bytes per stream and segment plus 4 or 8 per picture.
+    Fragment,
+    /// Self-contained MP4 files (package versions 2 and 3, for players that read only those):
+    /// about 1.1 kB per stream and segment.
+    Mp4,
+}
+
+impl From<ContainerArg> for Container {
+    fn from(c: ContainerArg) -> Self {
+        match c {
+            ContainerArg::Fragment => Container::Fragment,
+            ContainerArg::Mp4 => Container::Mp4,
         }
     }
 }
@@ -75,6 +95,9 @@ pub struct EncodeArgs {
     /// Codec of the layer streams.
     #[arg(long, value_enum, default_value_t = CodecArg::H264)]
     pub codec: CodecArg,
+    /// How the layer streams are stored.
+    #[arg(long, value_enum, default_value_t = ContainerArg::Fragment)]
+    pub container: ContainerArg,
     /// Total bitrate budget (`3M`, `800k`), allocated per layer by saliency and edges; without
     /// it every layer is coded at --quality.
     #[arg(long, value_parser = parse_bitrate)]
@@ -115,6 +138,7 @@ pub fn run(a: EncodeArgs) -> Result<()> {
     let job = EncodeJob {
         video,
         codec,
+        container: a.container.into(),
         fps: a.fps,
         target,
     };
@@ -222,6 +246,13 @@ pub fn info(a: PackageArgs) -> Result<()> {
             None => " (constant quality)".into(),
         }
     );
+    match m.inits.len() {
+        0 => println!("  streams: self-contained MP4 files"),
+        n => println!(
+            "  streams: movie fragments; {n} init segments ({:.1} kB, fetched once)",
+            m.inits.iter().map(|f| f.bytes).sum::<u64>() as f64 / 1e3
+        ),
+    }
     println!("  segment  frames      streams  kbit/s  quality per stream (/2, /4, /8: coded at half, quarter, eighth size)");
     for (i, s) in m.segments.iter().enumerate() {
         let kbps: f64 = s.streams.iter().map(|t| t.bitrate as f64).sum::<f64>() / 1e3;

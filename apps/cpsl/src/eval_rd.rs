@@ -2,7 +2,7 @@
 //! MPI coded with the same codec, on a synthetic moving clip or the fox video
 //! (`cpsl_eval::rd`).
 
-use crate::encode::{parse_bitrate, CodecArg};
+use crate::encode::{parse_bitrate, CodecArg, ContainerArg};
 use crate::progress::Bars;
 use anyhow::Result;
 use clap::{Args, ValueEnum};
@@ -64,6 +64,9 @@ pub struct EvalRdArgs {
     /// Codec of every method's streams.
     #[arg(long, value_enum, default_value_t = CodecArg::H264)]
     pub codec: CodecArg,
+    /// How the layer streams are stored (CPSL and the MPI baseline).
+    #[arg(long, value_enum, default_value_t = ContainerArg::Fragment)]
+    pub container: ContainerArg,
     /// CPSL budgets (total bits per second).
     #[arg(long, value_delimiter = ',', default_value = "0.5M,1M,2M,3M,6M", value_parser = parse_bitrate)]
     pub bitrates: Vec<f64>,
@@ -94,6 +97,7 @@ pub fn run(a: EvalRdArgs) -> Result<()> {
         geometry: a.geometry,
         mpi_planes: a.mpi_planes,
         codec,
+        container: a.container.into(),
         bitrates: a.bitrates,
         qualities: a.qualities,
         score_every: a.score_every,

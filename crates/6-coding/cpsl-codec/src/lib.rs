@@ -121,4 +121,7 @@ pub struct CodingOptions {
     /// Most frames per segment (the GOP): the encoders' key-frame interval and, under a
     /// budget, the length a segment's allocation plans for.
     pub gop: u32,
+    /// How the layer streams are stored: movie fragments with init segments (package
+    /// version 4, the default) or self-contained MP4 files (versions 2 and 3).
+    pub container: Container,
 }

@@ -1,7 +1,7 @@
 //! Decoding a segment frame by frame: every layer stream advanced one picture at a time, in
 //! lock step, back to layer sets with their Edge-Depth Cache summary.
 
-use crate::stream::PictureReader;
+use crate::stream::{Container, PictureReader};
 use crate::{scale, yuv, CodecError};
 use cpsl_core::{Camera, Layer, LayerSet, Limits, PremulImage};
 use cpsl_package::{Package, SideFrame};
@@ -65,7 +65,14 @@ impl SegmentReader {
                 pkg.read(&s.file)?;
                 let size = scale::scaled_size(camera.width, camera.height, s.scale);
                 let shown = pkg.display_path(&s.file);
-                let reader = PictureReader::open(&pkg.path_of(&s.file), size.0, size.1)
+                // A fragment decodes on its own (its parameter sets are in band); its init
+                // segment is for standard MP4 readers.
+                let container = match s.init {
+                    Some(_) => Container::Fragment,
+                    None => Container::Mp4,
+                };
+                let path = pkg.path_of(&s.file);
+                let reader = PictureReader::open_as(&path, container, m.codec, size.0, size.1)
                     .map_err(|e| shown_as(e, &shown))?;
                 Ok(StreamCursor {
                     reader,

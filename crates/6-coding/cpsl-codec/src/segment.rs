@@ -13,7 +13,7 @@
 //! one correction round from its files.
 
 use crate::alloc::{self, RdModel, Trial};
-use crate::stream::{quality_range, PictureReader, StreamEncoder, Written};
+use crate::stream::{quality_range, write_init, Container, PictureReader, StreamEncoder, Written};
 use crate::{scale, yuv, CodecError, CodingOptions, RateControl};
 use cpsl_core::{Geometry, LayeredFrame, PremulImage, RefreshReason};
 use cpsl_package::{
@@ -310,6 +310,7 @@ impl Sink {
     /// again (the caller removes it).
     fn finish(
         self,
+        container: Container,
         codec: Codec,
         fps: f64,
         gop: usize,
@@ -335,7 +336,7 @@ impl Sink {
                     size,
                     pictures,
                 };
-                Ok((raw.encode(codec, quality, fps, gop)?, Some(raw)))
+                Ok((raw.encode(container, codec, quality, fps, gop)?, Some(raw)))
             }
         }
     }
@@ -353,18 +354,20 @@ impl Raw {
     /// Codes the pictures into the stream file at `quality`.
     fn encode(
         &self,
+        container: Container,
         codec: Codec,
         quality: f32,
         fps: f64,
         gop: usize,
     ) -> Result<Written, CodecError> {
-        self.encode_to(&self.out, codec, quality, fps, gop)
+        self.encode_to(&self.out, container, codec, quality, fps, gop)
     }
 
     /// [`Raw::encode`] into the file `to`.
     fn encode_to(
         &self,
         to: &Path,
+        container: Container,
         codec: Codec,
         quality: f32,
         fps: f64,
@@ -376,7 +379,7 @@ impl Raw {
             source,
         };
         let (w, h) = self.size;
-        let mut e = StreamEncoder::create(to, (w, h), codec, quality, fps, gop)?;
+        let mut e = StreamEncoder::create_as(to, container, (w, h), codec, quality, fps, gop)?;
         let mut input = std::io::BufReader::new(std::fs::File::open(&self.raw).map_err(io)?);
         for _ in 0..self.pictures {
             let mut plane = |n: usize| -> Result<Vec<u8>, CodecError> {
@@ -719,8 +722,9 @@ impl SegmentEncoder {
                 let q = coding.quality[k];
                 match spill {
                     true => Sink::spill(&path, (cw, 2 * ch), q),
-                    false => StreamEncoder::create(
+                    false => StreamEncoder::create_as(
                         &path,
+                        self.opts.container,
                         (cw, 2 * ch),
                         codec,
                         q,
@@ -743,8 +747,26 @@ impl SegmentEncoder {
         (self.opts.gop as usize).max(self.frames).max(1)
     }
 
+    /// The package path of the init segment for the fragments of streams at downscale
+    /// `scale`, written from `written`'s configuration if the package has none yet.
+    fn init_for(&self, scale: u32, written: &Written) -> Result<String, CodecError> {
+        let (sw, sh) = scale::scaled_size(self.size.0, self.size.1, scale);
+        let (cw, ch) = yuv::coded_size(sw, sh);
+        let rel = format!("init_{cw}x{}.mp4", 2 * ch);
+        let path = self.root.join(&rel);
+        if !path.exists() {
+            let (codec, fps) = (self.opts.codec, self.opts.fps);
+            write_init::<u8>(&path, codec, (cw, 2 * ch), fps, &written.headers)?;
+        }
+        Ok(rel)
+    }
+
     fn stream_rel(&self, k: usize) -> String {
-        format!("{}/layer_{k:02}.mp4", self.dir_name)
+        let ext = match self.opts.container {
+            Container::Fragment => "m4s",
+            Container::Mp4 => "mp4",
+        };
+        format!("{}/layer_{k:02}.{ext}", self.dir_name)
     }
 
     /// Trial encodes of the held frames, per job: stream, rung, qualities. Each is decoded,
@@ -755,6 +777,7 @@ impl SegmentEncoder {
         let (w, h) = self.size;
         let m = self.pending.len();
         let (codec, fps, gop) = (self.opts.codec, self.opts.fps, self.gop());
+        let container = self.opts.container;
         let dir = self.root.join(&self.dir_name);
         let (pending, blank, rungs) = (&self.pending, &self.blank, &self.rungs);
         let inter_scale = self.inter_scale;
@@ -790,12 +813,15 @@ impl SegmentEncoder {
                     for (t, &q) in qualities.iter().enumerate() {
                         let path = dir.join(format!("layer_{k:02}.trial{r}{t}.mp4"));
                         let run = || -> Result<(Written, f64), CodecError> {
-                            let mut e = StreamEncoder::create(&path, size, codec, q, fps, gop)?;
+                            let mut e = StreamEncoder::create_as(
+                                &path, container, size, codec, q, fps, gop,
+                            )?;
                             for p in &pics {
                                 e.push(p)?;
                             }
                             let written = e.finish()?;
-                            let mut reader = PictureReader::<u8>::open(&path, sw, sh)?;
+                            let mut reader =
+                                PictureReader::<u8>::open_as(&path, container, codec, sw, sh)?;
                             let mut err = 0.0;
                             for (src, v) in srcs.iter().zip(&vis) {
                                 let p =
@@ -894,11 +920,11 @@ impl SegmentEncoder {
             .filter(|&k| a.quality[k] != coding.quality[k])
             .filter_map(|k| Some((k, a.quality[k], raws[k].as_ref()?)))
             .collect();
-        let gop = self.gop();
+        let (gop, container) = (self.gop(), self.opts.container);
         let retry = |raw: &Raw| raw.out.with_extension("retry.mp4");
         let again: Vec<Written> = self.pool.install(|| {
             jobs.par_iter()
-                .map(|&(_, q, raw)| raw.encode_to(&retry(raw), codec, q, fps, gop))
+                .map(|&(_, q, raw)| raw.encode_to(&retry(raw), container, codec, q, fps, gop))
                 .collect::<Result<_, _>>()
         })?;
         self.encodes += jobs.len();
@@ -936,13 +962,14 @@ impl SegmentEncoder {
         }
         let mut coding = self.coding.take().expect("chosen when finishing");
         let (codec, fps, gop) = (self.opts.codec, self.opts.fps, self.gop());
+        let container = self.opts.container;
         let sinks = std::mem::take(&mut self.sinks);
         let (mut written, raws): (Vec<Written>, Vec<Option<Raw>>) = self
             .pool
             .install(|| {
                 sinks
                     .into_par_iter()
-                    .map(|s| s.finish(codec, fps, gop))
+                    .map(|s| s.finish(container, codec, fps, gop))
                     .collect::<Result<Vec<_>, _>>()
             })?
             .into_iter()
@@ -985,12 +1012,18 @@ impl SegmentEncoder {
             .iter()
             .enumerate()
             .map(|(k, wr)| {
+                let scale = self.rungs[coding.rung[k]];
+                let init = match container {
+                    Container::Fragment => Some(self.init_for(scale, wr)?),
+                    Container::Mp4 => None,
+                };
                 Ok(StreamEntry {
                     file: file_entry(root, &self.stream_rel(k))?,
+                    init,
                     track: self.tracks[k],
                     bitrate: (wr.bytes as f64 * 8.0 / seconds).round() as u64,
                     quality: coding.quality[k],
-                    scale: self.rungs[coding.rung[k]],
+                    scale,
                     weight: self.weights[k],
                 })
             })
@@ -1080,11 +1113,15 @@ mod tests {
             for p in &pictures {
                 sink.push(p).unwrap();
             }
-            let (w, raw) = sink.finish(Codec::H264, 30.0, 8).unwrap();
+            let (w, raw) = sink.finish(Container::Mp4, Codec::H264, 30.0, 8).unwrap();
             assert_eq!(raw.is_some(), spill);
             if let Some(raw) = raw {
                 // Coded again from the kept pictures: the same stream.
-                assert_eq!(raw.encode(Codec::H264, 30.0, 30.0, 8).unwrap(), w);
+                assert_eq!(
+                    raw.encode(Container::Mp4, Codec::H264, 30.0, 30.0, 8)
+                        .unwrap(),
+                    w
+                );
                 std::fs::remove_file(&raw.raw).unwrap();
             }
             written.push(w);

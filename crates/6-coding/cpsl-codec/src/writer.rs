@@ -3,7 +3,7 @@
 //! into place.
 
 use crate::segment::{BudgetPlan, Carried, SegmentEncoder, SegmentReport};
-use crate::{yuv, CodecError, CodingOptions, RateControl};
+use crate::{yuv, CodecError, CodingOptions, Container, RateControl};
 use cpsl_core::LayeredFrame;
 use cpsl_package::Segment;
 use std::path::Path;
@@ -186,13 +186,28 @@ impl PackageWriter {
             return Err(CodecError::Empty);
         }
         let (cw, ch) = yuv::coded_size(self.camera.width, self.camera.height);
+        let mut init_paths: Vec<&String> = self
+            .segments
+            .iter()
+            .flat_map(|s| s.streams.iter().filter_map(|t| t.init.as_ref()))
+            .collect();
+        init_paths.sort();
+        init_paths.dedup();
+        let root = self.stage.path();
+        let inits = init_paths
+            .into_iter()
+            .map(|p| cpsl_package::file_entry(root, p))
+            .collect::<Result<Vec<_>, _>>()?;
         let m = cpsl_package::PackageManifest {
             format: cpsl_package::PACKAGE_FORMAT.into(),
-            version: cpsl_package::version_for(
-                self.segments
-                    .iter()
-                    .flat_map(|s| s.streams.iter().map(|t| t.scale)),
-            ),
+            version: match self.opts.container {
+                Container::Fragment => cpsl_package::FRAGMENT_VERSION,
+                Container::Mp4 => cpsl_package::version_for(
+                    self.segments
+                        .iter()
+                        .flat_map(|s| s.streams.iter().map(|t| t.scale)),
+                ),
+            },
             camera: self.camera,
             frame_rate: self.opts.fps,
             frames: self.frames,
@@ -210,6 +225,7 @@ impl PackageWriter {
                 RateControl::Budget(b) => Some(b.round() as u64),
                 RateControl::Quality(_) => None,
             },
+            inits,
             segments: std::mem::take(&mut self.segments),
             checksum: String::new(),
         };

@@ -93,6 +93,7 @@ fn package_round_trip_meets_budget_and_quality() {
         rate: RateControl::Budget(budget),
         fps: FPS,
         gop: GOP,
+        container: cpsl_codec::Container::Fragment,
     };
     let reports = write(&out, &segs, opts);
     eprintln!("{reports:?}");
@@ -200,6 +201,7 @@ fn a_budget_below_the_full_size_floor_codes_smaller_streams() {
         rate,
         fps: FPS,
         gop: GOP,
+        container: cpsl_codec::Container::Fragment,
     };
     // The floor: every stream at full size and the lowest quality.
     let floor_pkg = dir.path().join("floor.cpsl");
@@ -255,6 +257,7 @@ fn verify_detects_a_flipped_byte_in_every_part() {
         rate: RateControl::Quality(30.0),
         fps: FPS,
         gop: GOP,
+        container: cpsl_codec::Container::Fragment,
     };
     write(&out, &segs, opts);
     let mut files = vec![out.join("manifest.json")];
@@ -286,7 +289,7 @@ fn verify_detects_a_flipped_byte_in_every_part() {
     let bytes = std::fs::read(&stream).unwrap();
     std::fs::write(&stream, &bytes[..bytes.len() / 2]).unwrap();
     let e = decode_segment(&pkg, 0).unwrap_err().to_string();
-    assert!(e.contains("layer_00.mp4"), "{e}");
+    assert!(e.contains("layer_00.m4s"), "{e}");
     std::fs::remove_file(pkg.path_of(&pkg.manifest().segments[0].side)).unwrap();
     assert!(decode_segment(&pkg, 0).is_err());
     // Decoding a truncated stream directly fails or returns fewer pictures, without panic.
@@ -347,6 +350,7 @@ fn a_package_archive_reads_like_its_folder() {
         rate: RateControl::Quality(30.0),
         fps: FPS,
         gop: GOP,
+        container: cpsl_codec::Container::Fragment,
     };
     write(&folder, &segs, opts);
     let archive = dir.path().join("clip.tar.cpsl");
@@ -468,6 +472,7 @@ fn frames_out_of_order_are_refused() {
         rate: RateControl::Quality(30.0),
         fps: FPS,
         gop: GOP,
+        container: cpsl_codec::Container::Fragment,
     };
     let out = dir.path().join("clip.cpsl");
     let mut w = PackageWriter::create(&out, *frames[0].set.camera(), 6, opts).unwrap();

@@ -27,7 +27,8 @@ mod variants;
 pub use archive::{is_archive, pack, unpack};
 pub use manifest::{
     scales_of, sha256_hex, unsafe_path, version_for, Codec, FileEntry, Layout, PackageManifest,
-    PackageManifestError, Segment, StreamEntry, MANIFEST_FILE, PACKAGE_FORMAT, PACKAGE_VERSION,
+    PackageManifestError, Segment, StreamEntry, FRAGMENT_VERSION, MANIFEST_FILE, PACKAGE_FORMAT,
+    PACKAGE_VERSION,
 };
 pub use side::{
     geometry_bytes, summarise_edc, SideError, SideFrame, SideLayer, SideStream, GRID_STEP,
@@ -247,6 +248,11 @@ impl Package {
     /// (empty when the package is intact).
     pub fn verify(&self) -> Vec<PackageError> {
         let mut problems = Vec::new();
+        for f in &self.manifest.inits {
+            if let Err(e) = self.read(f) {
+                problems.push(e);
+            }
+        }
         for (i, seg) in self.manifest.segments.iter().enumerate() {
             for s in &seg.streams {
                 if let Err(e) = self.read(&s.file) {

@@ -1,7 +1,10 @@
-//! The package manifest (`manifest.json`), format `cpsl-package` version 3. Older versions
+//! The package manifest (`manifest.json`), format `cpsl-package` version 4. Older versions
 //! read too: version 1 lacks the per-stream `scale` (every stream at full size), version 2
-//! allows scales 1, 2 and 4, version 3 adds 8. A package without an eighth-size stream is
-//! still written as version 2 ([`version_for`]), so players that read version 2 read it.
+//! allows scales 1, 2 and 4, version 3 adds 8; in versions 1 to 3 every layer stream is a
+//! self-contained MP4 file. Version 4 streams are movie fragments: each names the init
+//! segment (`ftyp` + `moov`, one per picture size, listed in `inits`) that goes before it.
+//! A package of self-contained streams without an eighth-size one is still written as
+//! version 2 ([`version_for`]), so players that read version 2 read it.
 //!
 //! The manifest names every file of the package with its size and SHA-256, so that a reader
 //! (or `cpsl verify`) can check each part, and carries its own checksum: the SHA-256 of the
@@ -16,7 +19,9 @@ use thiserror::Error;
 /// Format name written in every package manifest.
 pub const PACKAGE_FORMAT: &str = "cpsl-package";
 /// Newest package version this build reads and writes.
-pub const PACKAGE_VERSION: u32 = 3;
+pub const PACKAGE_VERSION: u32 = 4;
+/// The first version whose layer streams are movie fragments with init segments.
+pub const FRAGMENT_VERSION: u32 = 4;
 
 /// The downscale factors a stream may have in a package of `version`.
 pub fn scales_of(version: u32) -> &'static [u32] {
@@ -27,12 +32,13 @@ pub fn scales_of(version: u32) -> &'static [u32] {
     }
 }
 
-/// The version a package whose streams have the downscale factors `scales` is written with:
-/// the lowest that allows them, and at least 2 (what this format wrote before version 3).
+/// The version a package of self-contained MP4 streams whose downscale factors are `scales`
+/// is written with: the lowest that allows them, and at least 2 (what this format wrote
+/// before version 3). Packages of fragments are version [`FRAGMENT_VERSION`].
 pub fn version_for(scales: impl IntoIterator<Item = u32>) -> u32 {
     scales.into_iter().fold(2, |v, s| {
         v.max(
-            (1..=PACKAGE_VERSION)
+            (1..FRAGMENT_VERSION)
                 .find(|&v| scales_of(v).contains(&s))
                 .unwrap_or(PACKAGE_VERSION),
         )
@@ -117,8 +123,13 @@ pub struct FileEntry {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct StreamEntry {
-    /// The coded stream (an MP4 file).
+    /// The coded stream: a self-contained MP4 file (versions 1 to 3) or a movie fragment
+    /// (version 4).
     pub file: FileEntry,
+    /// The path of the init segment that goes before the fragment (version 4; one of the
+    /// manifest's `inits`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub init: Option<String>,
     /// The track of the layer it carries.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub track: Option<u32>,
@@ -179,6 +190,9 @@ pub struct PackageManifest {
     /// The total bitrate budget in bits per second, when one was given.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub budget: Option<u64>,
+    /// The init segments of the layer streams' fragments (version 4): one per picture size.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub inits: Vec<FileEntry>,
     /// Segments in frame order.
     pub segments: Vec<Segment>,
     /// SHA-256 of this file with this field's digits zeroed (see the module documentation).
@@ -267,6 +281,34 @@ fn split_checksum(bytes: &[u8]) -> Option<(Vec<u8>, String)> {
     Some((zeroed, found))
 }
 
+/// Checks a file entry's path (safe, not the manifest's, not used before) and SHA-256;
+/// `at` names where it is in the manifest.
+fn check_file(
+    f: &FileEntry,
+    at: &str,
+    seen: &mut std::collections::HashSet<String>,
+) -> Result<(), PackageManifestError> {
+    if let Some(reason) = unsafe_path(&f.path) {
+        return Err(field(
+            format!("{at}.path"),
+            format!("\"{}\" {reason}", f.path),
+        ));
+    }
+    if f.path == MANIFEST_FILE || !seen.insert(f.path.clone()) {
+        return Err(field(
+            format!("{at}.path"),
+            format!("\"{}\" is used twice", f.path),
+        ));
+    }
+    if f.sha256.len() != 64 || !f.sha256.bytes().all(|b| b.is_ascii_hexdigit()) {
+        return Err(field(
+            format!("{at}.sha256"),
+            format!("\"{}\" is not a SHA-256", f.sha256),
+        ));
+    }
+    Ok(())
+}
+
 impl PackageManifest {
     /// Parses and checks a manifest: its checksum, shape, format, version, paths and the
     /// consistency of its numbers (segments contiguous from frame 0 and adding up to `frames`,
@@ -312,6 +354,16 @@ impl PackageManifest {
         }
         let mut next = 0u64;
         let mut seen = std::collections::HashSet::new();
+        let fragments = self.version >= FRAGMENT_VERSION;
+        if !fragments && !self.inits.is_empty() {
+            return Err(field(
+                "inits",
+                format!("version {} packages have no init segments", self.version),
+            ));
+        }
+        for (i, f) in self.inits.iter().enumerate() {
+            check_file(f, &format!("inits[{i}]"), &mut seen)?;
+        }
         for (i, s) in self.segments.iter().enumerate() {
             let at = |f: &str| format!("segments[{i}].{f}");
             if s.start as u64 != next || s.frames == 0 {
@@ -337,20 +389,34 @@ impl PackageManifest {
                     ),
                 ));
             }
+            for (k, t) in s.streams.iter().enumerate() {
+                let listed = |p: &String| self.inits.iter().any(|f| &f.path == p);
+                match (&t.init, fragments) {
+                    (Some(p), true) if listed(p) => {}
+                    (Some(p), true) => {
+                        return Err(field(
+                            at(&format!("streams[{k}].init")),
+                            format!("\"{p}\" is not one of the manifest's `inits`"),
+                        ))
+                    }
+                    (None, true) => {
+                        return Err(field(
+                            at(&format!("streams[{k}].init")),
+                            format!("missing (version {} streams are fragments)", self.version),
+                        ))
+                    }
+                    (Some(_), false) => {
+                        return Err(field(
+                            at(&format!("streams[{k}].init")),
+                            format!("version {} streams have no init segment", self.version),
+                        ))
+                    }
+                    (None, false) => {}
+                }
+            }
             let files = s.streams.iter().map(|t| &t.file).chain([&s.side]);
             for f in files {
-                if let Some(reason) = unsafe_path(&f.path) {
-                    return Err(field(at("path"), format!("\"{}\" {reason}", f.path)));
-                }
-                if f.path == MANIFEST_FILE || !seen.insert(f.path.clone()) {
-                    return Err(field(at("path"), format!("\"{}\" is used twice", f.path)));
-                }
-                if f.sha256.len() != 64 || !f.sha256.bytes().all(|b| b.is_ascii_hexdigit()) {
-                    return Err(field(
-                        at("sha256"),
-                        format!("\"{}\" is not a SHA-256", f.sha256),
-                    ));
-                }
+                check_file(f, &format!("segments[{i}]"), &mut seen)?;
             }
         }
         if self.segments.is_empty() || next != self.frames as u64 {
@@ -379,16 +445,30 @@ impl PackageManifest {
         bytes
     }
 
-    /// Every file the manifest references, in order.
+    /// Every file the manifest references, in order: the init segments, then each
+    /// segment's layer streams and side stream.
     pub fn files(&self) -> impl Iterator<Item = &FileEntry> {
+        self.inits.iter().chain(
+            self.segments
+                .iter()
+                .flat_map(|s| s.streams.iter().map(|t| &t.file).chain([&s.side])),
+        )
+    }
+
+    /// The init segment that goes before `stream`'s fragment, if it has one.
+    pub fn init_of(&self, stream: &StreamEntry) -> Option<&FileEntry> {
+        let path = stream.init.as_ref()?;
+        self.inits.iter().find(|f| &f.path == path)
+    }
+
+    /// Total bytes of the segments' layer streams and side streams: what the budget pays for.
+    /// The init segments, fetched once per package like the manifest, are not counted.
+    pub fn payload_bytes(&self) -> u64 {
         self.segments
             .iter()
             .flat_map(|s| s.streams.iter().map(|t| &t.file).chain([&s.side]))
-    }
-
-    /// Total bytes of the layer streams and side streams.
-    pub fn payload_bytes(&self) -> u64 {
-        self.files().map(|f| f.bytes).sum()
+            .map(|f| f.bytes)
+            .sum()
     }
 
     /// Mean total bitrate in bits per second.

@@ -178,11 +178,13 @@ fn manifest() -> PackageManifest {
             range: "limited".into(),
         },
         budget: Some(3_000_000),
+        inits: vec![file("init_64x96.mp4")],
         segments: vec![Segment {
             start: 0,
             frames: 5,
             streams: vec![StreamEntry {
-                file: file("seg_000000/layer_00.mp4"),
+                file: file("seg_000000/layer_00.m4s"),
+                init: Some("init_64x96.mp4".into()),
                 track: Some(1),
                 bitrate: 1000,
                 quality: 30.0,
@@ -193,6 +195,50 @@ fn manifest() -> PackageManifest {
         }],
         checksum: String::new(),
     }
+}
+
+/// [`manifest`] as a version 3 package (self-contained MP4 streams, no init segments).
+fn manifest_v3() -> PackageManifest {
+    let mut m = manifest();
+    m.version = 3;
+    m.inits.clear();
+    m.segments[0].streams[0].init = None;
+    m.segments[0].streams[0].file.path = "seg_000000/layer_00.mp4".into();
+    m
+}
+
+#[test]
+fn version_4_streams_name_a_listed_init_segment() {
+    assert!(PackageManifest::parse(&manifest().to_json()).is_ok());
+    assert!(PackageManifest::parse(&manifest_v3().to_json()).is_ok());
+    let err = |m: PackageManifest| {
+        PackageManifest::parse(&m.to_json())
+            .unwrap_err()
+            .to_string()
+    };
+    let mut m = manifest();
+    m.segments[0].streams[0].init = None;
+    assert!(err(m).contains("streams[0].init`: missing"));
+    let mut m = manifest();
+    m.segments[0].streams[0].init = Some("init_2x2.mp4".into());
+    assert!(err(m).contains("is not one of the manifest's `inits`"));
+    let mut m = manifest();
+    m.inits[0].path = "../init.mp4".into();
+    assert!(err(m).contains("inits[0].path"));
+    let mut m = manifest();
+    m.inits.push(m.inits[0].clone());
+    assert!(err(m).contains("used twice"));
+    // Older versions have none.
+    let mut m = manifest_v3();
+    m.segments[0].streams[0].init = Some("init_64x96.mp4".into());
+    assert!(err(m).contains("version 3 streams have no init segment"));
+    let mut m = manifest();
+    m.version = 3;
+    m.segments[0].streams[0].init = None;
+    assert!(err(m).contains("version 3 packages have no init segments"));
+    // The init segments are files of the package.
+    assert_eq!(manifest().files().next().unwrap().path, "init_64x96.mp4");
+    assert_eq!(manifest().payload_bytes(), 20);
 }
 
 #[test]
@@ -236,7 +282,7 @@ fn manifest_round_trips_and_checks_itself() {
         "{e}"
     );
     // Eighth size needs version 3; packages without it are written as version 2.
-    let mut m7 = manifest();
+    let mut m7 = manifest_v3();
     m7.segments[0].streams[0].scale = 8;
     assert!(PackageManifest::parse(&m7.to_json()).is_ok());
     m7.version = 2;
@@ -248,7 +294,7 @@ fn manifest_round_trips_and_checks_itself() {
     assert_eq!(cpsl_package::version_for([1, 8]), 3);
     assert_eq!(cpsl_package::version_for([1, 1]), 2);
     // Version 1 manifests (no `scale`) still read, every stream at full size.
-    let mut m5 = manifest();
+    let mut m5 = manifest_v3();
     m5.version = 1;
     m5.segments[0].streams[0].scale = 1;
     let v1 = m5.to_json();
@@ -258,7 +304,7 @@ fn manifest_round_trips_and_checks_itself() {
         1
     );
     // A version 1 manifest cannot carry a downscaled stream.
-    let mut m6 = manifest();
+    let mut m6 = manifest_v3();
     m6.version = 1;
     let e = PackageManifest::parse(&m6.to_json())
         .unwrap_err()

@@ -98,13 +98,19 @@ pub fn list_packages(root: &Path) -> Listing {
     out
 }
 
-/// URLs of every file of a listed package: its manifest, then each segment's streams and side
-/// stream.
+/// URLs of every file of a listed package: its manifest, its init segments, then each
+/// segment's streams and side stream.
 pub fn package_urls(root: &Path, p: &PackageSummary) -> Vec<String> {
     let Ok(pkg) = Package::open(&root.join(&p.path)) else {
         return Vec::new();
     };
     let mut out = vec![format!("{}manifest.json", p.url)];
+    out.extend(
+        pkg.manifest()
+            .inits
+            .iter()
+            .map(|f| format!("{}{}", p.url, f.path)),
+    );
     for s in &pkg.manifest().segments {
         out.extend(
             s.streams

@@ -5,7 +5,7 @@
 use crate::error::{Context, PipelineError};
 use crate::sources::VideoDepth;
 use crate::video::{layer_video, VideoJob};
-use cpsl_codec::{CodingOptions, PackageWriter, RateControl, SegmentReport};
+use cpsl_codec::{CodingOptions, Container, PackageWriter, RateControl, SegmentReport};
 use cpsl_core::{Progress, ProgressEvent};
 use cpsl_package::{Codec, PackageManifest, VariantSet, VARIANTS_FILE};
 use std::path::{Path, PathBuf};
@@ -30,6 +30,8 @@ pub struct EncodeJob {
     pub video: VideoJob,
     /// Codec of the layer streams.
     pub codec: Codec,
+    /// How the layer streams are stored.
+    pub container: Container,
     /// Frames per second of the package; the input's when `None`.
     pub fps: Option<f64>,
     /// What to write.
@@ -175,6 +177,7 @@ pub fn encode(
                     rate: *rate,
                     fps,
                     gop: job.video.gop.gop as u32,
+                    container: job.container,
                 };
                 writers.push(PackageWriter::create(path, *f.set.camera(), layers, opts)?);
             }

@@ -18,7 +18,7 @@ use crate::baselines::dibr;
 use crate::error::{Context, EvalError};
 use crate::metrics::{psnr, psnr_masked};
 use cpsl_codec::yuv::Yuv420;
-use cpsl_codec::{CodingOptions, PackageWriter, RateControl};
+use cpsl_codec::{CodingOptions, Container, PackageWriter, RateControl};
 use cpsl_core::{
     Camera, Edc, Layer, LayerSet, LayeredFrame, Limits, Pose, PremulImage, Progress, ProgressEvent,
     RefreshReason,
@@ -64,6 +64,8 @@ pub struct RdOptions {
     pub mpi_planes: u32,
     /// Codec of every method's streams.
     pub codec: Codec,
+    /// How the layer streams are stored.
+    pub container: Container,
     /// CPSL budgets (total bits per second).
     pub bitrates: Vec<f64>,
     /// Qualities (CRF) of the baselines; five points spread over the codec's range if `None`.
@@ -487,7 +489,7 @@ fn code(
     dir: &Path,
     segments: &Segments,
     k: u32,
-    codec: Codec,
+    (codec, container): (Codec, Container),
     rate: RateControl,
     wanted: &[usize],
 ) -> Result<Coded> {
@@ -498,6 +500,7 @@ fn code(
         rate,
         fps: FPS,
         gop: segments.iter().map(Vec::len).max().unwrap_or(1) as u32,
+        container,
     };
     let mut writer = PackageWriter::create(&path, cam, k, opts)?;
     for s in segments {
@@ -516,8 +519,11 @@ fn code(
         .map(|f| Ok((f as usize, player.decode(f)?)))
         .collect::<Result<_>>()?;
     std::fs::remove_dir_all(&path).map_err(|e| EvalError::file(&path, e))?;
+    // Every byte a viewer fetches but the manifest: the init segments too, spread over the
+    // clip (the baselines' MP4 files carry theirs in every file).
+    let init_bits: u64 = m.inits.iter().map(|f| f.bytes * 8).sum();
     Ok(Coded {
-        bitrate: m.bitrate(),
+        bitrate: m.bitrate() + init_bits as f64 * m.frame_rate / m.frames as f64,
         frames,
     })
 }
@@ -714,7 +720,7 @@ pub fn evaluate_rd(
             tmp.path(),
             &segments,
             a.layers,
-            codec,
+            (codec, a.container),
             RateControl::Budget(b),
             &wanted,
         )?;
@@ -781,7 +787,7 @@ pub fn evaluate_rd(
             tmp.path(),
             &segments,
             a.mpi_planes,
-            codec,
+            (codec, a.container),
             RateControl::Quality(q),
             &wanted,
         )?;

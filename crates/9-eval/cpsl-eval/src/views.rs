@@ -162,6 +162,7 @@ impl RoundTrip {
                 rate,
                 fps: CODED_FPS,
                 gop: 1,
+                container: cpsl_codec::Container::Fragment,
             },
             dir,
             _temp: temp,

@@ -55,6 +55,9 @@ try {
          "--fps", "30", "--codec", codec, "--quality", "30", "-o", join(work, `${codec}.cpsl`)]);
   run(["encode", join(clip, "frames"), "--depth-frames", join(clip, "depth"), "--camera", join(clip, "camera.json"),
        "--fps", "30", "--geometry", "mesh", "--quality", "30", "-o", join(work, "mesh.cpsl")]);
+  // Self-contained MP4 streams (package version 2/3, what earlier builds wrote) still play.
+  run(["encode", join(clip, "frames"), "--depth-frames", join(clip, "depth"), "--camera", join(clip, "camera.json"),
+       "--fps", "30", "--container", "mp4", "--quality", "30", "-o", join(work, "mp4.cpsl")]);
   server = await startServer(bin, work);
   browser = await launchChromium();
   const page = await browser.newPage({ viewport: { width: 800, height: 600 }, deviceScaleFactor: 1 });
@@ -95,7 +98,7 @@ try {
         `screenshot ${s.psnr.toFixed(2)} dB (max diff ${s.max}); need ${MIN_PSNR} / ${MIN_SCREENSHOT_PSNR} dB${strip}`,
     );
   }
-  for (const codec of ["vp9", "av1", "mesh"]) {
+  for (const codec of ["vp9", "av1", "mesh", "mp4"]) {
     const ref = join(work, `ref_${codec}.png`);
     const pose = "0.1,0,0,0,2,0";
     run(["render", join(work, `${codec}.cpsl`), "--frame", "5", "--pose", pose, "-o", ref]);
@@ -171,4 +174,4 @@ if (failures) {
   console.error(`${failures} of ${cases.length} player renders differ from the CPU reference`);
   process.exit(1);
 }
-console.log(`browser player matches the CPU reference on ${cases.length + 5} renders (H.264, VP9, AV1; downscaled streams; mesh layers) and adapts between variants; controls work`);
+console.log(`browser player matches the CPU reference on ${cases.length + 6} renders (H.264, VP9, AV1; fragments and MP4 files; downscaled streams; mesh layers) and adapts between variants; controls work`);

@@ -5,11 +5,11 @@ use crate::progress::Bars;
 use crate::video::VideoLayeringArgs;
 use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
-use cpsl_codec::{Container, RateControl};
+use cpsl_codec::{Container, RateControl, SegmentReport};
 use cpsl_core::Geometry;
 use cpsl_package::{Codec, Package};
 use cpsl_pipeline::encode::{encode, EncodeJob, EncodeTarget};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 
@@ -114,6 +114,10 @@ pub struct EncodeArgs {
     /// Frame rate of the package; the input's by default (30 for image folders).
     #[arg(long)]
     pub fps: Option<f64>,
+    /// Print how each segment was coded: its budget and what it spent, the encodes run, the
+    /// streams fitted by trial encodes, and each stream's quality and size.
+    #[arg(long)]
+    pub segments: bool,
     #[command(flatten)]
     pub layering: VideoLayeringArgs,
 }
@@ -169,10 +173,50 @@ pub fn run(a: EncodeArgs) -> Result<()> {
             m.frames as f64 / coding.max(1e-9)
         );
     }
+    if a.segments {
+        for ((path, _), reports) in done.packages.iter().zip(&done.reports) {
+            print_segments(path, reports);
+        }
+    }
     if let Some(set) = &done.variant_set {
         println!("wrote {} ({} variants)", set.display(), done.packages.len());
     }
     Ok(())
+}
+
+/// One line per segment of `reports`: frames, budget and spending, encodes, fitted streams,
+/// quality per stream (`/2`, `/4`, `/8`: coded at that fraction of the size).
+fn print_segments(path: &Path, reports: &[SegmentReport]) {
+    println!("{}: segments", path.display());
+    println!("  frames       budget kbit  spent kbit  encodes  fitted  quality per stream");
+    for r in reports {
+        let spent = r.bits / 1e3;
+        let budget = match r.budget_bits {
+            Some(b) => format!(
+                "{:>11.1}  {spent:>10.1} ({:+.0} %)",
+                b / 1e3,
+                100.0 * (r.bits / b - 1.0)
+            ),
+            None => format!("{:>11}  {spent:>10.1}", "-"),
+        };
+        let q: Vec<String> = r
+            .quality
+            .iter()
+            .zip(&r.scale)
+            .map(|(q, s)| match s {
+                1 => format!("{q:.0}"),
+                s => format!("{q:.0}/{s}"),
+            })
+            .collect();
+        println!(
+            "  {:>5}-{:<5}  {budget}  {:>7}  {:>6}  {}",
+            r.start,
+            r.start + r.frames - 1,
+            r.encodes,
+            r.fitted,
+            q.join(" ")
+        );
+    }
 }
 
 /// Arguments of `cpsl info` and `cpsl verify`.

@@ -43,6 +43,8 @@ pub struct EncodeJob {
 pub struct Encoded {
     /// Each package written (for variants, cheapest first) and its manifest.
     pub packages: Vec<(PathBuf, PackageManifest)>,
+    /// Each package's segment reports, in segment order.
+    pub reports: Vec<Vec<SegmentReport>>,
     /// The variant set, if one was written.
     pub variant_set: Option<PathBuf>,
     /// Seconds end to end.
@@ -163,6 +165,7 @@ pub fn encode(
     let interrupted = || PipelineError::Interrupted("package");
     let layers = job.video.layering.layers as u32;
     let mut writers: Vec<PackageWriter> = Vec::new();
+    let mut reports: Vec<Vec<SegmentReport>> = vec![Vec::new(); outputs.len()];
     let mut coding = 0.0;
     let t = Instant::now();
     layer_video(&job.video, depth, progress, |r| {
@@ -198,6 +201,7 @@ pub fn encode(
                 .push(f)
                 .context_with(|| format!("coding the segment before frame {index}"))?;
             report.iter().for_each(|r| warn_over_budget(r, progress));
+            reports[i].extend(report);
         }
         coding += t.elapsed().as_secs_f64();
         Ok(())
@@ -206,13 +210,14 @@ pub fn encode(
         return Err(interrupted());
     }
     let mut packages = Vec::new();
-    for (writer, (path, _)) in writers.into_iter().zip(&outputs) {
+    for ((writer, (path, _)), reports) in writers.into_iter().zip(&outputs).zip(&mut reports) {
         let t = Instant::now();
         let mut writer = writer;
         let report = writer
             .flush()
             .context_with(|| "coding the last segment".into())?;
         report.iter().for_each(|r| warn_over_budget(r, progress));
+        reports.extend(report);
         let manifest = writer.finish()?;
         coding += t.elapsed().as_secs_f64();
         packages.push((path.clone(), manifest));
@@ -238,6 +243,7 @@ pub fn encode(
     }
     Ok(Encoded {
         packages,
+        reports,
         variant_set,
         seconds: t.elapsed().as_secs_f64(),
         coding_seconds: coding,

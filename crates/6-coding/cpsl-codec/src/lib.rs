@@ -2,12 +2,14 @@
 //! one standard video stream per layer plus a side stream, with the per-layer bitrate
 //! allocation, and decoding a segment back into layer sets.
 //!
-//! **Layout.** Each layer of a segment is one MP4 file of 8-bit 4:2:0 pictures twice the frame
-//! height: premultiplied colour on top, alpha as grey below ([`yuv`]), tagged BT.709 limited
-//! range; under a tight budget a stream may be coded at a half, a quarter or an eighth of the
-//! frame size ([`scale`]). Per-layer streams keep per-layer rate control exact; a segment's streams hold the
-//! same frames and start with a key frame, so a player decodes them in lock-step (the browser
-//! player with WebCodecs). The side stream (`side.bin`, see `cpsl-package`) maps each frame's
+//! **Layout.** Each layer of a segment is one stream of 8-bit 4:2:0 pictures twice the frame
+//! height, a movie fragment with an init segment per picture size (package version 4) or a
+//! self-contained MP4 file (versions 1 to 3; see [`Container`]): premultiplied colour on top,
+//! alpha as grey below ([`yuv`]), tagged BT.709 limited range; under a tight budget a stream
+//! may be coded at a half, a quarter or an eighth of the frame size ([`scale`]). Per-layer
+//! streams keep per-layer rate control exact; a segment's streams hold the same frames and
+//! start with a key frame, so a player decodes them in lock-step (the browser player with
+//! WebCodecs). The side stream (`side.bin`, see `cpsl-package`) maps each frame's
 //! layers to streams and carries depths, confidence, refresh flags and the Edge-Depth Cache.
 
 pub mod alloc;

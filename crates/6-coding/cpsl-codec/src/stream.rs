@@ -1,5 +1,5 @@
-//! Coding one layer stream: a sequence of colour-over-alpha pictures written as an MP4 file
-//! whose first picture is a key frame, and read back.
+//! Coding one layer stream: a sequence of colour-over-alpha pictures written as a movie
+//! fragment or an MP4 file whose first picture is a key frame, and read back.
 
 use crate::yuv::{stack, unstack, Yuv420};
 use crate::CodecError;

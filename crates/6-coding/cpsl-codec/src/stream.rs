@@ -197,7 +197,7 @@ impl Written {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum Container {
     /// A movie fragment with in-band parameter sets, read with the package's init segment
-    /// for its picture size ([`crate::fmp4`]; package version 4).
+    /// for its picture size (package version 4).
     #[default]
     Fragment,
     /// A self-contained MP4 file (package versions 1 to 3).

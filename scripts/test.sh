@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The whole test suite: formatting, lints, every test (unit, property, golden, bad input, CLI,
+# The whole test suite: formatting, lints, the API documentation, every test (unit, property, golden, bad input, CLI,
 # architecture, HTTP server), the browser player (its committed build is current; headless
 # Chromium renders match the CPU reference), a build of the benchmarks and of the fuzz targets.
 set -euo pipefail
@@ -7,6 +7,8 @@ cd "$(dirname "$0")/.."
 bash scripts/setup-system.sh   # FFmpeg libraries, clang and OpenCV, which the build needs
 cargo fmt --all --check
 cargo clippy --workspace --all-targets --locked -- -D warnings
+# The API documentation builds without broken or private links.
+RUSTDOCFLAGS="-D warnings" cargo doc --workspace --no-deps --locked
 cargo test --workspace --locked
 # The browser player: the embedded build in web/dist must be what its sources compile to, and
 # the end-to-end test plays packages served by the `cpsl` binary the tests just built.

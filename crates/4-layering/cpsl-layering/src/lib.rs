@@ -5,7 +5,7 @@
 //!   [`maxflow`]) -> [`promote`] (instance promotion, background merging to `K`) ->
 //!   [`matte`] (soft alpha, extension behind nearer layers with [`fill`], each layer's
 //!   surface from [`geometry`], Edge-Depth Cache).
-//! * [`slice`]: depth slicing, clustering inverse depth into `K` slices (a baseline).
+//! * [`slice`](mod@slice): depth slicing, clustering inverse depth into `K` slices (a baseline).
 
 pub mod cues;
 pub mod error;

@@ -5,7 +5,7 @@
 //! of the layer, with a vertex behind the viewer, or turned away from it (the back of a fold)
 //! are dropped; the rest are sorted nearest first and binned into the output tiles. A tile
 //! draws each of its triangles row by row over the pixels whose centres the triangle holds,
-//! with the plane kernels ([`crate::raster`]): exact homography at sub-span ends, fixed-point
+//! with the plane kernels (`raster`): exact homography at sub-span ends, fixed-point
 //! stepping in between. Pixel ownership follows a half-open rule on edge crossings computed
 //! the same way by both triangles of an edge, so the triangles of a grid cover every pixel
 //! once: no cracks, no double blending.

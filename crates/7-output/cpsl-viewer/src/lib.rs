@@ -5,7 +5,7 @@
 //! takes frames from it at the package's frame rate and renders them with `cpsl-render-gpu`.
 //! Controls: left drag orbits, right (or shift) drag pans, the wheel dollies, R resets, space
 //! plays/pauses, Left/Right step a frame, PageUp/PageDown jump a second, Home goes to the
-//! start, S toggles side-by-side stereo, [ and ] change the eye separation, D toggles the
+//! start, S toggles side-by-side stereo, `[` and `]` change the eye separation, D toggles the
 //! Dynamic Pixel Strip, H the on-screen readout, Esc/Q quit.
 
 use cpsl_core::{Camera, Pose, Vec3};

@@ -1,7 +1,7 @@
 //! Evaluation of CPSL: metrics, coverage (hole and crack ratios), baselines and real datasets
 //! with ground truth, and the three evaluations that use them, each one library call: novel
 //! views of real scenes ([`views`]), temporal stability on moving clips ([`video`]) and
-//! rate-distortion against DIBR streaming and MPI ([`rd`]); and speed ([`bench`]).
+//! rate-distortion against DIBR streaming and MPI ([`rd`]); and speed ([`bench`](mod@bench)).
 
 pub mod baselines;
 pub mod bench;

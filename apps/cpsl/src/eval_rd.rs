@@ -104,11 +104,25 @@ pub fn run(a: EvalRdArgs) -> Result<()> {
         lpips: !a.no_lpips,
     };
     let report = evaluate_rd(&opts, &Bars::default(), |method, p| {
+        let spend: Vec<String> = p
+            .segments
+            .iter()
+            .map(|s| {
+                format!(
+                    "{} frames {:.0}/{:.0}",
+                    s.frames, s.spent_kbit, s.budget_kbit
+                )
+            })
+            .collect();
         eprintln!(
-            "{method} {}: {:.0} kbit/s, {:.2} dB",
+            "{method} {}: {:.0} kbit/s, {:.2} dB{}",
             p.setting,
             p.bitrate.unwrap_or(0.0) / 1e3,
-            p.psnr
+            p.psnr,
+            match spend.is_empty() {
+                true => String::new(),
+                false => format!(" (segments, kbit spent/budget: {})", spend.join(", ")),
+            }
         )
     })?;
     let description = report.clip["description"].as_str().unwrap_or_default();

@@ -111,6 +111,22 @@ pub struct Point {
     pub lpips: Option<f64>,
     /// The allocator's proxy distortion of the decoded layers (layered methods).
     pub proxy: Option<f64>,
+    /// Under a budget, each segment's frames, budget and spending (kbit).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub segments: Vec<SegmentSpend>,
+}
+
+/// What one segment of a coded point was given and spent.
+#[derive(Debug, Serialize, Clone, PartialEq)]
+pub struct SegmentSpend {
+    /// Its frames.
+    pub frames: u32,
+    /// Its budget in kbit.
+    pub budget_kbit: f64,
+    /// What its streams took, in kbit.
+    pub spent_kbit: f64,
+    /// Streams fitted by trial encodes (the others' models came from the segment before).
+    pub fitted: usize,
 }
 
 /// One method's curve.
@@ -480,6 +496,7 @@ fn mpi_layers(clip: &Clip, planes: usize, gop: usize) -> Result<Segments> {
 /// The source and decoded layers of a scored frame.
 struct Coded {
     bitrate: f64,
+    segments: Vec<SegmentSpend>,
     /// Per frame index: the decoded layers and their Edge-Depth Cache.
     frames: std::collections::HashMap<usize, FrameLayers>,
 }
@@ -503,8 +520,17 @@ fn code(
         container,
     };
     let mut writer = PackageWriter::create(&path, cam, k, opts)?;
+    let mut spend = Vec::new();
     for s in segments {
-        writer.push_segment(s)?;
+        let r = writer.push_segment(s)?;
+        if let Some(b) = r.budget_bits {
+            spend.push(SegmentSpend {
+                frames: r.frames,
+                budget_kbit: b / 1e3,
+                spent_kbit: r.bits / 1e3,
+                fitted: r.fitted,
+            });
+        }
     }
     let m = writer.finish()?;
     // Only the frames scored are decoded and kept (a 32-plane MPI segment at 1080p would
@@ -524,6 +550,7 @@ fn code(
     let init_bits: u64 = m.inits.iter().map(|f| f.bytes * 8).sum();
     Ok(Coded {
         bitrate: m.bitrate() + init_bits as f64 * m.frame_rate / m.frames as f64,
+        segments: spend,
         frames,
     })
 }
@@ -666,6 +693,7 @@ fn dibr_curve(
             psnr: p,
             lpips: l,
             proxy: None,
+            segments: Vec::new(),
         });
         on_point(curve.method, curve.points.last().expect("pushed"));
     }
@@ -733,6 +761,7 @@ pub fn evaluate_rd(
             psnr: p,
             lpips: l,
             proxy: Some(proxy(&segments, &coded)),
+            segments: coded.segments.clone(),
         });
         on_point(cpsl.method, cpsl.points.last().expect("pushed"));
     }
@@ -800,6 +829,7 @@ pub fn evaluate_rd(
             psnr: p,
             lpips: l,
             proxy: Some(proxy(&segments, &coded)),
+            segments: coded.segments.clone(),
         });
         on_point(mpi.method, mpi.points.last().expect("pushed"));
     }
@@ -832,6 +862,7 @@ fn uncompressed(psnr: f64, lpips: Option<f64>) -> Point {
         psnr,
         lpips,
         proxy: None,
+        segments: Vec::new(),
     }
 }
 
@@ -955,6 +986,7 @@ mod tests {
             psnr,
             lpips: None,
             proxy: None,
+            segments: Vec::new(),
         }
     }
 

@@ -2,8 +2,9 @@
 //! fragment (`moof` + `mdat`, ISO/IEC 14496-12) whose key picture carries its parameter sets
 //! in band (sample entries `avc3`, `hev1`, `av01`, `vp09`), and a package holds one
 //! initialisation segment (`ftyp` + `moov`) per picture size. An init segment followed by a
-//! fragment is an ordinary fragmented MP4 file that FFmpeg, browsers and DASH/HLS (CMAF)
-//! tooling read.
+//! fragment is an ordinary fragmented MP4 file that FFmpeg's demuxer reads (tested). It is
+//! not a CMAF segment: CMAF asks for a `tfdt`, which a fragment decoded on its own does not
+//! need (below).
 //!
 //! The fragment is as small as the standard allows: `moof` with `mfhd`, a `traf` of `tfhd`
 //! (track 1, data offsets from the `moof`) and one `trun` with each sample's size, the first

@@ -1074,7 +1074,19 @@ impl SegmentEncoder {
             if (cost / predicted).ln().abs() > DRIFT.ln() {
                 continue;
             }
+            let (pi, pp) = model.intra_inter(q);
             model.anchor(q, intra, (frames > 1).then_some(inter));
+            // The stream's other rungs are off by what this one was: without that, rungs
+            // known only from trials that overestimated (or underestimated) kept a stream on
+            // its rung whatever its budget (720p testsrc2: half-size streams at the best
+            // quality and 35 % of the budget unspent).
+            let (ri, rp) = (intra / pi.max(1.0), inter / pp.max(1.0));
+            for (o, m) in self.models[k].iter_mut().enumerate() {
+                if o != r {
+                    let (mi, mp) = m.intra_inter(q);
+                    m.anchor(q, mi * ri, (frames > 1).then_some(mp * rp));
+                }
+            }
             if self.models[k].iter().all(RdModel::carries) {
                 if let Some(t) = self.tracks[k] {
                     carried.models.insert((true, t), self.models[k].clone());

@@ -346,7 +346,10 @@ impl Sink {
                     size,
                     pictures,
                 };
-                Ok((raw.encode(container, codec, quality, fps, gop)?, Some(raw)))
+                Ok((
+                    raw.encode_to(&raw.out, container, codec, quality, fps, gop)?,
+                    Some(raw),
+                ))
             }
         }
     }
@@ -361,19 +364,7 @@ struct Raw {
 }
 
 impl Raw {
-    /// Codes the pictures into the stream file at `quality`.
-    fn encode(
-        &self,
-        container: Container,
-        codec: Codec,
-        quality: f32,
-        fps: f64,
-        gop: usize,
-    ) -> Result<Written, CodecError> {
-        self.encode_to(&self.out, container, codec, quality, fps, gop)
-    }
-
-    /// [`Raw::encode`] into the file `to`.
+    /// Codes the pictures into the stream file `to` at `quality`.
     fn encode_to(
         &self,
         to: &Path,
@@ -1159,7 +1150,7 @@ mod tests {
             if let Some(raw) = raw {
                 // Coded again from the kept pictures: the same stream.
                 assert_eq!(
-                    raw.encode(Container::Mp4, Codec::H264, 30.0, 30.0, 8)
+                    raw.encode_to(&raw.out, Container::Mp4, Codec::H264, 30.0, 30.0, 8)
                         .unwrap(),
                     w
                 );

@@ -13,7 +13,11 @@ const H: usize = 96;
 
 /// A moving gradient, `n` stacked pictures of a `W x H` layer.
 fn pictures(n: usize) -> Vec<Yuv420> {
-    let (w, h) = (W, 2 * H);
+    gradient(W, 2 * H, n)
+}
+
+/// A moving gradient, `n` pictures of `w x h`.
+fn gradient(w: usize, h: usize, n: usize) -> Vec<Yuv420> {
     (0..n)
         .map(|t| Yuv420 {
             width: w,
@@ -127,17 +131,7 @@ fn the_same_small_pictures_code_to_the_same_stream_every_time() {
     }
     let dir = tempfile::tempdir().unwrap();
     let (w, h) = (96, 64);
-    let pics: Vec<Yuv420> = (0..12)
-        .map(|t| Yuv420 {
-            width: w,
-            height: h,
-            y: (0..w * h)
-                .map(|i| ((i % w) * 2 + (i / w) + 5 * t) as u8)
-                .collect(),
-            u: (0..w * h / 4).map(|i| (100 + (i % 7) + t) as u8).collect(),
-            v: vec![128; w * h / 4],
-        })
-        .collect();
+    let pics = gradient(w, h, 12);
     let streams: Vec<Vec<u8>> = (0..4)
         .map(|r| {
             let p = dir.path().join(format!("{r}.m4s"));

@@ -44,11 +44,7 @@ fn summarise(root: &Path, dir: &Path) -> Option<PackageSummary> {
     let rel = dir.strip_prefix(root).ok()?.to_str()?.replace('\\', "/");
     let pkg = Package::open(dir).ok()?;
     let m = pkg.manifest();
-    let bytes: u64 = m
-        .segments
-        .iter()
-        .map(|s| s.side.bytes + s.streams.iter().map(|t| t.file.bytes).sum::<u64>())
-        .sum();
+    let bytes = m.payload_bytes();
     let seconds = m.frames as f64 / m.frame_rate;
     Some(PackageSummary {
         url: format!("/files/{rel}/"),

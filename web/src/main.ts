@@ -33,6 +33,18 @@ async function fetchOk(url: URL | string): Promise<Response> {
   return r;
 }
 
+/** The time (ms) covered by the union of the intervals `spans` (concurrent downloads count once). */
+function coveredTime(spans: [number, number][]): number {
+  let total = 0;
+  let end = -Infinity;
+  for (const [a, b] of [...spans].sort((x, y) => x[0] - y[0])) {
+    if (b <= end) continue;
+    total += b - Math.max(a, end);
+    end = b;
+  }
+  return total;
+}
+
 /** The packages behind `src`: one package folder, or every package of a variant set. */
 async function loadVariants(src: string): Promise<Variant[]> {
   const url = new URL(src, location.href);
@@ -155,12 +167,22 @@ class Player {
   private async load(i: number, v: number): Promise<LoadedSegment> {
     const variant = this.variants[v];
     const seg = variant.manifest.segments[i];
-    const t0 = performance.now();
     const files = [...seg.streams.map((s) => s.file), seg.side];
-    const bufs = await Promise.all(files.map(async (f) => (await fetchOk(new URL(f.path, variant.base))).arrayBuffer()));
+    // Each file's body time runs from its headers to its last byte: the link's rate, without the
+    // round trips before the first byte (which dominate small segments on any link).
+    const bodies: [number, number][] = [];
+    const bufs = await Promise.all(
+      files.map(async (f) => {
+        const r = await fetchOk(new URL(f.path, variant.base));
+        const t = performance.now();
+        const b = await r.arrayBuffer();
+        bodies.push([t, performance.now()]);
+        return b;
+      }),
+    );
     for (const [k, b] of bufs.entries())
       if (b.byteLength !== files[k].bytes) throw new Error(`${files[k].path}: ${b.byteLength} bytes, the manifest says ${files[k].bytes}`);
-    const secs = Math.max((performance.now() - t0) / 1000, 1e-3);
+    const secs = Math.max(coveredTime(bodies) / 1000, 1e-3);
     const bits = bufs.reduce((a, b) => a + b.byteLength * 8, 0);
     const rate = bits / secs;
     this.throughput = this.throughput ? 0.7 * this.throughput + 0.3 * rate : rate;

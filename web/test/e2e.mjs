@@ -142,11 +142,11 @@ try {
     const first = await page.evaluate(() => window.cpsl.player.variant);
     await page.evaluate(() => (window.cpsl.player.playing = true));
     await page.waitForFunction(() => window.cpsl.error || window.cpsl.player.frame >= 17, null, { timeout: 60000 });
-    const later = await page.evaluate(() => ({ v: window.cpsl.player.variant, e: window.cpsl.error }));
+    const later = await page.evaluate(() => ({ v: window.cpsl.player.variant, e: window.cpsl.error, link: window.cpsl.player.throughput }));
     if (later.e) throw new Error(`player: ${later.e}`);
     const adapted = first === 0 && later.v === 1;
     if (!adapted) failures++;
-    console.log(`${adapted ? "ok  " : "FAIL"} adaptive variants: started on ${first}, on ${later.v} by frame 17 (want 0 then 1)`);
+    console.log(`${adapted ? "ok  " : "FAIL"} adaptive variants: started on ${first}, on ${later.v} by frame 17 (want 0 then 1; link measured at ${(later.link / 1e6).toFixed(1)} Mbit/s)`);
   }
   // Controls: a mouse drag orbits the viewer (the picture changes), R resets it exactly.
   {

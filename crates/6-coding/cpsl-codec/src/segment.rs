@@ -10,8 +10,8 @@
 //! frames (up to 10, as memory allows; at least [`TRIAL_FRAMES`]), the only frames held in
 //! memory. The allocation is made for the segment's expected length;
 //! the pictures go to raw files as they arrive and are coded when the segment ends; what a
-//! segment misses is repaid by the next ones (see [`crate::segment_budget`]), and the last gets
-//! one correction round from its files.
+//! segment misses is repaid by the next ones (see [`crate::segment_budget`]), and the last is
+//! corrected from its files.
 
 use crate::alloc::{self, RdModel, Trial};
 use crate::stream::{quality_range, write_init, Container, PictureReader, StreamEncoder, Written};
@@ -35,6 +35,10 @@ const HELD_FRAMES: usize = 10;
 
 /// Memory the held frames may take (at 4K, 5 frames of 6 layers).
 const HELD_MEMORY: u64 = 1_000_000_000;
+
+/// How many times the last segment's correction may halve its quality steps when its retry
+/// overshoots the budget (see `SegmentEncoder::correct`).
+const BISECTIONS: usize = 2;
 
 /// How far (as a ratio either way) a stream's cost may stray from its model before the model
 /// is fitted again.
@@ -73,6 +77,28 @@ pub struct SegmentReport {
 /// its track is new (a layer at the same place in the depth order tends to hold like
 /// content; the drift check catches it when not).
 pub(crate) type StreamKey = (bool, u32);
+
+/// Whether a correction's retry that brings a segment of budget `bits` from `total` bits to
+/// `tried` is kept: over the budget (by more than 5 %), if it spends less; otherwise, if it
+/// spends more and stays within 5 % over.
+fn retry_kept(bits: f64, total: f64, tried: f64) -> bool {
+    match total > 1.05 * bits {
+        true => tried < total,
+        false => tried > total && tried <= 1.05 * bits,
+    }
+}
+
+/// The qualities halfway (rounded) between the coding `now` and the `other` one tried, when
+/// they lie beyond a budget of `bits` by more than 5 % on either side (each with its bits);
+/// `None` otherwise.
+fn halfway(bits: f64, now: (&[f32], f64), other: (&[f32], f64)) -> Option<Vec<f32>> {
+    let beyond = |a: f64, b: f64| a > 1.05 * bits && b < 0.95 * bits;
+    (beyond(now.1, other.1) || beyond(other.1, now.1)).then(|| {
+        (now.0.iter().zip(other.0))
+            .map(|(a, b)| (0.5 * (a + b)).round())
+            .collect()
+    })
+}
 
 /// What a segment hands the next under a budget.
 #[derive(Debug, Clone)]
@@ -412,12 +438,16 @@ pub(crate) struct BudgetPlan {
     pub spent: f64,
     /// The segment's expected length in frames (the GOP).
     pub expected: usize,
+    /// Whether the expected frames are all the video has left.
+    pub last: bool,
 }
 
 impl BudgetPlan {
-    /// The segment's bits if it has `frames` frames.
+    /// The segment's bits if it has `frames` frames (the video's last segment when they are
+    /// the expected ones and those are the last).
     fn bits(&self, fps: f64, frames: usize) -> f64 {
-        crate::segment_budget(self.bps, fps, self.done, self.spent, frames)
+        let last = self.last && frames >= self.expected;
+        crate::segment_budget(self.bps, fps, self.done, self.spent, frames, last)
     }
 }
 
@@ -895,10 +925,12 @@ impl SegmentEncoder {
     }
 
     /// Under a budget, when the `last` segment's coded streams (with the side stream,
-    /// estimated) miss its budget by more than 5 % either way: one correction round. Every stream's model is
-    /// anchored on what it cost, the qualities are allocated again on the same rungs with no
-    /// stream allowed to cost more than it did, and the streams whose quality changed are
-    /// coded again from their kept pictures (`raws`).
+    /// estimated) miss its budget by more than 5 % either way: a correction. Every stream's
+    /// model is anchored on what it cost, the qualities are allocated again on the same rungs
+    /// (over the budget, no stream may cost more than it did), and the streams whose quality
+    /// changed are coded again from their kept pictures (`raws`); a retry that lands beyond
+    /// the budget's 5 % on the other side is followed by up to [`BISECTIONS`] more, halfway
+    /// between the qualities on either side.
     fn correct(
         &mut self,
         last: bool,
@@ -936,37 +968,54 @@ impl SegmentEncoder {
             true => alloc::allocate(&models, &self.weights, bits, q_min, q_max),
             false => alloc::allocate_capped(&models, &self.weights, bits, (q_min, q_max), &spent),
         };
-        let jobs: Vec<(usize, f32, &Raw)> = (0..written.len())
-            .filter(|&k| a.quality[k] != coding.quality[k])
-            .filter_map(|k| Some((k, a.quality[k], raws[k].as_ref()?)))
-            .collect();
         let (gop, container) = (self.gop(), self.opts.container);
         let retry = |raw: &Raw| raw.out.with_extension("retry.mp4");
-        let again: Vec<Written> = self.pool.install(|| {
-            jobs.par_iter()
-                .map(|&(_, q, raw)| raw.encode_to(&retry(raw), container, codec, q, fps, gop))
-                .collect::<Result<_, _>>()
-        })?;
-        self.encodes += jobs.len();
-        // Taken if it spends less (over the budget) or stays within it (short of it: the
-        // models may overshoot on the way up).
-        let before: f64 = jobs.iter().map(|j| spent[j.0]).sum();
-        let after: f64 = again.iter().map(|w| w.bytes as f64 * 8.0).sum();
-        let keep = match under {
-            true => total - before + after <= 1.05 * bits,
-            false => after <= before,
-        };
-        for (&(k, q, raw), wr) in jobs.iter().zip(again) {
-            let io = |source| CodecError::Io {
-                path: raw.out.clone(),
-                source,
+        let mut target = a.quality;
+        let mut total = total;
+        // A retry that lands beyond the budget's 5 % on the other side is followed by one
+        // halfway between the qualities on either side (the anchored models extrapolate:
+        // 1080p testsrc2 at 6 Mbit/s, the last segment's retry cost 1.5 times their estimate
+        // and was dropped, leaving the package 20 % under its budget).
+        for _ in 0..=BISECTIONS {
+            let jobs: Vec<(usize, f32, &Raw)> = (0..written.len())
+                .filter(|&k| target[k] != coding.quality[k])
+                .filter_map(|k| Some((k, target[k], raws[k].as_ref()?)))
+                .collect();
+            if jobs.is_empty() {
+                break;
+            }
+            let again: Vec<Written> = self.pool.install(|| {
+                jobs.par_iter()
+                    .map(|&(_, q, raw)| raw.encode_to(&retry(raw), container, codec, q, fps, gop))
+                    .collect::<Result<_, _>>()
+            })?;
+            self.encodes += jobs.len();
+            let before: f64 = jobs.iter().map(|j| written[j.0].bytes as f64 * 8.0).sum();
+            let after: f64 = again.iter().map(|w| w.bytes as f64 * 8.0).sum();
+            let tried = total - before + after;
+            let keep = retry_kept(bits, total, tried);
+            let before_q = coding.quality.clone();
+            for (&(k, q, raw), wr) in jobs.iter().zip(again) {
+                let io = |source| CodecError::Io {
+                    path: raw.out.clone(),
+                    source,
+                };
+                if keep {
+                    std::fs::rename(retry(raw), &raw.out).map_err(io)?;
+                    coding.quality[k] = q;
+                    written[k] = wr;
+                } else {
+                    std::fs::remove_file(retry(raw)).map_err(io)?;
+                }
+            }
+            // The other side: what was there before a retry taken, or the retry dropped.
+            let (other, other_total) = match keep {
+                true => (before_q, std::mem::replace(&mut total, tried)),
+                false => (target, tried),
             };
-            if keep {
-                std::fs::rename(retry(raw), &raw.out).map_err(io)?;
-                coding.quality[k] = q;
-                written[k] = wr;
-            } else {
-                std::fs::remove_file(retry(raw)).map_err(io)?;
+            match halfway(bits, (&coding.quality, total), (&other, other_total)) {
+                Some(q) => target = q,
+                None => break,
             }
         }
         Ok(())
@@ -1120,6 +1169,25 @@ impl SegmentEncoder {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_correction_keeps_retries_towards_the_budget_and_halves_those_beyond_it() {
+        // Short of 100 bits: more is taken up to 105, not beyond.
+        assert!(super::retry_kept(100.0, 80.0, 104.0));
+        assert!(!super::retry_kept(100.0, 80.0, 120.0));
+        assert!(!super::retry_kept(100.0, 80.0, 70.0));
+        // Over: anything cheaper is taken, even if still over.
+        assert!(super::retry_kept(100.0, 130.0, 110.0));
+        assert!(super::retry_kept(100.0, 130.0, 60.0));
+        assert!(!super::retry_kept(100.0, 130.0, 140.0));
+        // Beyond on both sides: halfway, rounded; within 5 % on one side: done.
+        let (now, other) = ([26.0, 27.0, 33.0], [16.0, 24.0, 33.0]);
+        let h = super::halfway(100.0, (&now, 80.0), (&other, 120.0));
+        assert_eq!(h, Some(vec![21.0, 26.0, 33.0]));
+        assert_eq!(super::halfway(100.0, (&other, 120.0), (&now, 80.0)), h);
+        assert_eq!(super::halfway(100.0, (&now, 96.0), (&other, 120.0)), None);
+        assert_eq!(super::halfway(100.0, (&now, 80.0), (&other, 90.0)), None);
+    }
 
     #[test]
     fn a_spilled_stream_codes_to_the_same_bytes() {

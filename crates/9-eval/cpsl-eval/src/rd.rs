@@ -521,7 +521,11 @@ fn code(
     };
     let mut writer = PackageWriter::create(&path, cam, k, opts)?;
     let mut spend = Vec::new();
+    let mut left: usize = segments.iter().map(Vec::len).sum();
     for s in segments {
+        // As `cpsl encode` does: the last segment knows it is the last.
+        writer.set_frames_left(Some(left as u32));
+        left -= s.len();
         let r = writer.push_segment(s)?;
         if let Some(b) = r.budget_bits {
             spend.push(SegmentSpend {

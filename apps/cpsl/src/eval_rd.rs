@@ -79,6 +79,10 @@ pub struct EvalRdArgs {
     /// Skip LPIPS.
     #[arg(long)]
     pub no_lpips: bool,
+    /// Depth of the fox: `fastdepth` (per frame, one scale for the clip) or `video` (from the
+    /// video itself: camera tracking, multi-view depth, fused with FastDepth).
+    #[arg(long, default_value = "fastdepth", value_parser = ["fastdepth", "video"])]
+    pub depth: String,
     /// Write the curves and summary as JSON.
     #[arg(long)]
     pub json: Option<PathBuf>,
@@ -102,6 +106,7 @@ pub fn run(a: EvalRdArgs) -> Result<()> {
         qualities: a.qualities,
         score_every: a.score_every,
         lpips: !a.no_lpips,
+        video_depth: a.depth == "video",
     };
     let report = evaluate_rd(&opts, &Bars::default(), |method, p| {
         let spend: Vec<String> = p

@@ -6,7 +6,8 @@ use crate::progress::Bars;
 use anyhow::Result;
 use clap::{Args, ValueEnum};
 use cpsl_layering::GeometryMode;
-use cpsl_pipeline::sources::{layering_config, StereoDepth, VideoDepth};
+use cpsl_pipeline::sources::{layering_config, open_depth_model, StereoDepth, VideoDepth};
+use cpsl_pipeline::track::VideoTrackedDepth;
 use cpsl_pipeline::video::{write_layered_video, MotionSource, VideoJob};
 use cpsl_temporal::GopConfig;
 use std::path::{Path, PathBuf};
@@ -54,6 +55,15 @@ impl From<MotionArg> for MotionSource {
     }
 }
 
+/// Where a video's depth comes from (without --depth-frames or --stereo).
+#[derive(ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum DepthArg {
+    /// The monocular depth model on each frame.
+    Model,
+    /// Camera tracking and multi-view depth, fused with the depth model.
+    Video,
+}
+
 /// Arguments of `cpsl layer-video`.
 #[derive(Args)]
 pub struct LayerVideoArgs {
@@ -84,6 +94,13 @@ pub struct VideoLayeringArgs {
     /// single images). Overrides the configuration file's.
     #[arg(long)]
     pub geometry: Option<GeometryMode>,
+    /// Where depth comes from: `model` (the --depth-model on each frame) or `video` (the video
+    /// itself: the camera is tracked through the whole input first, then each frame's depth
+    /// is triangulated from its four nearest frames and fused with the --depth-model, which
+    /// fills what the views cannot see; frames where the camera does not translate, or that
+    /// could not be placed, take the model's depth and say so in `video.json`).
+    #[arg(long, value_enum, default_value_t = DepthArg::Model, conflicts_with_all = ["depth_frames", "stereo"])]
+    pub depth: DepthArg,
     /// Depth model: `fastdepth` (default) or an .onnx file described by `<model>.json`.
     #[arg(long, default_value = "fastdepth")]
     pub depth_model: String,
@@ -126,17 +143,21 @@ impl VideoLayeringArgs {
             (None, Some(_)) => {
                 // The monocular model is the prior for frames stereo cannot see; without it
                 // (not installed) those frames keep the last stereo depth.
-                let prior = cpsl_pipeline::sources::open_depth_model(
-                    &self.depth_model,
-                    self.model_desc.as_deref(),
-                )
-                .map(|m| Box::new(m) as Box<dyn cpsl_core::DepthSource>);
+                let prior = open_depth_model(&self.depth_model, self.model_desc.as_deref())
+                    .map(|m| Box::new(m) as Box<dyn cpsl_core::DepthSource>);
                 if let Err(e) = &prior {
                     eprintln!("warning: no monocular prior for stereo fallbacks: {e}");
                 }
                 VideoDepth::Stereo(StereoDepth::new(self.stereo.baseline, prior.ok())?)
             }
-            (None, None) => VideoDepth::model(&self.depth_model, self.model_desc.as_deref())?,
+            (None, None) => match self.depth {
+                DepthArg::Model => {
+                    VideoDepth::model(&self.depth_model, self.model_desc.as_deref())?
+                }
+                DepthArg::Video => VideoDepth::Tracked(VideoTrackedDepth::new(Box::new(
+                    open_depth_model(&self.depth_model, self.model_desc.as_deref())?,
+                ))),
+            },
         };
         let job = VideoJob {
             input: input.to_path_buf(),

@@ -1,6 +1,8 @@
 //! Depth from the views themselves, end to end: a side-by-side frame sequence made of a real
 //! Middlebury pair (and a black frame that stereo cannot see), a stereo pair for `cpsl
-//! layer`, the stereo scores, their errors, and camera tracking on the fox. Reads `../shared/data` beside the checkout; says so and returns when it is
+//! layer`, the stereo scores, their errors, camera tracking on the fox, and layering it with
+//! depth from its own video (and the fallbacks where that cannot work). Reads `../shared/data`
+//! beside the checkout; says so and returns when it is
 //! absent.
 
 mod common;
@@ -246,4 +248,85 @@ fn track_writes_poses_and_transforms() {
     let o = cpsl(&["track", s(&one), "-o", s(&dir.path().join("one.json"))]);
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("at least two"));
+}
+
+#[test]
+fn layers_the_fox_with_depth_from_its_own_video() {
+    let Some(teddy) = data() else { return };
+    if !common::models_present(&["fastdepth_7.onnx"]) {
+        eprintln!("skipped: FastDepth not in the model cache (scripts/setup-models.sh)");
+        return;
+    }
+    let fox = teddy.join("../../../instant_ngp_fox_video_frames/images");
+    let dir = tempfile::tempdir().unwrap();
+    let video_json = |out: &Path| -> serde_json::Value {
+        serde_json::from_slice(&std::fs::read(out.join("video.json")).unwrap()).unwrap()
+    };
+    let layer = |input: &Path, name: &str, extra: &[&str]| {
+        let out = dir.path().join(name);
+        let mut args = vec!["layer-video", s(input), "-o", s(&out), "--depth", "video"];
+        args.extend_from_slice(extra);
+        ok(&args);
+        video_json(&out)
+    };
+    let v = layer(
+        &fox,
+        "fox",
+        &["--fov", "42.9", "--max-frames", "12", "--gop", "6"],
+    );
+    let depth = v["depth"].as_str().unwrap();
+    assert!(
+        depth.contains("camera translating, 12 of 12 frames placed"),
+        "{depth}"
+    );
+    let note = |v: &serde_json::Value, i: usize| {
+        v["frames"][i]["depth_note"].as_str().unwrap().to_string()
+    };
+    assert!(note(&v, 0).starts_with("video: "), "{}", note(&v, 0));
+    // Each I-frame says where its depth came from.
+    for f in v["frames"].as_array().unwrap() {
+        assert_eq!(f["kind"] == "I", f["depth_note"].is_string(), "{f}");
+    }
+    // Clips the camera cannot be tracked through fall back to the model, and say why.
+    let still = dir.path().join("still");
+    let black = dir.path().join("black");
+    std::fs::create_dir(&still).unwrap();
+    std::fs::create_dir(&black).unwrap();
+    for i in 0..3 {
+        std::fs::copy(teddy.join("im2.png"), still.join(format!("f{i}.png"))).unwrap();
+        ffmpeg(&[
+            "-i",
+            s(&teddy.join("im2.png")),
+            "-vf",
+            "lutrgb=r=0:g=0:b=0",
+            s(&black.join(format!("f{i}.png"))),
+        ]);
+    }
+    for (input, extra, why) in [
+        (&still, &[][..], "the camera is static"),
+        (&black, &[][..], "too little texture to track the camera"),
+        (
+            &still,
+            &["--max-frames", "1"][..],
+            "one frame: nothing to track",
+        ),
+    ] {
+        let v = layer(input, "out", extra);
+        let n = note(&v, 0);
+        assert!(n.starts_with(&format!("fallback: {why}; model")), "{n}");
+    }
+    // Stereo input has its own depth.
+    let o = cpsl(&[
+        "layer-video",
+        s(&still),
+        "-o",
+        s(&dir.path().join("x")),
+        "--depth",
+        "video",
+        "--stereo",
+        "sbs",
+    ]);
+    assert!(
+        !o.status.success() && String::from_utf8_lossy(&o.stderr).contains("cannot be used with")
+    );
 }

@@ -20,9 +20,13 @@
 //! the first frame's camera, and the first baseline has length 1 (monocular scale).
 //!
 //! **Multi-view depth** ([`mvs`]): dense optical flow (DIS) from a frame to posed neighbours,
-//! forward-backward checked and triangulated per pixel.
+//! forward-backward checked and triangulated per pixel; [`TrackedDepth`] fuses it with a
+//! monocular prior for every frame of a tracked clip.
 
+mod fused;
 pub mod mvs;
+
+pub use fused::{DepthFrom, TrackedDepth};
 
 /// OpenCV's image type, as [`work_grey`] and [`mvs`] take it.
 pub use opencv::core::Mat;
@@ -184,6 +188,18 @@ impl Tracker {
     /// Tracks into the next frame (RGB, 3 bytes per pixel, of the camera's size).
     pub fn push(&mut self, rgb: &[u8], width: u32, height: u32) -> Result<()> {
         let grey = self.grey(rgb, width, height)?;
+        self.push_grey(grey)
+    }
+
+    /// Tracks into the next frame, given as its working grey image ([`Tracker::grey`]).
+    pub fn push_grey(&mut self, grey: Mat) -> Result<()> {
+        let size = grey.size()?;
+        if (size.width as u32, size.height as u32) != self.size {
+            return Err(TrackError::Input(format!(
+                "a {}x{} grey frame for tracking at {}x{}",
+                size.width, size.height, self.size.0, self.size.1
+            )));
+        }
         let f = self.frames;
         if let Some(prev) = &self.prev {
             if !self.live.is_empty() {

@@ -147,6 +147,58 @@ pub struct Fusion {
     pub b: f64,
 }
 
+/// `z` (z-depth, `from` = width x height, NaN where unknown) resized to `to`: its inverse
+/// depth area-averaged (shrinking) or bilinearly interpolated (enlarging) over the known
+/// pixels; NaN where none is near.
+pub fn resize_depth(z: &[f32], from: (u32, u32), to: (u32, u32)) -> Result<Vec<f32>> {
+    use opencv::core::{Size, CV_32F};
+    use opencv::imgproc;
+    let n = from.0 as usize * from.1 as usize;
+    if z.len() != n || n == 0 || to.0 == 0 || to.1 == 0 {
+        return Err(TrackError::Input(format!(
+            "a {}x{} depth map has {n} values, found {}",
+            from.0,
+            from.1,
+            z.len()
+        )));
+    }
+    if from == to {
+        return Ok(z.to_vec());
+    }
+    let known = |v: f32| v.is_finite() && v > 0.0;
+    let inv: Vec<f32> = z
+        .iter()
+        .map(|&v| if known(v) { 1.0 / v } else { 0.0 })
+        .collect();
+    let mask: Vec<f32> = z.iter().map(|&v| f32::from(u8::from(known(v)))).collect();
+    let shrink = to.0 < from.0 && to.1 < from.1;
+    let resize = |v: &[f32]| -> Result<Vec<f32>> {
+        let m = Mat::new_rows_cols_with_data(from.1 as i32, from.0 as i32, v)?;
+        let mut out = Mat::default();
+        let how = if shrink {
+            imgproc::INTER_AREA
+        } else {
+            imgproc::INTER_LINEAR
+        };
+        imgproc::resize(
+            &m,
+            &mut out,
+            Size::new(to.0 as i32, to.1 as i32),
+            0.0,
+            0.0,
+            how,
+        )?;
+        debug_assert_eq!(out.typ(), CV_32F);
+        Ok(out.data_typed::<f32>()?.to_vec())
+    };
+    let (inv, mask) = (resize(&inv)?, resize(&mask)?);
+    Ok(inv
+        .iter()
+        .zip(&mask)
+        .map(|(&i, &m)| if m > 0.5 && i > 0.0 { m / i } else { f32::NAN })
+        .collect())
+}
+
 /// Fuses multi-view depth with a monocular prior of the same size (any scale): the prior's
 /// inverse depth is fitted to the views' (robust affine fit over pixels with confidence of
 /// at least `min_conf`: weighted least squares re-weighted with Cauchy weights), then every
@@ -226,4 +278,34 @@ pub fn fuse(views: &ViewDepth, prior: &[f32], min_conf: f32) -> Option<(Vec<f32>
             b,
         },
     ))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::resize_depth;
+
+    #[test]
+    fn resizing_keeps_depth_and_unknown_pixels() {
+        // 8x4 at depth 2 with the left half unknown; a plane of inverse depth ramps.
+        let mut z = vec![2.0f32; 32];
+        for y in 0..4 {
+            z[y * 8..y * 8 + 4].fill(f32::NAN);
+        }
+        let small = resize_depth(&z, (8, 4), (4, 2)).unwrap();
+        assert!(small[..2].iter().all(|v| v.is_nan()), "{small:?}");
+        assert!(
+            small[2..4].iter().all(|v| (v - 2.0).abs() < 1e-5),
+            "{small:?}"
+        );
+        let big = resize_depth(&small, (4, 2), (8, 4)).unwrap();
+        assert!(big[7].is_finite() && (big[7] - 2.0).abs() < 1e-5 && big[0].is_nan());
+        let ramp: Vec<f32> = (0..16).map(|i| 1.0 / (1.0 + (i % 4) as f32)).collect();
+        let r = resize_depth(&ramp, (4, 4), (2, 2)).unwrap();
+        // Inverse depths 1,2 average to 1.5 (depth 2/3), 3,4 to 3.5.
+        assert!(
+            (r[0] - 1.0 / 1.5).abs() < 1e-5 && (r[1] - 1.0 / 3.5).abs() < 1e-5,
+            "{r:?}"
+        );
+        assert!(resize_depth(&ramp, (4, 3), (2, 2)).is_err());
+    }
 }

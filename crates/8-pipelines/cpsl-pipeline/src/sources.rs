@@ -79,6 +79,8 @@ pub enum VideoDepth {
     Frames(cpsl_io::depth::DepthSequence),
     /// Stereo matching of each frame's two views.
     Stereo(StereoDepth),
+    /// The video itself: camera tracking and multi-view depth, fused with a monocular prior.
+    Tracked(crate::track::VideoTrackedDepth),
 }
 
 /// Depth from a stereo pair per frame: z-depth `f b / (d + offset)` from the left view's
@@ -230,14 +232,16 @@ impl VideoDepth {
                 })?;
                 s.depth(rgb, right, width, height, cam.fx)?
             }
+            VideoDepth::Tracked(t) => t.depth(index, rgb, cam)?,
         })
     }
 
-    /// What the last frame's depth came from, where it is worth saying per frame (stereo
-    /// and its fallbacks).
+    /// What the last frame's depth came from, where it is worth saying per frame (stereo,
+    /// the video itself, and their fallbacks).
     pub fn note(&self) -> Option<&str> {
         match self {
             VideoDepth::Stereo(s) => s.note(),
+            VideoDepth::Tracked(t) => t.note(),
             _ => None,
         }
     }
@@ -254,6 +258,7 @@ impl VideoDepth {
                     .as_ref()
                     .map_or(String::new(), |p| format!("; prior {}", p.name()))
             ),
+            VideoDepth::Tracked(t) => t.name(),
         }
     }
 }

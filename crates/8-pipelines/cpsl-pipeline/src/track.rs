@@ -1,12 +1,13 @@
 //! A video's camera path ([`cpsl_track`]) as a library call, and its files: `poses.json`
 //! (per frame: camera-to-world pose, PnP inliers, whether it was placed; the camera motion
 //! found) and a NeRF-style `transforms.json` (OpenGL camera axes, as instant-ngp, nerfstudio
-//! and 3-D Gaussian splatting tools read it).
+//! and 3-D Gaussian splatting tools read it); and depth from the video itself
+//! ([`VideoTrackedDepth`]).
 
 use crate::error::{Context, PipelineError};
 use crate::sources::CameraChoice;
-use cpsl_core::{Camera, Progress, ProgressEvent};
-use cpsl_track::{TrackConfig, Tracker, Trajectory};
+use cpsl_core::{Camera, DepthSource, Progress, ProgressEvent};
+use cpsl_track::{DepthFrom, Mat, TrackConfig, TrackedDepth, Tracker, Trajectory};
 use serde::Serialize;
 use std::path::Path;
 
@@ -22,6 +23,19 @@ pub fn track_video(
     max_frames: Option<usize>,
     progress: &dyn Progress,
 ) -> Result<(Trajectory, Camera, Vec<String>), PipelineError> {
+    let (t, cam, names, _) = track_frames(input, camera, max_frames, progress, None)?;
+    Ok((t, cam, names))
+}
+
+/// [`track_video`], also returning every frame's working grey image when `keep` allows that
+/// many frames (an error names the limit otherwise).
+fn track_frames(
+    input: &Path,
+    camera: &CameraChoice,
+    max_frames: Option<usize>,
+    progress: &dyn Progress,
+    keep: Option<usize>,
+) -> Result<(Trajectory, Camera, Vec<String>, Vec<Mat>), PipelineError> {
     let mut src =
         cpsl_media::open(input).context_with(|| format!("opening {}", input.display()))?;
     let info = src.info().clone();
@@ -37,6 +51,7 @@ pub fn track_video(
         false => None,
     };
     let mut names = Vec::new();
+    let mut greys = Vec::new();
     while max_frames.is_none_or(|m| names.len() < m) {
         let Some(frame) = src
             .next_frame()
@@ -44,8 +59,21 @@ pub fn track_video(
         else {
             break;
         };
+        let grey = tracker
+            .grey(&frame.rgb, info.width, info.height)
+            .context_with(|| format!("frame {}", frame.index))?;
+        if let Some(most) = keep {
+            if greys.len() == most {
+                return Err(PipelineError::Invalid(format!(
+                    "{}: depth from the video holds at most {most} frames; \
+                     layer a part (--max-frames) or use a depth model",
+                    input.display()
+                )));
+            }
+            greys.push(grey.clone());
+        }
         tracker
-            .push(&frame.rgb, info.width, info.height)
+            .push_grey(grey)
             .context_with(|| format!("frame {}", frame.index))?;
         names.push(match &files {
             Some(f) => f[frame.index]
@@ -66,7 +94,24 @@ pub fn track_video(
             names.len()
         )));
     }
-    Ok((tracker.finish()?, cam, names))
+    Ok((tracker.finish()?, cam, names, greys))
+}
+
+/// Whether `input` has fewer than two frames (at most `max_frames` read).
+fn fewer_than_two(input: &Path, max_frames: Option<usize>) -> Result<bool, PipelineError> {
+    let mut src =
+        cpsl_media::open(input).context_with(|| format!("opening {}", input.display()))?;
+    let mut n = 0;
+    while n < 2 && max_frames.is_none_or(|m| n < m) {
+        let frame = src
+            .next_frame()
+            .context_with(|| format!("decoding {}", input.display()))?;
+        if frame.is_none() {
+            break;
+        }
+        n += 1;
+    }
+    Ok(n < 2)
 }
 
 /// One frame of `poses.json`.
@@ -163,4 +208,94 @@ pub fn pose_files(
         frames,
     };
     (poses, nerf)
+}
+
+/// Depth from the video itself: a first pass tracks the camera through the whole input
+/// ([`VideoTrackedDepth::prepare`]), then each frame asked for runs the monocular `prior` and
+/// fuses it with multi-view depth ([`TrackedDepth`]); every frame says where its depth came
+/// from (in `video.json`).
+pub struct VideoTrackedDepth {
+    prior: Box<dyn DepthSource>,
+    /// Once prepared: the tracked clip, or why every frame takes the prior.
+    tracked: Option<Result<TrackedDepth, String>>,
+    note: String,
+}
+
+impl VideoTrackedDepth {
+    /// Most frames the first pass holds (their working grey images: about 230 kB each at the
+    /// default tracking size, so at most about 700 MB).
+    pub const MAX_FRAMES: usize = 3000;
+
+    /// Depth from the video with `prior` for what the views cannot see; [`Self::prepare`]
+    /// must run before the first frame.
+    pub fn new(prior: Box<dyn DepthSource>) -> Self {
+        Self {
+            prior,
+            tracked: None,
+            note: String::new(),
+        }
+    }
+
+    /// The first pass: tracks every frame of `input` (at most `max_frames`) seen by `camera`.
+    pub fn prepare(
+        &mut self,
+        input: &Path,
+        camera: &CameraChoice,
+        max_frames: Option<usize>,
+        progress: &dyn Progress,
+    ) -> Result<(), PipelineError> {
+        if fewer_than_two(input, max_frames)? {
+            self.tracked = Some(Err("one frame: nothing to track".into()));
+            return Ok(());
+        }
+        let keep = Some(Self::MAX_FRAMES);
+        let (t, _, _, greys) = track_frames(input, camera, max_frames, progress, keep)?;
+        self.tracked = Some(Ok(TrackedDepth::new(t, greys)?));
+        Ok(())
+    }
+
+    /// What the last frame's depth came from.
+    pub fn note(&self) -> Option<&str> {
+        (!self.note.is_empty()).then_some(self.note.as_str())
+    }
+
+    /// A short description, saved with the output.
+    pub fn name(&self) -> String {
+        format!(
+            "the video (tracking, multi-view depth fused with {}{})",
+            self.prior.name(),
+            match &self.tracked {
+                Some(Ok(t)) => format!("; {}", t.summary()),
+                Some(Err(why)) => format!("; {why}"),
+                None => String::new(),
+            }
+        )
+    }
+
+    /// Depth of frame `index`, whose picture is `rgb` seen by `cam` (the input's size).
+    pub fn depth(
+        &mut self,
+        index: usize,
+        rgb: &[u8],
+        cam: &Camera,
+    ) -> Result<Vec<f32>, PipelineError> {
+        let tracked = self.tracked.as_mut().ok_or_else(|| {
+            PipelineError::Invalid("depth from the video: the clip was not tracked first".into())
+        })?;
+        let (w, h) = (cam.width, cam.height);
+        let prior = self.prior.depth(rgb, w, h)?;
+        let (z, from) = match tracked {
+            Ok(t) => t.depth(index, &prior, (w, h))?,
+            Err(why) => (prior, DepthFrom::Fallback(why.clone())),
+        };
+        let name = self.prior.name();
+        self.note = match from {
+            DepthFrom::Views { share, views } => format!(
+                "video: {:.0} % of pixels from {views} views, the rest {name} fitted to them",
+                100.0 * share
+            ),
+            DepthFrom::Fallback(why) => format!("fallback: {why}; {name}"),
+        };
+        Ok(z)
+    }
 }

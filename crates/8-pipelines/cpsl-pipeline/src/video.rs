@@ -89,6 +89,14 @@ pub fn layer_video(
             .context_with(|| format!("{} as stereo", input.display()))?;
     }
     let cam = job.camera.camera(info.width, info.height)?;
+    if let VideoDepth::Tracked(t) = depth {
+        if job.stereo.is_some() {
+            return Err(PipelineError::Invalid(
+                "depth from the video takes monocular input; stereo input has its own depth".into(),
+            ));
+        }
+        t.prepare(input, &job.camera, job.max_frames, progress)?;
+    }
     let mut cfg = job.layering;
     cfg.cues.allow_missing_depth = true;
     let mut layerer = VideoLayerer::new(cam, cfg, job.gop)?;

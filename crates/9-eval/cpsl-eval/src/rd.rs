@@ -74,6 +74,9 @@ pub struct RdOptions {
     pub score_every: u32,
     /// Score LPIPS.
     pub lpips: bool,
+    /// The fox's depth from the video itself (camera tracking, multi-view depth fused with
+    /// FastDepth; [`crate::tracking::video_depth`]) instead of FastDepth alone.
+    pub video_depth: bool,
 }
 
 /// Everything a run measured (the JSON of `cpsl eval-rd --json`).
@@ -273,7 +276,7 @@ fn rotation_deg(p: &Pose) -> f64 {
 /// neighbouring frames that are 2 to 30 degrees away (the data's README: pairs closer than
 /// that barely move, farther ones mostly leave the frame) and scored against them.
 fn fox_clip(a: &RdOptions) -> Result<Clip> {
-    let mut f = crate::video::load_fox(&a.data, 2, false)?;
+    let mut f = crate::video::load_fox(&a.data, 2, a.video_depth)?;
     let n = f.frames.len().min(a.frames as usize);
     f.frames.truncate(n);
     f.depth.truncate(n);

@@ -6,8 +6,8 @@
 
 use crate::datasets::PosedVideo;
 use crate::error::EvalError;
-use cpsl_core::{Camera, Pose};
-use cpsl_track::{TrackConfig, Tracker, Trajectory};
+use cpsl_core::Camera;
+use cpsl_track::{DepthFrom, TrackConfig, TrackedDepth, Tracker, Trajectory};
 use serde::Serialize;
 use std::path::Path;
 use std::time::Instant;
@@ -109,78 +109,43 @@ pub fn fox(data: &Path) -> Result<TrackScore> {
     })
 }
 
-/// Depth of every frame from the video itself: tracked poses, multi-view depth from up to
-/// four nearest placed frames, fused with `prior` (per frame, any scale). Frames that could
-/// not be placed (or whose views saw too little) keep their prior, scaled by the median ratio
-/// of fused to prior depth over the fused frames, so that the whole clip shares the
-/// trajectory's scale. Returns the depths and a description.
+/// Depth of every frame from the video itself ([`TrackedDepth`]): tracked poses, multi-view
+/// depth from up to four nearest placed frames, fused with `prior` (per frame, any scale).
+/// Returns the depths and a description.
 pub fn video_depth(
     frames: &[Vec<u8>],
     camera: Camera,
     prior: &[Vec<f32>],
 ) -> Result<(Vec<Vec<f32>>, String)> {
-    let est = track(frames, camera, TrackConfig::default())?;
-    let cam = est.camera;
-    if (cam.width, cam.height) != (camera.width, camera.height) {
-        return Err(EvalError::Invalid(
-            "video depth in the evaluation needs frames no larger than the tracking size".into(),
-        ));
-    }
     let (w, h) = (camera.width, camera.height);
-    let grey: Vec<cpsl_track::Mat> = frames
-        .iter()
-        .map(|f| cpsl_track::work_grey(f, w, h, (w, h)))
-        .collect::<std::result::Result<_, _>>()?;
-    let placed: Vec<usize> = (0..frames.len())
-        .filter(|&i| est.poses[i].is_some())
-        .collect();
-    let mut out: Vec<Option<Vec<f32>>> = vec![None; frames.len()];
-    let mut ratios = Vec::new();
-    let mut shares = Vec::new();
-    for &i in &placed {
-        let mut near: Vec<usize> = placed.iter().copied().filter(|&j| j != i).collect();
-        near.sort_by_key(|&j| j.abs_diff(i));
-        near.truncate(4);
-        let pose = est.poses[i].expect("placed");
-        let nb: Vec<(&cpsl_track::Mat, &Pose)> = near
-            .iter()
-            .map(|&j| (&grey[j], est.poses[j].as_ref().expect("placed")))
-            .collect();
-        let views = cpsl_track::mvs::depth_from_views(
-            &cam,
-            (&grey[i], &pose),
-            &nb,
-            &cpsl_track::mvs::MvsConfig::default(),
-        )?;
-        // Where the prior does not fit the views (its order disagrees), the frame keeps the
-        // prior: using the views alone there scored lower on the fox.
-        let fused = cpsl_track::mvs::fuse(&views, &prior[i], 0.5);
-        if let Some((z, fusion)) = fused {
-            if let (Some(a), Some(b)) = (
-                crate::datasets::median(&z),
-                crate::datasets::median(&prior[i]),
-            ) {
-                ratios.push(a / b);
-            }
-            shares.push(fusion.from_views);
-            out[i] = Some(z);
-        }
+    let mut t = Tracker::new(camera, TrackConfig::default())?;
+    let mut greys = Vec::with_capacity(frames.len());
+    for f in frames {
+        let g = t.grey(f, w, h)?;
+        greys.push(g.clone());
+        t.push_grey(g)?;
     }
-    let k = crate::datasets::median(&ratios).unwrap_or(1.0);
-    let fused = out.iter().filter(|o| o.is_some()).count();
-    let depths = out
-        .into_iter()
-        .zip(prior)
-        .map(|(o, p)| o.unwrap_or_else(|| p.iter().map(|v| v * k).collect()))
-        .collect();
+    let mut tracked = TrackedDepth::new(t.finish()?, greys)?;
+    let mut shares = Vec::new();
+    let depths = prior
+        .iter()
+        .enumerate()
+        .map(|(i, p)| {
+            let (z, from) = tracked.depth(i, p, (w, h))?;
+            if let DepthFrom::Views { share, .. } = from {
+                shares.push(share);
+            }
+            Ok(z)
+        })
+        .collect::<Result<Vec<_>>>()?;
     shares.sort_by(f64::total_cmp);
     let share = shares.get(shares.len() / 2).copied().unwrap_or(0.0);
     Ok((
         depths,
         format!(
-            "video ({} of {} frames placed, {fused} fused; median {:.0} % of pixels from the views, the rest FastDepth fitted to them)",
-            placed.len(),
-            frames.len(),
+            "video ({}, {} fused; median {:.0} % of pixels from the views, the rest FastDepth fitted to them)",
+            tracked.summary(),
+            shares.len(),
             100.0 * share
         ),
     ))

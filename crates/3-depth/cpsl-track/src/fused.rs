@@ -1,0 +1,157 @@
+//! Depth of a tracked clip's frames: multi-view depth from the nearest placed frames fused
+//! with a monocular prior, in the prior's units, with a fallback to the prior (and why) where
+//! the views cannot serve.
+
+use crate::mvs::{self, MvsConfig};
+use crate::{CameraMotion, Mat, Result, TrackError, Trajectory};
+use cpsl_core::{median_depth, Pose};
+use opencv::prelude::*;
+
+/// Where a frame's depth came from.
+#[derive(Debug, Clone, PartialEq)]
+pub enum DepthFrom {
+    /// Fused: `share` of the pixels from `views` neighbouring frames, the rest from the
+    /// prior fitted to them.
+    Views {
+        /// Share of pixels from the views.
+        share: f64,
+        /// Neighbouring frames used.
+        views: usize,
+    },
+    /// The prior (scaled to the clip), and why.
+    Fallback(String),
+}
+
+/// Depth from a tracked clip: each frame asked for gets multi-view depth from up to
+/// [`TrackedDepth::NEIGHBOURS`] nearest placed frames ([`mvs::depth_from_views`]), fused with
+/// its monocular prior ([`mvs::fuse`]) at the tracking resolution and brought back to the
+/// prior's. The clip is put in the prior's units: the trajectory's scale (its first baseline
+/// is 1) is fixed by the first fused frame's median against its prior's. A frame the views
+/// cannot serve takes its prior, scaled by the median fused-to-prior ratio of the frames fused
+/// so far, and says why: the camera does not translate (rotating, static, untracked), the
+/// frame was not placed, its views saw too little, or the prior's depth order disagrees with
+/// theirs (using the views alone there scored lower on the fox).
+pub struct TrackedDepth {
+    trajectory: Trajectory,
+    greys: Vec<Mat>,
+    /// Prior units per trajectory unit, once a frame has been fused.
+    scale: Option<f64>,
+    /// Fused-to-prior median ratios of the fused frames (prior units).
+    ratios: Vec<f64>,
+}
+
+impl TrackedDepth {
+    /// Nearest placed frames a frame's depth is triangulated from.
+    pub const NEIGHBOURS: usize = 4;
+    /// Least confidence of a multi-view pixel kept over the prior.
+    pub const MIN_CONFIDENCE: f32 = 0.5;
+
+    /// Depth for the clip solved as `trajectory`, whose frames' working grey images
+    /// ([`crate::Tracker::grey`]) are `greys`, one per frame.
+    pub fn new(trajectory: Trajectory, greys: Vec<Mat>) -> Result<Self> {
+        let cam = trajectory.camera;
+        if greys.len() != trajectory.poses.len() {
+            return Err(TrackError::Input(format!(
+                "{} grey frames for a trajectory of {}",
+                greys.len(),
+                trajectory.poses.len()
+            )));
+        }
+        for g in &greys {
+            let s = g.size()?;
+            if (s.width as u32, s.height as u32) != (cam.width, cam.height) {
+                return Err(TrackError::Input(format!(
+                    "a {}x{} grey frame for tracking at {}x{}",
+                    s.width, s.height, cam.width, cam.height
+                )));
+            }
+        }
+        Ok(Self {
+            trajectory,
+            greys,
+            scale: None,
+            ratios: Vec::new(),
+        })
+    }
+
+    /// The solved camera path.
+    pub fn trajectory(&self) -> &Trajectory {
+        &self.trajectory
+    }
+
+    /// How the camera moves and how many frames were placed.
+    pub fn summary(&self) -> String {
+        let t = &self.trajectory;
+        let placed = t.poses.iter().filter(|p| p.is_some()).count();
+        format!(
+            "camera {}, {placed} of {} frames placed",
+            t.motion.name(),
+            t.poses.len()
+        )
+    }
+
+    /// Depth of frame `index` from its `prior` (`width x height`, any scale, NaN where
+    /// unknown), at that size.
+    pub fn depth(
+        &mut self,
+        index: usize,
+        prior: &[f32],
+        (width, height): (u32, u32),
+    ) -> Result<(Vec<f32>, DepthFrom)> {
+        let t = &self.trajectory;
+        let work = t.camera;
+        let size = (work.width, work.height);
+        let why = match (t.motion, t.poses.get(index).copied().flatten()) {
+            (CameraMotion::Translating, Some(pose)) => {
+                let mut near: Vec<usize> = (0..t.poses.len())
+                    .filter(|&j| j != index && t.poses[j].is_some())
+                    .collect();
+                near.sort_by_key(|&j| j.abs_diff(index));
+                near.truncate(Self::NEIGHBOURS);
+                let poses: Vec<Pose> = near.iter().map(|&j| t.poses[j].expect("placed")).collect();
+                let nb: Vec<(&Mat, &Pose)> =
+                    near.iter().map(|&j| &self.greys[j]).zip(&poses).collect();
+                let views = mvs::depth_from_views(
+                    &work,
+                    (&self.greys[index], &pose),
+                    &nb,
+                    &MvsConfig::default(),
+                )?;
+                let small = mvs::resize_depth(prior, (width, height), size)?;
+                let fused = mvs::fuse(&views, &small, Self::MIN_CONFIDENCE)
+                    .and_then(|(z, f)| Some((median_depth(&z)?, median_depth(&small)?, z, f)));
+                match fused {
+                    Some((zm, pm, z, fusion)) => {
+                        let scale = *self.scale.get_or_insert(pm as f64 / zm as f64);
+                        let mut z = mvs::resize_depth(&z, size, (width, height))?;
+                        z.iter_mut().for_each(|v| *v *= scale as f32);
+                        self.ratios.push(zm as f64 * scale / pm as f64);
+                        let from = DepthFrom::Views {
+                            share: fusion.from_views,
+                            views: near.len(),
+                        };
+                        return Ok((z, from));
+                    }
+                    None if views.density() < 0.01 => format!(
+                        "the views saw too little ({:.1} % triangulated)",
+                        100.0 * views.density()
+                    ),
+                    None => "the prior's depth order disagrees with the views".to_string(),
+                }
+            }
+            (CameraMotion::Translating, None) => "the frame was not placed".to_string(),
+            (CameraMotion::Rotating, _) => {
+                "the camera only turns (no baseline to triangulate)".to_string()
+            }
+            (CameraMotion::Static, _) => "the camera is static".to_string(),
+            (CameraMotion::Untracked, _) => "too little texture to track the camera".to_string(),
+        };
+        let mut r = self.ratios.clone();
+        r.sort_by(f64::total_cmp);
+        let k = r.get(r.len() / 2).copied().unwrap_or(1.0) as f32;
+        Ok((
+            prior.iter().map(|v| v * k).collect(),
+            DepthFrom::Fallback(why),
+        ))
+    }
+}

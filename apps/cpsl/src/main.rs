@@ -85,7 +85,19 @@ enum Command {
     Bench(bench::BenchCommand),
 }
 
+/// Ends the process quietly when what reads its output goes away (`cpsl info pkg | head`), as
+/// command-line tools do, instead of panicking in `println!` on the broken pipe.
+#[allow(unsafe_code)] // `signal` is a C function.
+fn default_sigpipe() {
+    #[cfg(unix)]
+    // SAFETY: restoring the default disposition of SIGPIPE before any thread starts.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
+}
+
 fn main() -> ExitCode {
+    default_sigpipe();
     // SVT-AV1 prints its configuration unless told otherwise (1 = errors only); set before
     // any thread starts.
     if std::env::var_os("SVT_LOG").is_none() {

@@ -36,9 +36,9 @@ const HELD_FRAMES: usize = 10;
 /// Memory the held frames may take (at 4K, 5 frames of 6 layers).
 const HELD_MEMORY: u64 = 1_000_000_000;
 
-/// How many times the last segment's correction may halve its quality steps when its retry
-/// overshoots the budget (see `SegmentEncoder::correct`).
-const BISECTIONS: usize = 2;
+/// How many more retries the last segment's correction may make when one lands beyond the
+/// budget's 5 % on the other side (see `SegmentEncoder::correct`).
+const RETRIES: usize = 2;
 
 /// How far (as a ratio either way) a stream's cost may stray from its model before the model
 /// is fitted again.
@@ -88,16 +88,38 @@ fn retry_kept(bits: f64, total: f64, tried: f64) -> bool {
     }
 }
 
-/// The qualities halfway (rounded) between the coding `now` and the `other` one tried, when
-/// they lie beyond a budget of `bits` by more than 5 % on either side (each with its bits);
-/// `None` otherwise.
-fn halfway(bits: f64, now: (&[f32], f64), other: (&[f32], f64)) -> Option<Vec<f32>> {
-    let beyond = |a: f64, b: f64| a > 1.05 * bits && b < 0.95 * bits;
-    (beyond(now.1, other.1) || beyond(other.1, now.1)).then(|| {
-        (now.0.iter().zip(other.0))
-            .map(|(a, b)| (0.5 * (a + b)).round())
-            .collect()
-    })
+/// Qualities between the coding `now` and an `other` one measured (each with its streams'
+/// bits), when their totals lie beyond a budget of `bits` by more than 5 % on either side:
+/// each stream moved the same share of the way from its quality towards the other's
+/// (rounded), its rate interpolated log-linearly between the two measurements, at the share
+/// (in steps of 5 %) whose total comes closest to `bits` without exceeding it; `None` when
+/// they do not straddle the budget or no share changes a quality.
+fn between(bits: f64, now: (&[f32], &[f64]), other: (&[f32], &[f64])) -> Option<Vec<f32>> {
+    let (a, b): (f64, f64) = (now.1.iter().sum(), other.1.iter().sum());
+    let beyond = |x: f64, y: f64| x > 1.05 * bits && y < 0.95 * bits;
+    if !(beyond(a, b) || beyond(b, a)) {
+        return None;
+    }
+    let at = |t: f64| -> (Vec<f32>, f64) {
+        let mut total = 0.0;
+        let q = (0..now.0.len())
+            .map(|k| {
+                let (q0, q1, r0, r1) = (now.0[k], other.0[k], now.1[k], other.1[k]);
+                let q = (q0 + t as f32 * (q1 - q0)).round();
+                total += match q1 != q0 && r0 > 0.0 && r1 > 0.0 {
+                    true => r0 * (r1 / r0).powf(f64::from((q - q0) / (q1 - q0))),
+                    false => r0,
+                };
+                q
+            })
+            .collect();
+        (q, total)
+    };
+    (1..20)
+        .map(|i| at(i as f64 / 20.0))
+        .filter(|(q, total)| q.as_slice() != now.0 && *total <= bits)
+        .max_by(|x, y| x.1.total_cmp(&y.1))
+        .map(|(q, _)| q)
 }
 
 /// What a segment hands the next under a budget.
@@ -929,8 +951,8 @@ impl SegmentEncoder {
     /// model is anchored on what it cost, the qualities are allocated again on the same rungs
     /// (over the budget, no stream may cost more than it did), and the streams whose quality
     /// changed are coded again from their kept pictures (`raws`); a retry that lands beyond
-    /// the budget's 5 % on the other side is followed by up to [`BISECTIONS`] more, halfway
-    /// between the qualities on either side.
+    /// the budget's 5 % on the other side is followed by up to [`RETRIES`] more, between the
+    /// codings on either side (see `between`).
     fn correct(
         &mut self,
         last: bool,
@@ -971,12 +993,11 @@ impl SegmentEncoder {
         let (gop, container) = (self.gop(), self.opts.container);
         let retry = |raw: &Raw| raw.out.with_extension("retry.mp4");
         let mut target = a.quality;
-        let mut total = total;
         // A retry that lands beyond the budget's 5 % on the other side is followed by one
-        // halfway between the qualities on either side (the anchored models extrapolate:
-        // 1080p testsrc2 at 6 Mbit/s, the last segment's retry cost 1.5 times their estimate
-        // and was dropped, leaving the package 20 % under its budget).
-        for _ in 0..=BISECTIONS {
+        // between the two codings measured, each stream's rate interpolated between them (the
+        // anchored models extrapolate: 1080p testsrc2 at 6 Mbit/s, the last segment's retry
+        // cost 1.5 times their estimate and was dropped, leaving the package 20 % under).
+        for _ in 0..=RETRIES {
             let jobs: Vec<(usize, f32, &Raw)> = (0..written.len())
                 .filter(|&k| target[k] != coding.quality[k])
                 .filter_map(|k| Some((k, target[k], raws[k].as_ref()?)))
@@ -990,11 +1011,13 @@ impl SegmentEncoder {
                     .collect::<Result<_, _>>()
             })?;
             self.encodes += jobs.len();
-            let before: f64 = jobs.iter().map(|j| written[j.0].bytes as f64 * 8.0).sum();
-            let after: f64 = again.iter().map(|w| w.bytes as f64 * 8.0).sum();
-            let tried = total - before + after;
-            let keep = retry_kept(bits, total, tried);
-            let before_q = coding.quality.clone();
+            let now: Vec<f64> = written.iter().map(|w| w.bytes as f64 * 8.0).collect();
+            let mut tried = now.clone();
+            for (j, w) in jobs.iter().zip(&again) {
+                tried[j.0] = w.bytes as f64 * 8.0;
+            }
+            let keep = retry_kept(bits, now.iter().sum(), tried.iter().sum());
+            let (mut other, mut other_bits) = (coding.quality.clone(), now);
             for (&(k, q, raw), wr) in jobs.iter().zip(again) {
                 let io = |source| CodecError::Io {
                     path: raw.out.clone(),
@@ -1006,14 +1029,11 @@ impl SegmentEncoder {
                     written[k] = wr;
                 } else {
                     std::fs::remove_file(retry(raw)).map_err(io)?;
+                    (other[k], other_bits[k]) = (q, tried[k]);
                 }
             }
-            // The other side: what was there before a retry taken, or the retry dropped.
-            let (other, other_total) = match keep {
-                true => (before_q, std::mem::replace(&mut total, tried)),
-                false => (target, tried),
-            };
-            match halfway(bits, (&coding.quality, total), (&other, other_total)) {
+            let now: Vec<f64> = written.iter().map(|w| w.bytes as f64 * 8.0).collect();
+            match between(bits, (&coding.quality, &now), (&other, &other_bits)) {
                 Some(q) => target = q,
                 None => break,
             }
@@ -1171,7 +1191,7 @@ mod tests {
     use super::*;
 
     #[test]
-    fn a_correction_keeps_retries_towards_the_budget_and_halves_those_beyond_it() {
+    fn a_correction_keeps_retries_towards_the_budget_and_interpolates_past_it() {
         // Short of 100 bits: more is taken up to 105, not beyond.
         assert!(super::retry_kept(100.0, 80.0, 104.0));
         assert!(!super::retry_kept(100.0, 80.0, 120.0));
@@ -1180,13 +1200,27 @@ mod tests {
         assert!(super::retry_kept(100.0, 130.0, 110.0));
         assert!(super::retry_kept(100.0, 130.0, 60.0));
         assert!(!super::retry_kept(100.0, 130.0, 140.0));
-        // Beyond on both sides: halfway, rounded; within 5 % on one side: done.
-        let (now, other) = ([26.0, 27.0, 33.0], [16.0, 24.0, 33.0]);
-        let h = super::halfway(100.0, (&now, 80.0), (&other, 120.0));
-        assert_eq!(h, Some(vec![21.0, 26.0, 33.0]));
-        assert_eq!(super::halfway(100.0, (&other, 120.0), (&now, 80.0)), h);
-        assert_eq!(super::halfway(100.0, (&now, 96.0), (&other, 120.0)), None);
-        assert_eq!(super::halfway(100.0, (&now, 80.0), (&other, 90.0)), None);
+        // Beyond on both sides: in between, each stream's rate interpolated. Two streams at
+        // 26 and 30 cost 40 + 40; at 16 and 20, 80 + 80: halving the way (21, 25) predicts
+        // 2 x 40 sqrt(2) = 113, over 100; a third of the way (23, 27: 0.3) predicts 98.5.
+        let (now, other) = ([26.0, 30.0], [16.0, 20.0]);
+        let (rn, ro) = ([40.0, 40.0], [80.0, 80.0]);
+        let q = super::between(100.0, (&now, &rn), (&other, &ro));
+        assert_eq!(q, Some(vec![23.0, 27.0]));
+        // Either way round; a stream alike on both sides stays.
+        let q = super::between(100.0, (&other, &ro), (&now, &rn));
+        assert_eq!(q, Some(vec![23.0, 27.0]));
+        let q = super::between(100.0, (&[26.0, 33.0], &rn), (&[16.0, 33.0], &[120.0, 40.0]));
+        assert_eq!(q.as_ref().map(|q| q[1]), Some(33.0), "{q:?}");
+        // Within 5 % on one side, or both on one side: done.
+        assert_eq!(
+            super::between(100.0, (&now, &[48.0, 48.0]), (&other, &ro)),
+            None
+        );
+        assert_eq!(
+            super::between(100.0, (&now, &rn), (&other, &[45.0, 45.0])),
+            None
+        );
     }
 
     #[test]

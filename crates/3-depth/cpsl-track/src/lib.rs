@@ -135,7 +135,8 @@ pub struct Tracker {
     cfg: TrackConfig,
     camera: Camera,
     size: (u32, u32),
-    prev: Option<Mat>,
+    /// The last frame and its image pyramid (with derivatives) for Lucas-Kanade.
+    prev: Option<(Mat, Vector<Mat>)>,
     live: Vec<(usize, Point2f)>,
     tracks: Vec<Vec<Obs>>,
     frames: u32,
@@ -201,11 +202,12 @@ impl Tracker {
             )));
         }
         let f = self.frames;
-        if let Some(prev) = &self.prev {
+        let pyramid = lk_pyramid(&grey)?;
+        if let Some((prev, prev_pyramid)) = &self.prev {
             if !self.live.is_empty() {
                 let p0: Vector<Point2f> = self.live.iter().map(|l| l.1).collect();
-                let p1 = lk(prev, &grey, &p0)?;
-                let back = lk(&grey, prev, &p1.0)?;
+                let p1 = lk(prev_pyramid, &pyramid, &p0)?;
+                let back = lk(&pyramid, prev_pyramid, &p1.0)?;
                 let (w, h) = (self.size.0 as f32, self.size.1 as f32);
                 let mut kept = Vec::with_capacity(self.live.len());
                 for (i, &(id, a)) in self.live.iter().enumerate() {
@@ -238,7 +240,7 @@ impl Tracker {
         if self.live.len() < self.cfg.max_features * 7 / 10 {
             self.detect(&grey, f)?;
         }
-        self.prev = Some(grey);
+        self.prev = Some((grey, pyramid));
         self.frames += 1;
         Ok(())
     }
@@ -387,7 +389,33 @@ fn matches(a: &Mat, b: &Mat) -> Result<Vec<(Point2f, Point2f)>> {
 }
 
 /// Pyramidal Lucas-Kanade from `a` to `b`: new positions and which were found.
-fn lk(a: &Mat, b: &Mat, p: &Vector<Point2f>) -> Result<(Vector<Point2f>, Vec<bool>)> {
+/// Lucas-Kanade's window.
+const LK_WINDOW: i32 = 15;
+/// Lucas-Kanade's pyramid levels above the image.
+const LK_LEVELS: i32 = 3;
+
+/// The image pyramid of `grey` for [`lk`], built once per frame (each frame is tracked into
+/// and back from, and tracked from into the next: four builds otherwise).
+fn lk_pyramid(grey: &Mat) -> Result<Vector<Mat>> {
+    let mut pyramid = Vector::new();
+    video::build_optical_flow_pyramid(
+        grey,
+        &mut pyramid,
+        Size::new(LK_WINDOW, LK_WINDOW),
+        LK_LEVELS,
+        true,
+        core::BORDER_REFLECT_101,
+        core::BORDER_CONSTANT,
+        true,
+    )?;
+    Ok(pyramid)
+}
+
+fn lk(
+    a: &Vector<Mat>,
+    b: &Vector<Mat>,
+    p: &Vector<Point2f>,
+) -> Result<(Vector<Point2f>, Vec<bool>)> {
     let mut next: Vector<Point2f> = Vector::new();
     let mut status: Vector<u8> = Vector::new();
     let mut err: Vector<f32> = Vector::new();
@@ -398,8 +426,8 @@ fn lk(a: &Mat, b: &Mat, p: &Vector<Point2f>) -> Result<(Vector<Point2f>, Vec<boo
         &mut next,
         &mut status,
         &mut err,
-        Size::new(21, 21),
-        3,
+        Size::new(LK_WINDOW, LK_WINDOW),
+        LK_LEVELS,
         TermCriteria::new(core::TermCriteria_COUNT + core::TermCriteria_EPS, 30, 0.01)?,
         0,
         1e-4,

@@ -74,11 +74,6 @@ impl TrackedDepth {
         })
     }
 
-    /// The solved camera path.
-    pub fn trajectory(&self) -> &Trajectory {
-        &self.trajectory
-    }
-
     /// How the camera moves and how many frames were placed.
     pub fn summary(&self) -> String {
         let t = &self.trajectory;

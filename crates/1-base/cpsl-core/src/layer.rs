@@ -137,10 +137,41 @@ impl Layer {
     }
 
     /// Makes transparent every pixel where the layer's surface is not in front of the
-    /// reference camera with a pixel to spare, so that the layer passes the check of
-    /// [`LayerSet::new`]. Lossy coding spreads faint alpha beyond a layer's extent; beyond a
-    /// slanted plane's horizon such texels are noise.
+    /// reference camera with a pixel to spare, and then, while the layer's extent (the box
+    /// around its pixels, grown by one) still reaches behind the camera at a corner, the
+    /// extent's outermost row or column at that corner (the one with fewer pixels), so that
+    /// the layer passes the check of [`LayerSet::new`]. Lossy coding spreads faint alpha
+    /// beyond a layer's extent; beyond a slanted plane's horizon such texels are noise.
+    /// (Pixels in front of the camera one by one can still span a box whose far corner is
+    /// not: a decoded P-frame of the fox did, and its package could not be read.)
     pub fn clip_to_geometry(&mut self, cam: &Camera) {
+        self.clip_pixels_to_geometry(cam);
+        while let (Some(b), Some([x0, y0, x1, y1])) = (self.grown_extent(), self.extent()) {
+            let (inv, u, v) = self.geometry.least_inverse_depth(self.depth, cam, b);
+            if inv.is_finite() && inv > 0.0 {
+                return;
+            }
+            let col = if u < f64::from(x0) { x0 } else { x1 } as usize;
+            let row = if v < f64::from(y0) { y0 } else { y1 } as usize;
+            let w = self.image.width() as usize;
+            let lines = self.image.as_bytes_mut().chunks_exact_mut(w * 4);
+            let in_col = lines
+                .map(|l| usize::from(l[col * 4 + 3] != 0))
+                .sum::<usize>();
+            let line = &mut self.image.as_bytes_mut()[row * w * 4..(row + 1) * w * 4];
+            let in_row = line.chunks_exact(4).filter(|p| p[3] != 0).count();
+            // The edge with fewer pixels goes.
+            if in_row < in_col {
+                line.fill(0);
+            } else {
+                let lines = self.image.as_bytes_mut().chunks_exact_mut(w * 4);
+                lines.for_each(|l| l[col * 4..col * 4 + 4].fill(0));
+            }
+        }
+    }
+
+    /// The per-pixel part of [`Layer::clip_to_geometry`].
+    fn clip_pixels_to_geometry(&mut self, cam: &Camera) {
         if !matches!(self.geometry, Geometry::Slanted(_)) {
             return;
         }
@@ -361,6 +392,32 @@ mod tests {
     }
     fn layer(d: f64) -> Layer {
         Layer::new(PremulImage::new(4, 3), d)
+    }
+
+    #[test]
+    fn clipping_keeps_the_extent_in_front_of_the_camera() {
+        // Inverse depth 0.2 - 0.01 u + 0.01 v (pixels): two pixels in front, each with a pixel
+        // to spare, whose grown box reaches (51, 4), where the plane is behind the camera.
+        let c = Camera {
+            width: 64,
+            height: 48,
+            fx: 50.0,
+            fy: 50.0,
+            cx: 32.0,
+            cy: 24.0,
+        };
+        let mut l = Layer::new(PremulImage::new(64, 48), 5.0);
+        l.geometry = Geometry::Slanted(crate::Vec3::new(-0.5, 0.5, 0.12));
+        l.image.set_pixel(10, 5, [0, 0, 0, 255]);
+        l.image.set_pixel(50, 40, [0, 0, 0, 255]);
+        let err = LayerSet::new(c, vec![l.clone()], &Limits::default()).unwrap_err();
+        assert!(
+            matches!(err, CoreError::BadGeometry { index: 0, .. }),
+            "{err}"
+        );
+        l.clip_to_geometry(&c);
+        assert_eq!(l.extent(), Some([10, 5, 10, 5]), "one pixel left");
+        assert!(LayerSet::new(c, vec![l], &Limits::default()).is_ok());
     }
 
     #[test]

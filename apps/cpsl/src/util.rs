@@ -10,3 +10,13 @@ pub fn parse_rgb(s: &str) -> Result<[u8; 3], String> {
     <[u8; 3]>::try_from(v)
         .map_err(|v| format!("colour '{s}': expected 3 values, found {}", v.len()))
 }
+
+/// Says on stderr that `damaged` packets of `input` were skipped, if any.
+pub fn warn_damaged(input: &std::path::Path, damaged: usize) {
+    if damaged > 0 {
+        eprintln!(
+            "warning: {}: {damaged} damaged packet(s) skipped; their frames are missing",
+            input.display()
+        );
+    }
+}

@@ -190,5 +190,6 @@ pub fn run(a: LayerVideoArgs) -> Result<()> {
         a.output.display(),
         n as f64 / seconds
     );
+    crate::util::warn_damaged(&a.input, m.damaged_packets);
     Ok(())
 }

@@ -85,3 +85,47 @@ fn layers_a_clip_and_refuses_bad_input() {
         "mine"
     );
 }
+
+#[test]
+fn a_damaged_packet_costs_its_frame_only() {
+    if !models_present(&["fastdepth_7.onnx"]) {
+        eprintln!("skipped: FastDepth not in the model cache (scripts/setup-models.sh)");
+        return;
+    }
+    let dir = tempfile::tempdir().unwrap();
+    let clip = dir.path().join("clip.mp4");
+    test_clip(&clip, &["-bf", "0"]);
+    // The fourth picture's first NAL unit claims 2 GB: the decoder refuses that packet.
+    let probe = std::process::Command::new("ffprobe")
+        .args([
+            "-v",
+            "error",
+            "-select_streams",
+            "v",
+            "-show_entries",
+            "packet=pos",
+        ])
+        .args(["-of", "csv=p=0", s(&clip)])
+        .output()
+        .expect("the ffprobe tool (scripts/setup-system.sh)");
+    let pos: Vec<usize> = String::from_utf8_lossy(&probe.stdout)
+        .lines()
+        .map(|l| l.trim().parse().unwrap())
+        .collect();
+    let mut bytes = std::fs::read(&clip).unwrap();
+    bytes[pos[3]..pos[3] + 4].copy_from_slice(&[0x7f, 0xff, 0xff, 0xff]);
+    let damaged = dir.path().join("damaged.mp4");
+    std::fs::write(&damaged, bytes).unwrap();
+    let out = dir.path().join("layers");
+    let o = cpsl(&["layer-video", s(&damaged), "-o", s(&out), "--layers", "3"]);
+    let (msg, err) = (
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr),
+    );
+    assert!(o.status.success(), "{err}");
+    assert!(msg.contains("wrote 6 frames"), "{msg}");
+    assert!(err.contains("1 damaged packet(s) skipped"), "{err}");
+    let v: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("video.json")).unwrap()).unwrap();
+    assert_eq!(v["damaged_packets"], 1);
+}

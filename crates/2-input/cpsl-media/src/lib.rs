@@ -105,7 +105,14 @@ pub struct Info {
     /// pictures are mapped to SDR BT.709: reference white (203 cd/m2) to white, highlights
     /// rolled off. `None` for SDR video and images.
     pub hdr: Option<&'static str>,
+    /// Damaged packets the decoder refused and that were skipped so far (their pictures are
+    /// missing from the frames; see [`MAX_DAMAGED_IN_A_ROW`]).
+    pub damaged: usize,
 }
+
+/// Most damaged packets in a row a video may have before decoding gives up with an error
+/// (fewer are skipped, each costing its picture).
+pub const MAX_DAMAGED_IN_A_ROW: usize = 25;
 
 /// A source of frames.
 pub trait FrameSource {

@@ -45,6 +45,7 @@ impl ImageSequence {
                 codec: "image".into(),
                 rotation: 0,
                 hdr: None,
+                damaged: 0,
             },
             files,
             next: 0,

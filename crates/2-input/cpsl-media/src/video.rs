@@ -29,6 +29,8 @@ pub struct VideoFile {
     format: ffmpeg::format::Pixel,
     info: Info,
     decoded: usize,
+    /// Damaged packets skipped since the last one the decoder took.
+    damaged_in_a_row: usize,
     flushed: bool,
     mvs: bool,
 }
@@ -151,8 +153,10 @@ impl VideoFile {
                 codec: codec.name().to_string(),
                 rotation,
                 hdr,
+                damaged: 0,
             },
             decoded: 0,
+            damaged_in_a_row: 0,
             flushed: false,
             mvs,
         })
@@ -371,11 +375,19 @@ impl FrameSource for VideoFile {
                 .find(|(s, _)| s.index() == self.stream)
                 .map(|(_, p)| p);
             match next {
-                Some(packet) => {
-                    self.decoder
-                        .send_packet(&packet)
-                        .map_err(|e| self.decode_error(e))?;
-                }
+                Some(packet) => match self.decoder.send_packet(&packet) {
+                    Ok(()) => self.damaged_in_a_row = 0,
+                    // A damaged packet is skipped (its picture is lost, and those that refer
+                    // to it may show artefacts until the next key frame), unless the stream
+                    // is beyond repair.
+                    Err(ffmpeg::Error::InvalidData)
+                        if self.damaged_in_a_row < crate::MAX_DAMAGED_IN_A_ROW =>
+                    {
+                        self.damaged_in_a_row += 1;
+                        self.info.damaged += 1;
+                    }
+                    Err(e) => return Err(self.decode_error(e)),
+                },
                 None => {
                     self.decoder.send_eof().map_err(|e| self.decode_error(e))?;
                     self.flushed = true;

@@ -51,6 +51,8 @@ pub struct Encoded {
     pub seconds: f64,
     /// Seconds spent coding.
     pub coding_seconds: f64,
+    /// Damaged packets of the input that were skipped (their frames are missing).
+    pub damaged_packets: usize,
 }
 
 /// Fails clearly when this FFmpeg cannot encode `codec`.
@@ -168,7 +170,7 @@ pub fn encode(
     let mut reports: Vec<Vec<SegmentReport>> = vec![Vec::new(); outputs.len()];
     let mut coding = 0.0;
     let t = Instant::now();
-    layer_video(&job.video, depth, progress, |r| {
+    let info = layer_video(&job.video, depth, progress, |r| {
         if stop.load(Ordering::SeqCst) {
             return Err(interrupted());
         }
@@ -247,6 +249,7 @@ pub fn encode(
         variant_set,
         seconds: t.elapsed().as_secs_f64(),
         coding_seconds: coding,
+        damaged_packets: info.damaged,
     })
 }
 

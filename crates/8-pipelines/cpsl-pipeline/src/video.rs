@@ -161,7 +161,12 @@ pub fn layer_video(
             input.display()
         )));
     }
+    info.damaged = src.info().damaged;
     Ok(info)
+}
+
+fn is_zero(n: &usize) -> bool {
+    *n == 0
 }
 
 /// Format name of `video.json`.
@@ -195,6 +200,9 @@ pub struct VideoManifest {
     pub hdr: Option<String>,
     /// The depth source.
     pub depth: String,
+    /// Damaged packets of the input that were skipped (their frames are missing).
+    #[serde(default, skip_serializing_if = "is_zero")]
+    pub damaged_packets: usize,
     /// Groups of pictures.
     pub gop: GopConfig,
     /// Layering of one frame.
@@ -325,6 +333,7 @@ pub fn write_layered_video(
         stereo: job.stereo.map(|l| l.name().to_string()),
         rotation: info.rotation,
         hdr: info.hdr.map(String::from),
+        damaged_packets: info.damaged,
         depth: depth.name(),
         gop: job.gop,
         layering: job.layering,

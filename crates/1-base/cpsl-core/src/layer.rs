@@ -146,25 +146,24 @@ impl Layer {
     /// not: a decoded P-frame of the fox did, and its package could not be read.)
     pub fn clip_to_geometry(&mut self, cam: &Camera) {
         self.clip_pixels_to_geometry(cam);
-        while let (Some(b), Some([x0, y0, x1, y1])) = (self.grown_extent(), self.extent()) {
-            let (inv, u, v) = self.geometry.least_inverse_depth(self.depth, cam, b);
+        while let Some(e @ [x0, y0, x1, y1]) = self.extent() {
+            let (inv, u, v) = self.geometry.least_inverse_depth(self.depth, cam, grow(e));
             if inv.is_finite() && inv > 0.0 {
                 return;
             }
             let col = if u < f64::from(x0) { x0 } else { x1 } as usize;
             let row = if v < f64::from(y0) { y0 } else { y1 } as usize;
             let w = self.image.width() as usize;
-            let lines = self.image.as_bytes_mut().chunks_exact_mut(w * 4);
-            let in_col = lines
-                .map(|l| usize::from(l[col * 4 + 3] != 0))
-                .sum::<usize>();
-            let line = &mut self.image.as_bytes_mut()[row * w * 4..(row + 1) * w * 4];
-            let in_row = line.chunks_exact(4).filter(|p| p[3] != 0).count();
+            let bytes = self.image.as_bytes();
+            let in_col = bytes.chunks_exact(w * 4).filter(|l| l[col * 4 + 3] != 0);
+            let in_row = bytes[row * w * 4..(row + 1) * w * 4].chunks_exact(4);
             // The edge with fewer pixels goes.
-            if in_row < in_col {
-                line.fill(0);
+            let row_goes = in_row.filter(|p| p[3] != 0).count() < in_col.count();
+            let bytes = self.image.as_bytes_mut();
+            if row_goes {
+                bytes[row * w * 4..(row + 1) * w * 4].fill(0);
             } else {
-                let lines = self.image.as_bytes_mut().chunks_exact_mut(w * 4);
+                let lines = bytes.chunks_exact_mut(w * 4);
                 lines.for_each(|l| l[col * 4..col * 4 + 4].fill(0));
             }
         }
@@ -197,14 +196,7 @@ impl Layer {
 
     /// The layer's extent grown by one pixel (the bilinear footprint), as `[u0, v0, u1, v1]`.
     fn grown_extent(&self) -> Option<[f64; 4]> {
-        self.extent().map(|[x0, y0, x1, y1]| {
-            [
-                x0 as f64 - 1.0,
-                y0 as f64 - 1.0,
-                x1 as f64 + 1.0,
-                y1 as f64 + 1.0,
-            ]
-        })
+        self.extent().map(grow)
     }
 
     /// Checks the geometry against the camera: finite, and a depth above zero over the
@@ -236,6 +228,16 @@ impl Layer {
         }
         Ok(())
     }
+}
+
+/// An extent `[u0, v0, u1, v1]` grown by one pixel on every side.
+fn grow([x0, y0, x1, y1]: [u32; 4]) -> [f64; 4] {
+    [
+        f64::from(x0) - 1.0,
+        f64::from(y0) - 1.0,
+        f64::from(x1) + 1.0,
+        f64::from(y1) + 1.0,
+    ]
 }
 
 /// A validated, depth-ordered stack of layers seen by one reference camera.

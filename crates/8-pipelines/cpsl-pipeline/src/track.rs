@@ -24,11 +24,18 @@ pub fn track_video(
     progress: &dyn Progress,
 ) -> Result<(Trajectory, Camera, Vec<String>), PipelineError> {
     let (t, cam, names, _) = track_frames(input, camera, max_frames, progress, None)?;
+    if names.len() < 2 {
+        return Err(PipelineError::Invalid(format!(
+            "{}: {} frame(s); tracking needs at least two",
+            input.display(),
+            names.len()
+        )));
+    }
     Ok((t, cam, names))
 }
 
-/// [`track_video`], also returning every frame's working grey image when `keep` allows that
-/// many frames (an error names the limit otherwise).
+/// [`track_video`] for any number of frames, also returning every frame's working grey image
+/// when `keep` allows that many frames (an error names the limit otherwise).
 fn track_frames(
     input: &Path,
     camera: &CameraChoice,
@@ -87,31 +94,7 @@ fn track_frames(
         });
     }
     progress.event(ProgressEvent::Finish { stage: TRACKING });
-    if names.len() < 2 {
-        return Err(PipelineError::Invalid(format!(
-            "{}: {} frame(s); tracking needs at least two",
-            input.display(),
-            names.len()
-        )));
-    }
     Ok((tracker.finish()?, cam, names, greys))
-}
-
-/// Whether `input` has fewer than two frames (at most `max_frames` read).
-fn fewer_than_two(input: &Path, max_frames: Option<usize>) -> Result<bool, PipelineError> {
-    let mut src =
-        cpsl_media::open(input).context_with(|| format!("opening {}", input.display()))?;
-    let mut n = 0;
-    while n < 2 && max_frames.is_none_or(|m| n < m) {
-        let frame = src
-            .next_frame()
-            .context_with(|| format!("decoding {}", input.display()))?;
-        if frame.is_none() {
-            break;
-        }
-        n += 1;
-    }
-    Ok(n < 2)
 }
 
 /// One frame of `poses.json`.
@@ -244,13 +227,12 @@ impl VideoTrackedDepth {
         max_frames: Option<usize>,
         progress: &dyn Progress,
     ) -> Result<(), PipelineError> {
-        if fewer_than_two(input, max_frames)? {
-            self.tracked = Some(Err("one frame: nothing to track".into()));
-            return Ok(());
-        }
         let keep = Some(Self::MAX_FRAMES);
         let (t, _, _, greys) = track_frames(input, camera, max_frames, progress, keep)?;
-        self.tracked = Some(Ok(TrackedDepth::new(t, greys)?));
+        self.tracked = Some(match greys.len() {
+            0 | 1 => Err("one frame: nothing to track".into()),
+            _ => Ok(TrackedDepth::new(t, greys)?),
+        });
         Ok(())
     }
 

@@ -124,7 +124,7 @@ pub struct BenchPlayArgs {
     /// The package (folder or single file).
     pub package: PathBuf,
     /// Frames to play (from the first, looping over the package); default every frame once.
-    #[arg(long)]
+    #[arg(long, value_parser = clap::value_parser!(u32).range(1..))]
     pub frames: Option<u32>,
     /// Viewer pose `tx,ty,tz,rx,ry,rz` every frame is rendered at.
     #[arg(long, allow_hyphen_values = true, default_value = "0.05,-0.02,0,0,0,0", value_parser = Pose::parse)]
@@ -132,6 +132,10 @@ pub struct BenchPlayArgs {
     /// Render without the Dynamic Pixel Strip.
     #[arg(long)]
     pub no_dps: bool,
+    /// Render on the GPU (wgpu): the layers are uploaded and rendered each frame, decoding
+    /// stays on the CPU.
+    #[arg(long)]
+    pub gpu: bool,
     /// Print JSON instead of a table.
     #[arg(long)]
     pub json: bool,
@@ -256,18 +260,25 @@ fn render(a: BenchRenderArgs) -> Result<()> {
 }
 
 fn play(a: BenchPlayArgs) -> Result<()> {
-    let report = bench_play(&PlayBench {
-        package: a.package,
-        frames: a.frames,
-        pose: a.pose,
-        dps: !a.no_dps,
-    })?;
+    let gpu = match a.gpu {
+        true => Some(cpsl_render_gpu::GpuRenderer::new()?),
+        false => None,
+    };
+    let report = bench_play(
+        &PlayBench {
+            package: a.package,
+            frames: a.frames,
+            pose: a.pose,
+            dps: !a.no_dps,
+        },
+        gpu.as_ref(),
+    )?;
     if a.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
         return Ok(());
     }
     println!(
-        "cpsl bench play: {} ({}x{}, {} layers, {} at {:.0} kbit/s), {} frames{}, {} threads, {} ({})",
+        "cpsl bench play: {} ({}x{}, {} layers, {} at {:.0} kbit/s), {} frames{}, on {}, {} threads, {} ({})",
         report.package,
         report.width,
         report.height,
@@ -276,6 +287,7 @@ fn play(a: BenchPlayArgs) -> Result<()> {
         report.kbit_per_s,
         report.frames,
         if report.dps { ", with the strip" } else { "" },
+        report.renderer,
         report.run.threads,
         report.run.cpu,
         report.run.date
@@ -284,10 +296,14 @@ fn play(a: BenchPlayArgs) -> Result<()> {
         ("decode", &report.decode),
         ("prepare", &report.prepare),
         ("render", &report.render),
-    ] {
+        ("frame", &report.frame),
+    ]
+    .into_iter()
+    .chain(report.gpu_render.as_ref().map(|t| ("gpu", t)))
+    {
         println!(
-            "  {name:<8} median {:>7.1} ms  p90 {:>7.1} ms",
-            t.median_ms, t.p90_ms
+            "  {name:<8} median {:>7.2} ms  p90 {:>7.2} ms  p99 {:>7.2} ms",
+            t.median_ms, t.p90_ms, t.p99_ms
         );
     }
     println!(

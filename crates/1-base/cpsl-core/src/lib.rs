@@ -29,6 +29,7 @@ pub mod motion;
 pub mod pose;
 pub mod progress;
 pub mod resample;
+pub mod run;
 pub mod ycbcr;
 
 pub use camera::Camera;

@@ -2,8 +2,10 @@
 //! segment decoded in lock step, one picture at a time, so a player holds one frame), a
 //! [`Source`] that is either a package or a layer-set folder, and the choice of renderer
 //! ([`choose_renderer`]: the GPU where asked for and present, else the CPU reference), and
-//! rendering along a sweep of poses into frames, a contact sheet and an MP4 ([`sweep`]).
+//! rendering along a sweep of poses into frames, a contact sheet and an MP4 ([`sweep`]), and
+//! timed playback ([`bench`]).
 
+pub mod bench;
 pub mod sweep;
 
 use cpsl_codec::{CodecError, SegmentReader};
@@ -74,6 +76,9 @@ pub enum PlayerError {
     /// A renderer failed.
     #[error(transparent)]
     Render(#[from] cpsl_render::RenderError),
+    /// The GPU renderer failed.
+    #[error(transparent)]
+    Gpu(#[from] cpsl_render_gpu::GpuError),
     /// The `ffmpeg` tool failed.
     #[error("{0}")]
     Ffmpeg(String),

@@ -1,4 +1,5 @@
-// Shared by both passes (prepended to each): parameters, the layer texels and the warp.
+// Shared by both passes (prepended to each): parameters, the layer texels, the warp and the
+// entry points.
 
 struct Params {
     size: vec2<i32>,              // layer (and output) size
@@ -14,6 +15,20 @@ struct Params {
 @group(0) @binding(1) var<uniform> P: Params;
 @group(0) @binding(3) var maps: texture_2d_array<f32>;
 @group(0) @binding(4) var tri_h: texture_2d<f32>;
+
+// The compute form of each pass writes here (group 1, bound only for it).
+@group(1) @binding(0) var out_image: texture_storage_2d<rgba8unorm, write>;
+
+// Both passes run as a full-screen triangle (`vs` + the pass's `fs`) or as a compute shader
+// (`cs`) over 8x8 tiles; each calls the pass's `shade(pixel)`.
+@compute @workgroup_size(8, 8)
+fn cs(@builtin(global_invocation_id) id: vec3<u32>) {
+    let size = textureDimensions(out_image);
+    if (id.x >= size.x || id.y >= size.y) {
+        return;
+    }
+    textureStore(out_image, vec2<i32>(id.xy), shade(vec2<i32>(id.xy)));
+}
 
 @vertex
 fn vs(@builtin(vertex_index) i: u32) -> @builtin(position) vec4<f32> {

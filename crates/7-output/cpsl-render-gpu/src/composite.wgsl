@@ -4,7 +4,11 @@
 
 @fragment
 fn fs(@builtin(position) pos: vec4<f32>) -> @location(0) vec4<f32> {
-    let px = floor(pos.xy);
+    return shade(vec2<i32>(floor(pos.xy)));
+}
+
+fn shade(p: vec2<i32>) -> vec4<f32> {
+    let px = vec2<f32>(p);
     var o = vec4<f32>(0.0);
     var t = 1.0;
     for (var k = 0; k < P.layers; k++) {

@@ -71,7 +71,10 @@ fn pair_offsets(f: i32, b: i32) -> vec2<f32> {
 
 @fragment
 fn fs(@builtin(position) pos: vec4<f32>) -> @location(0) vec4<f32> {
-    let p = vec2<i32>(floor(pos.xy));
+    return shade(vec2<i32>(floor(pos.xy)));
+}
+
+fn shade(p: vec2<i32>) -> vec4<f32> {
     let here = img(p);
     if (here.a >= 128.0) {
         return here / 255.0;

@@ -54,6 +54,17 @@ pub enum GpuError {
     Readback(String),
 }
 
+/// How the composite and strip passes run.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Passes {
+    /// A full-screen triangle with the pass as its fragment shader.
+    Fragment,
+    /// A compute shader over 8x8 tiles writing a storage texture: the default where the
+    /// adapter has compute shaders. On NVIDIA's H100/H200 (compute GPUs whose graphics units
+    /// are few) it is many times faster than the fragment form (BENCHMARKS.md).
+    Compute,
+}
+
 /// A wgpu device with the two render pipelines.
 pub struct GpuRenderer {
     device: wgpu::Device,
@@ -61,11 +72,28 @@ pub struct GpuRenderer {
     layout: wgpu::BindGroupLayout,
     composite: wgpu::RenderPipeline,
     dps: wgpu::RenderPipeline,
+    /// The compute forms of both passes and the layout of their output, where the adapter
+    /// has compute shaders.
+    compute: Option<ComputePasses>,
+    passes: Passes,
     mesh: wgpu::RenderPipeline,
     /// Bound as the composite where the composite pass itself runs (it reads nothing there).
     dummy: wgpu::TextureView,
     adapter: String,
     handle: wgpu::Adapter,
+}
+
+/// The two passes of a view.
+#[derive(Clone, Copy)]
+enum Pass {
+    Composite,
+    Strip,
+}
+
+struct ComputePasses {
+    out: wgpu::BindGroupLayout,
+    composite: wgpu::ComputePipeline,
+    dps: wgpu::ComputePipeline,
 }
 
 /// Layers uploaded to the GPU, with what the strip needs.
@@ -114,9 +142,17 @@ impl GpuRenderer {
             ..Default::default()
         }))
         .map_err(|e| GpuError::Device(e.to_string()))?;
+        let has_compute = adapter
+            .get_downlevel_capabilities()
+            .flags
+            .contains(wgpu::DownlevelFlags::COMPUTE_SHADERS);
+        let stages = match has_compute {
+            true => wgpu::ShaderStages::FRAGMENT | wgpu::ShaderStages::COMPUTE,
+            false => wgpu::ShaderStages::FRAGMENT,
+        };
         let entry = |binding, ty| wgpu::BindGroupLayoutEntry {
             binding,
-            visibility: wgpu::ShaderStages::FRAGMENT,
+            visibility: stages,
             ty,
             count: None,
         };
@@ -159,6 +195,45 @@ impl GpuRenderer {
         // The composite pass declares no binding 2; a layout may hold more than a shader uses.
         let composite = pipeline("cpsl composite", COMPOSITE_WGSL);
         let dps = pipeline("cpsl dps", DPS_WGSL);
+        let compute = has_compute.then(|| {
+            let out = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+                label: Some("cpsl output"),
+                entries: &[wgpu::BindGroupLayoutEntry {
+                    binding: 0,
+                    visibility: wgpu::ShaderStages::COMPUTE,
+                    ty: wgpu::BindingType::StorageTexture {
+                        access: wgpu::StorageTextureAccess::WriteOnly,
+                        format: FORMAT,
+                        view_dimension: wgpu::TextureViewDimension::D2,
+                    },
+                    count: None,
+                }],
+            });
+            let layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+                label: Some("cpsl compute"),
+                bind_group_layouts: &[Some(&layout), Some(&out)],
+                immediate_size: 0,
+            });
+            let pipeline = |name: &str, pass: &str| {
+                let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+                    label: Some(name),
+                    source: wgpu::ShaderSource::Wgsl(format!("{COMMON_WGSL}\n{pass}").into()),
+                });
+                device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                    label: Some(name),
+                    layout: Some(&layout),
+                    module: &module,
+                    entry_point: Some("cs"),
+                    compilation_options: Default::default(),
+                    cache: None,
+                })
+            };
+            ComputePasses {
+                composite: pipeline("cpsl composite (compute)", COMPOSITE_WGSL),
+                dps: pipeline("cpsl dps (compute)", DPS_WGSL),
+                out,
+            }
+        });
         let mesh = mesh::pipeline(&device);
         let dummy = device
             .create_texture(&wgpu::TextureDescriptor {
@@ -182,6 +257,11 @@ impl GpuRenderer {
             layout,
             composite,
             dps,
+            passes: match compute {
+                Some(_) => Passes::Compute,
+                None => Passes::Fragment,
+            },
+            compute,
             mesh,
             dummy,
             adapter: format!("{} ({:?}, {:?})", info.name, info.backend, info.device_type),
@@ -202,6 +282,24 @@ impl GpuRenderer {
     /// The adapter (for a surface's capabilities).
     pub fn adapter_handle(&self) -> &wgpu::Adapter {
         &self.handle
+    }
+
+    /// How the passes run.
+    pub fn passes(&self) -> Passes {
+        self.passes
+    }
+
+    /// Runs the passes as `passes` from now on; compute where the adapter has no compute
+    /// shaders is an error.
+    pub fn set_passes(&mut self, passes: Passes) -> Result<(), GpuError> {
+        if passes == Passes::Compute && self.compute.is_none() {
+            return Err(GpuError::Device(format!(
+                "{} has no compute shaders",
+                self.adapter
+            )));
+        }
+        self.passes = passes;
+        Ok(())
     }
 
     /// The adapter's name, backend and type.
@@ -348,7 +446,11 @@ impl GpuRenderer {
             sample_count: 1,
             dimension: wgpu::TextureDimension::D2,
             format: FORMAT,
-            usage,
+            // The compute passes write their output as a storage texture.
+            usage: match self.compute {
+                Some(_) => usage | wgpu::TextureUsages::STORAGE_BINDING,
+                None => usage,
+            },
             view_formats: &[],
         })
     }
@@ -408,6 +510,7 @@ impl GpuRenderer {
             &layers.camera,
             target,
             pose,
+            timestamps,
         );
         let maps = maps.create_view(&wgpu::TextureViewDescriptor {
             dimension: Some(wgpu::TextureViewDimension::D2Array),
@@ -446,38 +549,73 @@ impl GpuRenderer {
         // Pass 1 writes `first` when the strip follows (pass 2 reads it), else `out` directly.
         let passes = match dps {
             Some(_) => vec![
-                (&self.composite, first, bind(&self.dummy)),
-                (&self.dps, out, bind(&first_view)),
+                (Pass::Composite, first, bind(&self.dummy)),
+                (Pass::Strip, out, bind(&first_view)),
             ],
-            None => vec![(&self.composite, out, bind(&self.dummy))],
+            None => vec![(Pass::Composite, out, bind(&self.dummy))],
         };
         let last = passes.len() - 1;
-        for (i, (pipeline, into, group)) in passes.into_iter().enumerate() {
+        for (i, (pass, into, group)) in passes.into_iter().enumerate() {
             let view = into.create_view(&Default::default());
-            let timestamp_writes = timestamps.map(|q| wgpu::RenderPassTimestampWrites {
-                query_set: q,
-                beginning_of_pass_write_index: (i == 0).then_some(0),
-                end_of_pass_write_index: (i == last).then_some(1),
-            });
-            let mut pass = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
-                label: Some("cpsl pass"),
-                color_attachments: &[Some(wgpu::RenderPassColorAttachment {
-                    view: &view,
-                    depth_slice: None,
-                    resolve_target: None,
-                    ops: wgpu::Operations {
-                        load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
-                        store: wgpu::StoreOp::Store,
-                    },
-                })],
-                depth_stencil_attachment: None,
-                timestamp_writes,
-                occlusion_query_set: None,
-                multiview_mask: None,
-            });
-            pass.set_pipeline(pipeline);
-            pass.set_bind_group(0, &group, &[]);
-            pass.draw(0..3, 0..1);
+            // Where mesh passes ran, the first of them wrote the start.
+            let begin = (i == 0 && meshes.is_empty()).then_some(0);
+            let end = (i == last).then_some(1);
+            let stamps = timestamps.filter(|_| begin.is_some() || end.is_some());
+            match (self.passes, &self.compute) {
+                (Passes::Compute, Some(c)) => {
+                    let output = self.device.create_bind_group(&wgpu::BindGroupDescriptor {
+                        label: Some("cpsl output"),
+                        layout: &c.out,
+                        entries: &[wgpu::BindGroupEntry {
+                            binding: 0,
+                            resource: wgpu::BindingResource::TextureView(&view),
+                        }],
+                    });
+                    let mut cp = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                        label: Some("cpsl pass"),
+                        timestamp_writes: stamps.map(|q| wgpu::ComputePassTimestampWrites {
+                            query_set: q,
+                            beginning_of_pass_write_index: begin,
+                            end_of_pass_write_index: end,
+                        }),
+                    });
+                    cp.set_pipeline(match pass {
+                        Pass::Composite => &c.composite,
+                        Pass::Strip => &c.dps,
+                    });
+                    cp.set_bind_group(0, &group, &[]);
+                    cp.set_bind_group(1, &output, &[]);
+                    cp.dispatch_workgroups(target.width.div_ceil(8), target.height.div_ceil(8), 1);
+                }
+                _ => {
+                    let mut rp = encoder.begin_render_pass(&wgpu::RenderPassDescriptor {
+                        label: Some("cpsl pass"),
+                        color_attachments: &[Some(wgpu::RenderPassColorAttachment {
+                            view: &view,
+                            depth_slice: None,
+                            resolve_target: None,
+                            ops: wgpu::Operations {
+                                load: wgpu::LoadOp::Clear(wgpu::Color::TRANSPARENT),
+                                store: wgpu::StoreOp::Store,
+                            },
+                        })],
+                        depth_stencil_attachment: None,
+                        timestamp_writes: stamps.map(|q| wgpu::RenderPassTimestampWrites {
+                            query_set: q,
+                            beginning_of_pass_write_index: begin,
+                            end_of_pass_write_index: end,
+                        }),
+                        occlusion_query_set: None,
+                        multiview_mask: None,
+                    });
+                    rp.set_pipeline(match pass {
+                        Pass::Composite => &self.composite,
+                        Pass::Strip => &self.dps,
+                    });
+                    rp.set_bind_group(0, &group, &[]);
+                    rp.draw(0..3, 0..1);
+                }
+            }
         }
         s
     }
@@ -633,6 +771,34 @@ impl GpuRenderer {
             }
         }
         Ok(times)
+    }
+
+    /// Renders `frames` views submitted back to back (one command buffer each, as a player's
+    /// loop does, nothing read back) and waits for the last: wall-clock seconds per view. Unlike
+    /// [`GpuRenderer::time_renders`], the CPU's recording of a view overlaps the GPU's work
+    /// on the one before, so this is the rate a renderer sustains.
+    pub fn throughput(
+        &self,
+        layers: &GpuLayers,
+        pose: &Pose,
+        target: &Camera,
+        dps: Option<&DpsConfig>,
+        frames: usize,
+    ) -> Result<f64, GpuError> {
+        let usage = wgpu::TextureUsages::RENDER_ATTACHMENT | wgpu::TextureUsages::TEXTURE_BINDING;
+        let (out, first) = (self.target(target, usage), self.target(target, usage));
+        let t = std::time::Instant::now();
+        for _ in 0..frames {
+            let mut encoder = self
+                .device
+                .create_command_encoder(&wgpu::CommandEncoderDescriptor {
+                    label: Some("cpsl"),
+                });
+            self.draw(&mut encoder, layers, pose, target, dps, &first, &out);
+            self.queue.submit([encoder.finish()]);
+        }
+        self.wait()?;
+        Ok(t.elapsed().as_secs_f64() / frames.max(1) as f64)
     }
 }
 

@@ -102,13 +102,18 @@ fn triangles(
     (verts, homs)
 }
 
-/// A texture array of `n` triangle maps of `target`'s size (at least one slice).
+/// A texture array of `n` triangle maps of `target`'s size; without mesh layers one texel,
+/// which the shaders never read (bound only because the layout has the slot).
 pub(crate) fn maps(device: &wgpu::Device, target: &Camera, n: usize) -> wgpu::Texture {
+    let (width, height) = match n {
+        0 => (1, 1),
+        _ => (target.width, target.height),
+    };
     device.create_texture(&wgpu::TextureDescriptor {
         label: Some("cpsl mesh maps"),
         size: wgpu::Extent3d {
-            width: target.width,
-            height: target.height,
+            width,
+            height,
             depth_or_array_layers: n.max(1) as u32,
         },
         mip_level_count: 1,
@@ -169,8 +174,12 @@ pub(crate) fn draw_maps(
     cam: &Camera,
     target: &Camera,
     pose: &Pose,
+    timestamps: Option<&wgpu::QuerySet>,
 ) -> wgpu::Texture {
     use wgpu::util::DeviceExt;
+    if meshes.is_empty() {
+        return homography_texture(device, queue, &[]);
+    }
     let depth = device.create_texture(&wgpu::TextureDescriptor {
         label: Some("cpsl mesh depth"),
         size: wgpu::Extent3d {
@@ -222,7 +231,14 @@ pub(crate) fn draw_maps(
                 }),
                 stencil_ops: None,
             }),
-            timestamp_writes: None,
+            // The first mesh pass starts the view's GPU time.
+            timestamp_writes: timestamps.filter(|_| i == 0).map(|q| {
+                wgpu::RenderPassTimestampWrites {
+                    query_set: q,
+                    beginning_of_pass_write_index: Some(0),
+                    end_of_pass_write_index: None,
+                }
+            }),
             occlusion_query_set: None,
             multiview_mask: None,
         });

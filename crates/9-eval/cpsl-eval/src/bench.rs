@@ -3,12 +3,11 @@
 //! reports whose figures go into BENCHMARKS.md (`cpsl bench`).
 
 use crate::error::{Context, EvalError};
-use crate::report::today;
 use cpsl_core::{LayerSet, Pose, PremulImage, Progress, ProgressEvent};
 use cpsl_layering::GeometryMode;
 use cpsl_pipeline::image::{layer_image, InstanceMode};
 use cpsl_pipeline::sources::open_depth_model;
-use cpsl_render::{CpuRenderer, DpsConfig, PreparedLayers, Renderer};
+use cpsl_render::PreparedLayers;
 use cpsl_synth::layers::{synthetic_layer_set, Coverage};
 use serde::Serialize;
 use std::path::PathBuf;
@@ -20,31 +19,7 @@ fn invalid<T>(m: impl Into<String>) -> Result<T> {
     Err(EvalError::Invalid(m.into()))
 }
 
-/// Where and when a benchmark ran: the command line, the date, the CPU and the worker
-/// threads (the first fields of every report).
-#[derive(Debug, Serialize)]
-pub struct RunInfo {
-    /// The command line that made the report.
-    pub command: String,
-    /// The date it was made.
-    pub date: String,
-    /// The CPU.
-    pub cpu: String,
-    /// Worker threads.
-    pub threads: usize,
-}
-
-impl RunInfo {
-    /// This process, now.
-    pub fn now() -> Self {
-        Self {
-            command: std::env::args().collect::<Vec<_>>().join(" "),
-            date: today(),
-            cpu: cpu_name(),
-            threads: rayon::current_num_threads(),
-        }
-    }
-}
+pub use cpsl_core::run::{RunInfo, Timing};
 
 /// What `bench_layer` times.
 #[derive(Debug, Clone)]
@@ -183,34 +158,6 @@ pub struct GpuResult {
     pub psnr_vs_cpu_db: f64,
 }
 
-/// Milliseconds per frame.
-#[derive(Debug, Serialize)]
-pub struct Timing {
-    /// Median.
-    pub median_ms: f64,
-    /// 90th percentile.
-    pub p90_ms: f64,
-    /// Fastest.
-    pub min_ms: f64,
-    /// Mean.
-    pub mean_ms: f64,
-}
-
-fn timing(mut ms: Vec<f64>) -> Timing {
-    ms.sort_by(f64::total_cmp);
-    let n = ms.len();
-    Timing {
-        median_ms: if n % 2 == 1 {
-            ms[n / 2]
-        } else {
-            (ms[n / 2 - 1] + ms[n / 2]) / 2.0
-        },
-        p90_ms: ms[((n as f64 * 0.9) as usize).min(n - 1)],
-        min_ms: ms[0],
-        mean_ms: ms.iter().sum::<f64>() / n as f64,
-    }
-}
-
 /// The OpenCV implementation on the same case.
 #[derive(Debug, Serialize)]
 pub struct OpenCvResult {
@@ -264,18 +211,6 @@ pub struct RenderReport {
     pub cases: Vec<Case>,
 }
 
-fn cpu_name() -> String {
-    std::fs::read_to_string("/proc/cpuinfo")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find(|l| l.starts_with("model name"))
-                .and_then(|l| l.split(':').nth(1))
-                .map(|v| v.trim().to_string())
-        })
-        .unwrap_or_else(|| "unknown".into())
-}
-
 fn time_cpsl(set: &LayerSet, pose: &Pose, frames: u32) -> (Timing, PremulImage) {
     let prepared = PreparedLayers::new(set);
     let cam = *set.camera();
@@ -290,7 +225,7 @@ fn time_cpsl(set: &LayerSet, pose: &Pose, frames: u32) -> (Timing, PremulImage) 
             t.elapsed().as_secs_f64() * 1e3
         })
         .collect();
-    (timing(ms), out)
+    (Timing::of(ms), out)
 }
 
 /// Times the GPU renderer on the same layers and pose (3 warm-up frames).
@@ -309,8 +244,8 @@ fn time_gpu(
     let ms = |v: Vec<f64>| v.into_iter().map(|s| s * 1e3).collect::<Vec<f64>>();
     // GPU timestamps where the adapter has them, else submission to completion.
     let (timing, clock) = match times.gpu {
-        Some(g) => (timing(ms(g)), "gpu timestamps"),
-        None => (timing(ms(times.wall)), "submit to completion"),
+        Some(g) => (Timing::of(ms(g)), "gpu timestamps"),
+        None => (Timing::of(ms(times.wall)), "submit to completion"),
     };
     Ok(GpuResult {
         adapter: g.adapter().to_string(),
@@ -392,7 +327,7 @@ fn time_opencv(
     let py: Py = serde_json::from_slice(&out.stdout)
         .map_err(|e| EvalError::Invalid(format!("parsing OpenCV benchmark output: {e}")))?;
     let theirs = cpsl_io::images::read_rgb8(&png, &cpsl_core::Limits::default())?;
-    let t = timing(py.times_ms);
+    let t = Timing::of(py.times_ms);
     let _ = std::fs::remove_dir_all(&dir);
     Ok(OpenCvResult {
         ratio: t.median_ms / ours.1.median_ms,
@@ -532,110 +467,4 @@ pub fn bench_render(a: &RenderBench, progress: &dyn Progress) -> Result<RenderRe
     })
 }
 
-/// What `bench_play` plays.
-#[derive(Debug, Clone)]
-pub struct PlayBench {
-    /// The package (folder or single file).
-    pub package: PathBuf,
-    /// Frames to play (from the first, looping); every frame once when `None`.
-    pub frames: Option<u32>,
-    /// The pose every frame is rendered at.
-    pub pose: Pose,
-    /// Render with the Dynamic Pixel Strip.
-    pub dps: bool,
-}
-
-/// Playback timings (the JSON of `cpsl bench play`).
-#[derive(Debug, Serialize)]
-pub struct PlayReport {
-    /// Where and when it was measured.
-    #[serde(flatten)]
-    pub run: RunInfo,
-    /// The package.
-    pub package: String,
-    /// Frame width.
-    pub width: u32,
-    /// Frame height.
-    pub height: u32,
-    /// Layers.
-    pub layers: usize,
-    /// The codec.
-    pub codec: String,
-    /// The package's bitrate in kbit/s.
-    pub kbit_per_s: f64,
-    /// Frames timed.
-    pub frames: u32,
-    /// Whether the Dynamic Pixel Strip ran.
-    pub dps: bool,
-    /// Per stage: decoding every layer stream's picture and building the layer set, preparing
-    /// it for the renderer, rendering.
-    pub decode: Timing,
-    /// Preparing the layers for the renderer.
-    pub prepare: Timing,
-    /// Rendering.
-    pub render: Timing,
-    /// Frames over the whole wall time, stages one after another on this thread (a player
-    /// that decodes ahead on another thread overlaps them only where cores are free).
-    pub fps: f64,
-    /// The process's peak resident memory.
-    pub peak_rss_mib: f64,
-}
-
-/// Plays a package on the CPU, timing decoding, preparation and rendering per frame.
-pub fn bench_play(a: &PlayBench) -> Result<PlayReport> {
-    let mut player = cpsl_player::Player::open(&a.package)?;
-    let m = player.package().manifest().clone();
-    let frames = a.frames.unwrap_or(m.frames);
-    if frames < 1 {
-        return invalid("--frames must be at least 1");
-    }
-    let cam = m.camera;
-    let mut img = PremulImage::new(cam.width, cam.height);
-    let (mut decode, mut prepare, mut render) = (Vec::new(), Vec::new(), Vec::new());
-    let mut layers = 0;
-    let started = Instant::now();
-    let dps = a.dps.then_some(&DpsConfig::DEFAULT);
-    for i in 0..frames {
-        let t = Instant::now();
-        // Frame after frame, looping at the end.
-        let frame = player.decode(i % m.frames)?;
-        decode.push(t.elapsed().as_secs_f64() * 1e3);
-        layers = layers.max(frame.set.len());
-        let t = Instant::now();
-        frame.prepared();
-        prepare.push(t.elapsed().as_secs_f64() * 1e3);
-        let t = Instant::now();
-        CpuRenderer.render(&frame, &a.pose, &cam, dps, &mut img)?;
-        render.push(t.elapsed().as_secs_f64() * 1e3);
-    }
-    let wall = started.elapsed().as_secs_f64();
-    let report = PlayReport {
-        run: RunInfo::now(),
-        package: a.package.display().to_string(),
-        width: cam.width,
-        height: cam.height,
-        layers,
-        codec: m.codec.name().to_string(),
-        kbit_per_s: m.bitrate() / 1e3,
-        frames,
-        dps: a.dps,
-        decode: timing(decode),
-        prepare: timing(prepare),
-        render: timing(render),
-        fps: frames as f64 / wall,
-        peak_rss_mib: peak_rss_kib() as f64 / 1024.0,
-    };
-    Ok(report)
-}
-
-/// The process's peak resident set (`VmHWM`), in KiB; 0 where /proc does not say.
-fn peak_rss_kib() -> u64 {
-    std::fs::read_to_string("/proc/self/status")
-        .ok()
-        .and_then(|s| {
-            s.lines()
-                .find_map(|l| l.strip_prefix("VmHWM:"))
-                .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
-        })
-        .unwrap_or(0)
-}
+pub use cpsl_player::bench::{bench_play, PlayBench, PlayReport};

@@ -8,7 +8,9 @@
 # Runtime) and cpsl-gpu-play (package playback; decodes with FFmpeg, whose Debian libraries it
 # packs next to it, about 48 MB compressed), fetches the Vulkan loader packages, and copies the
 # 1080p30 playback package of scripts/bench.sh (and the fox's, when made). Copy or carry
-# .gpubench/ to the GPU machine; `run` needs only it and the GPU's driver.
+# .gpubench/ to the GPU machine; `run` needs only it and the GPU's driver. Each step of `run`
+# has a time limit (RENDER_TIMEOUT, PASSES_TIMEOUT, PLAY_TIMEOUT; about 7 minutes in all) and
+# the render benchmark writes its JSON after every case, so a step cut short keeps its figures.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 dir=.gpubench
@@ -67,14 +69,14 @@ run() {
     timeout "$limit" "$tmp/bin/cpsl-gpu-bench" --json "$out/$name.json" "$@" || failed=1
   }
   # shellcheck disable=SC2086 # the *_ARGS hold several arguments
-  render gpu-render "${RENDER_TIMEOUT:-300}" --passes compute ${RENDER_ARGS:-}
+  render gpu-render "${RENDER_TIMEOUT:-270}" --passes compute ${RENDER_ARGS:-}
   # shellcheck disable=SC2086
-  render gpu-render-passes "${PASSES_TIMEOUT:-120}" --sizes 1920x1080 --layers 8 \
+  render gpu-render-passes "${PASSES_TIMEOUT:-60}" --sizes 1920x1080 --layers 8 \
     --passes compute,fragment ${PASSES_ARGS:-}
   for pkg in "$dir"/play_*.cpsl; do
     name=$(basename "$pkg" .cpsl)
-    LD_LIBRARY_PATH="$tmp/lib" timeout "${PLAY_TIMEOUT:-120}" "$tmp/bin/cpsl-gpu-play" "$pkg" \
-      --frames "${PLAY_FRAMES:-300}" --cpu --json "$out/gpu-$name.json" || failed=1
+    LD_LIBRARY_PATH="$tmp/lib" timeout "${PLAY_TIMEOUT:-45}" "$tmp/bin/cpsl-gpu-play" "$pkg" \
+      --frames "${PLAY_FRAMES:-150}" --cpu --json "$out/gpu-$name.json" || failed=1
   done
   return $failed
 }

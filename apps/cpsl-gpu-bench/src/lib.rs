@@ -28,7 +28,10 @@ pub struct GpuBench {
     pub coverages: Vec<Coverage>,
     /// How the composite and strip passes run (each case once per entry).
     pub passes: Vec<Passes>,
-    /// Views timed one at a time (each waited for), after 10 warm-up views.
+    /// Seconds of views rendered before each case is timed (a GPU left idle while the CPU
+    /// built the case slows its clocks down).
+    pub warm_up_s: f64,
+    /// Views timed one at a time (each waited for), after the warm-up.
     pub frames: usize,
     /// Views submitted back to back for the sustained rate.
     pub throughput_frames: usize,
@@ -212,7 +215,10 @@ pub fn bench(
                             &cpu.over_background([0, 0, 0]),
                             &img.over_background([0, 0, 0]),
                         );
-                        gpu.time_renders(&up, &a.pose, &cam, dps, 10)?;
+                        let warm = Instant::now();
+                        while warm.elapsed().as_secs_f64() < a.warm_up_s {
+                            gpu.throughput(&up, &a.pose, &cam, dps, 10)?;
+                        }
                         let times = gpu.time_renders(&up, &a.pose, &cam, dps, a.frames.max(1))?;
                         let sustained =
                             gpu.throughput(&up, &a.pose, &cam, dps, a.throughput_frames.max(1))?;

@@ -31,11 +31,14 @@ struct Args {
     /// How the composite and strip passes run: compute, fragment.
     #[arg(long, default_value = "compute,fragment", value_delimiter = ',', value_parser = parse_passes)]
     passes: Vec<Passes>,
-    /// Views timed one at a time per case (after 10 warm-up views).
-    #[arg(long, default_value_t = 200, value_parser = clap::value_parser!(u32).range(1..))]
+    /// Seconds of warm-up views before each case (an idle GPU lowers its clocks).
+    #[arg(long, default_value_t = 0.3)]
+    warm_up: f64,
+    /// Views timed one at a time per case (after the warm-up).
+    #[arg(long, default_value_t = 100, value_parser = clap::value_parser!(u32).range(1..))]
     frames: u32,
     /// Views submitted back to back per case for the sustained rate.
-    #[arg(long, default_value_t = 500, value_parser = clap::value_parser!(u32).range(1..))]
+    #[arg(long, default_value_t = 200, value_parser = clap::value_parser!(u32).range(1..))]
     throughput_frames: u32,
     /// Viewer pose `tx,ty,tz,rx,ry,rz` (rotations in degrees).
     #[arg(long, allow_hyphen_values = true, default_value = "0.05,-0.02,0.03,0.4,-0.8,0.2", value_parser = Pose::parse)]
@@ -87,6 +90,7 @@ fn main() -> Result<()> {
         geometries: a.geometry,
         coverages: a.coverage,
         passes: a.passes,
+        warm_up_s: a.warm_up,
         frames: a.frames as usize,
         throughput_frames: a.throughput_frames as usize,
         pose: a.pose,

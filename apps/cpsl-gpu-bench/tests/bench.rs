@@ -33,6 +33,7 @@ fn small() -> GpuBench {
         ],
         coverages: vec![Coverage::Typical, Coverage::Dense],
         passes: vec![Passes::Compute, Passes::Fragment],
+        warm_up_s: 0.0,
         frames: 3,
         throughput_frames: 3,
         pose: Pose::parse("0.05,-0.02,0.03,0.4,-0.8,0.2").expect("pose"),

@@ -15,7 +15,7 @@ use cpsl_synth::layers::{synthetic_layer_set, Coverage};
 use serde::Serialize;
 use std::time::Instant;
 
-/// What [`bench`] runs: every combination of the lists.
+/// What [`bench()`] runs: every combination of the lists.
 #[derive(Debug, Clone)]
 pub struct GpuBench {
     /// Frame sizes, width x height.
@@ -110,7 +110,7 @@ pub struct CaseReport {
     pub cpu_ms: f64,
 }
 
-/// The report of [`bench`] (`cpsl-gpu-bench --json`).
+/// The report of [`bench()`] (`cpsl-gpu-bench --json`).
 #[derive(Debug, Clone, Serialize)]
 pub struct GpuReport {
     /// Where and when it ran.

@@ -3,7 +3,7 @@
 //! [`Source`] that is either a package or a layer-set folder, and the choice of renderer
 //! ([`choose_renderer`]: the GPU where asked for and present, else the CPU reference), and
 //! rendering along a sweep of poses into frames, a contact sheet and an MP4 ([`sweep`]), and
-//! timed playback ([`bench`]).
+//! timed playback ([`mod@bench`]).
 
 pub mod bench;
 pub mod sweep;

@@ -181,6 +181,7 @@ pub fn run(a: EncodeArgs) -> Result<()> {
     if let Some(set) = &done.variant_set {
         println!("wrote {} ({} variants)", set.display(), done.packages.len());
     }
+    crate::util::print_depth_runs(&done.depth);
     crate::util::warn_damaged(&job.video.input, done.damaged_packets);
     Ok(())
 }

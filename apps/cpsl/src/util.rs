@@ -11,6 +11,37 @@ pub fn parse_rgb(s: &str) -> Result<[u8; 3], String> {
         .map_err(|v| format!("colour '{s}': expected 3 values, found {}", v.len()))
 }
 
+/// Where the frames' depth came from: how many frames got the depth asked for, then each run
+/// of frames that fell back as a warning (at most ten; video.json has every frame's note).
+pub fn print_depth_runs(runs: &[cpsl_pipeline::video::DepthRun]) {
+    let Some(last) = runs.last() else { return };
+    let len = |r: &cpsl_pipeline::video::DepthRun| (r.last - r.first + 1) as usize;
+    let fell: Vec<_> = runs.iter().filter(|r| r.is_fallback()).collect();
+    let fallen: usize = fell.iter().map(|r| len(r)).sum();
+    let total = (last.last - runs[0].first + 1) as usize;
+    println!(
+        "depth as asked on {} of {total} frames{}",
+        total - fallen,
+        match fell.len() {
+            0 => String::new(),
+            n => format!("; {fallen} frames in {n} run(s) fell back"),
+        }
+    );
+    for r in fell.iter().take(10) {
+        let frames = match r.first == r.last {
+            true => format!("frame {}", r.first),
+            false => format!("frames {}-{}", r.first, r.last),
+        };
+        eprintln!("warning: depth of {frames}: {}", r.note);
+    }
+    if fell.len() > 10 {
+        eprintln!(
+            "warning: ... and {} more runs of fallbacks",
+            fell.len() - 10
+        );
+    }
+}
+
 /// Says on stderr that `damaged` packets of `input` were skipped, if any.
 pub fn warn_damaged(input: &std::path::Path, damaged: usize) {
     if damaged > 0 {

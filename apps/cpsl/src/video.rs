@@ -190,6 +190,8 @@ pub fn run(a: LayerVideoArgs) -> Result<()> {
         a.output.display(),
         n as f64 / seconds
     );
+    let notes = m.frames.iter().map(|f| (f.index, f.depth_note.as_deref()));
+    crate::util::print_depth_runs(&cpsl_pipeline::video::depth_runs(notes));
     crate::util::warn_damaged(&a.input, m.damaged_packets);
     Ok(())
 }

@@ -262,14 +262,17 @@ fn layers_the_fox_with_depth_from_its_own_video() {
     let video_json = |out: &Path| -> serde_json::Value {
         serde_json::from_slice(&std::fs::read(out.join("video.json")).unwrap()).unwrap()
     };
-    let layer = |input: &Path, name: &str, extra: &[&str]| {
+    // video.json, and what the command printed (stdout, stderr).
+    let layer_said = |input: &Path, name: &str, extra: &[&str]| {
         let out = dir.path().join(name);
         let mut args = vec!["layer-video", s(input), "-o", s(&out), "--depth", "video"];
         args.extend_from_slice(extra);
-        ok(&args);
-        video_json(&out)
+        let o = cpsl(&args);
+        let text = |b: &[u8]| String::from_utf8_lossy(b).into_owned();
+        assert!(o.status.success(), "{args:?}: {}", text(&o.stderr));
+        (video_json(&out), text(&o.stdout), text(&o.stderr))
     };
-    let v = layer(
+    let (v, said, _) = layer_said(
         &fox,
         "fox",
         &["--fov", "42.9", "--max-frames", "12", "--gop", "6"],
@@ -283,6 +286,8 @@ fn layers_the_fox_with_depth_from_its_own_video() {
         v["frames"][i]["depth_note"].as_str().unwrap().to_string()
     };
     assert!(note(&v, 0).starts_with("video: "), "{}", note(&v, 0));
+    // The command says where the depth came from, by runs of frames.
+    assert!(said.contains("depth as asked on "), "{said}");
     // Each I-frame says where its depth came from.
     for f in v["frames"].as_array().unwrap() {
         assert_eq!(f["kind"] == "I", f["depth_note"].is_string(), "{f}");
@@ -311,10 +316,23 @@ fn layers_the_fox_with_depth_from_its_own_video() {
             "one frame: nothing to track",
         ),
     ] {
-        let v = layer(input, "out", extra);
+        let (v, _, warned) = layer_said(input, "out", extra);
         let n = note(&v, 0);
         assert!(n.starts_with(&format!("fallback: {why}; model")), "{n}");
+        assert!(
+            warned.contains("warning: depth of frame") && warned.contains(why),
+            "{warned}"
+        );
     }
+    // `cpsl encode` says the same.
+    let pkg = dir.path().join("still.cpsl");
+    let o = cpsl(&["encode", s(&still), "-o", s(&pkg), "--depth", "video"]);
+    let warned = String::from_utf8_lossy(&o.stderr);
+    assert!(o.status.success(), "{warned}");
+    assert!(
+        warned.contains("warning: depth of frames 0-2: fallback: the camera is static"),
+        "{warned}"
+    );
     // Stereo input has its own depth.
     let o = cpsl(&[
         "layer-video",

@@ -53,6 +53,8 @@ pub struct Encoded {
     pub coding_seconds: f64,
     /// Damaged packets of the input that were skipped (their frames are missing).
     pub damaged_packets: usize,
+    /// Where the frames' depth came from, where the source says (`depth_runs`).
+    pub depth: Vec<crate::video::DepthRun>,
 }
 
 /// Fails clearly when this FFmpeg cannot encode `codec`.
@@ -169,8 +171,10 @@ pub fn encode(
     let mut writers: Vec<PackageWriter> = Vec::new();
     let mut reports: Vec<Vec<SegmentReport>> = vec![Vec::new(); outputs.len()];
     let mut coding = 0.0;
+    let mut notes = Vec::new();
     let t = Instant::now();
     let info = layer_video(&job.video, depth, progress, |r| {
+        notes.push((r.frame.index, r.depth_note));
         if stop.load(Ordering::SeqCst) {
             return Err(interrupted());
         }
@@ -250,6 +254,7 @@ pub fn encode(
         seconds: t.elapsed().as_secs_f64(),
         coding_seconds: coding,
         damaged_packets: info.damaged,
+        depth: crate::video::depth_runs(notes.iter().map(|(i, n)| (*i, n.as_deref()))),
     })
 }
 

@@ -288,6 +288,44 @@ impl VideoFrameEntry {
     }
 }
 
+/// Consecutive frames whose depth came from the same place (a run of [`depth_runs`]).
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct DepthRun {
+    /// Its first frame.
+    pub first: u32,
+    /// Its last frame.
+    pub last: u32,
+    /// Where their depth came from (a frame's `depth_note`).
+    pub note: String,
+}
+
+impl DepthRun {
+    /// Whether the frames fell back from the depth asked for (stereo or the video's own).
+    pub fn is_fallback(&self) -> bool {
+        self.note.starts_with("fallback")
+    }
+}
+
+/// The frames' depth notes (`(frame, note)` in frame order) as runs of equal notes: a frame
+/// without a note (its depth carried along the motion) joins the run before it. Empty where
+/// no frame has a note (the depth model on every frame).
+pub fn depth_runs<'a>(frames: impl IntoIterator<Item = (u32, Option<&'a str>)>) -> Vec<DepthRun> {
+    let mut runs: Vec<DepthRun> = Vec::new();
+    for (frame, note) in frames {
+        match (runs.last_mut(), note) {
+            (Some(r), Some(n)) if r.note == n => r.last = frame,
+            (_, Some(n)) => runs.push(DepthRun {
+                first: frame,
+                last: frame,
+                note: n.to_string(),
+            }),
+            (Some(r), None) => r.last = frame,
+            (None, None) => {}
+        }
+    }
+    runs
+}
+
 /// Whether a folder is the output of [`write_layered_video`] (and so may be replaced).
 pub fn is_layered_video(dir: &Path) -> bool {
     dir.join(VIDEO_FILE).is_file()
@@ -343,4 +381,31 @@ pub fn write_layered_video(
     staged.write_file(VIDEO_FILE, &json)?;
     staged.commit(is_layered_video)?;
     Ok(manifest)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn depth_runs_group_equal_notes_and_carry_propagated_frames() {
+        let fused = Some("video: fused with fastdepth");
+        let turns = Some("fallback: the camera only turns; fastdepth");
+        let notes = [
+            (0, fused),
+            (1, None),
+            (2, fused),
+            (3, turns),
+            (4, None),
+            (5, None),
+            (6, fused),
+        ];
+        let runs = depth_runs(notes);
+        let spans: Vec<(u32, u32, bool)> = runs
+            .iter()
+            .map(|r| (r.first, r.last, r.is_fallback()))
+            .collect();
+        assert_eq!(spans, [(0, 2, false), (3, 5, true), (6, 6, false)]);
+        assert!(depth_runs([(0, None), (1, None)]).is_empty());
+    }
 }

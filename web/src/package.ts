@@ -50,7 +50,7 @@ function scalesOf(version: number): number[] {
 /** Checks what the player relies on; throws a readable error otherwise. */
 export function checkManifest(m: Manifest): Manifest {
   if (m.format !== "cpsl-package") throw new Error(`not a cpsl package (format '${m.format}')`);
-  if (!(m.version >= 1 && m.version <= 4)) throw new Error(`package version ${m.version}: this player reads versions 1 to 4`);
+  if (!(m.version >= 1 && m.version <= 5)) throw new Error(`package version ${m.version}: this player reads versions 1 to 5`);
   if (m.layout?.kind !== "colour-over-alpha") throw new Error(`layout '${m.layout?.kind}' is not supported`);
   if (!m.segments?.length) throw new Error("the package has no segments");
   const inits = new Set((m.inits ?? []).map((f) => f.path));

@@ -292,6 +292,12 @@ pub fn info(a: PackageArgs) -> Result<()> {
             None => " (constant quality)".into(),
         }
     );
+    if !m.depth.is_empty() {
+        println!("  depth (where the frames' depth came from):");
+        for r in &m.depth {
+            println!("    frames {:>5}-{:<5} {}", r.first, r.last, r.note);
+        }
+    }
     match m.inits.len() {
         0 => println!("  streams: self-contained MP4 files"),
         n => println!(

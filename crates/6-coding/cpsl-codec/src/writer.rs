@@ -44,6 +44,8 @@ pub struct PackageWriter {
     carried: Carried,
     /// Frames still to come, the next one included, when known.
     left: Option<u32>,
+    /// Where the frames' depth came from (the manifest's `depth`).
+    depth: Vec<cpsl_package::DepthRun>,
 }
 
 impl PackageWriter {
@@ -75,7 +77,15 @@ impl PackageWriter {
             open: None,
             carried: Carried::default(),
             left: None,
+            depth: Vec::new(),
         })
+    }
+
+    /// Where the frames' depth came from, by runs of frames, for the manifest (a package of
+    /// fragments with notes is version [`cpsl_package::DEPTH_VERSION`]; a package of
+    /// self-contained MP4 streams, an older version, carries none).
+    pub fn set_depth(&mut self, runs: Vec<cpsl_package::DepthRun>) {
+        self.depth = runs;
     }
 
     /// Tells the writer how many frames are still to come, the next one included (`None`:
@@ -215,6 +225,7 @@ impl PackageWriter {
         let m = cpsl_package::PackageManifest {
             format: cpsl_package::PACKAGE_FORMAT.into(),
             version: match self.opts.container {
+                Container::Fragment if !self.depth.is_empty() => cpsl_package::DEPTH_VERSION,
                 Container::Fragment => cpsl_package::FRAGMENT_VERSION,
                 Container::Mp4 => cpsl_package::version_for(
                     self.segments
@@ -240,6 +251,10 @@ impl PackageWriter {
                 RateControl::Quality(_) => None,
             },
             inits,
+            depth: match self.opts.container {
+                Container::Fragment => std::mem::take(&mut self.depth),
+                Container::Mp4 => Vec::new(),
+            },
             segments: std::mem::take(&mut self.segments),
             checksum: String::new(),
         };

@@ -26,9 +26,9 @@ mod variants;
 
 pub use archive::{is_archive, pack, unpack};
 pub use manifest::{
-    scales_of, sha256_hex, unsafe_path, version_for, Codec, FileEntry, Layout, PackageManifest,
-    PackageManifestError, Segment, StreamEntry, FRAGMENT_VERSION, MANIFEST_FILE, PACKAGE_FORMAT,
-    PACKAGE_VERSION,
+    scales_of, sha256_hex, unsafe_path, version_for, Codec, DepthRun, FileEntry, Layout,
+    PackageManifest, PackageManifestError, Segment, StreamEntry, DEPTH_VERSION, FRAGMENT_VERSION,
+    MANIFEST_FILE, MAX_DEPTH_NOTE, PACKAGE_FORMAT, PACKAGE_VERSION,
 };
 pub use side::{
     geometry_bytes, summarise_edc, SideError, SideFrame, SideLayer, SideStream, GRID_STEP,

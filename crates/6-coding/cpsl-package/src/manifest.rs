@@ -19,9 +19,14 @@ use thiserror::Error;
 /// Format name written in every package manifest.
 pub const PACKAGE_FORMAT: &str = "cpsl-package";
 /// Newest package version this build reads and writes.
-pub const PACKAGE_VERSION: u32 = 4;
+pub const PACKAGE_VERSION: u32 = 5;
 /// The first version whose layer streams are movie fragments with init segments.
 pub const FRAGMENT_VERSION: u32 = 4;
+/// The first version that says where the frames' depth came from (`depth`); a package of
+/// fragments is written at this version when it has such notes, else at [`FRAGMENT_VERSION`].
+pub const DEPTH_VERSION: u32 = 5;
+/// The longest note of a [`DepthRun`], in bytes.
+pub const MAX_DEPTH_NOTE: usize = 1000;
 
 /// The downscale factors a stream may have in a package of `version`.
 pub fn scales_of(version: u32) -> &'static [u32] {
@@ -40,7 +45,7 @@ pub fn version_for(scales: impl IntoIterator<Item = u32>) -> u32 {
         v.max(
             (1..FRAGMENT_VERSION)
                 .find(|&v| scales_of(v).contains(&s))
-                .unwrap_or(PACKAGE_VERSION),
+                .unwrap_or(FRAGMENT_VERSION - 1),
         )
     })
 }
@@ -193,10 +198,34 @@ pub struct PackageManifest {
     /// The init segments of the layer streams' fragments (version 4): one per picture size.
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub inits: Vec<FileEntry>,
+    /// Where the frames' depth came from, by runs of frames (version 5), where the depth
+    /// source says: stereo or the video's own views, and each fallback with its reason.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub depth: Vec<DepthRun>,
     /// Segments in frame order.
     pub segments: Vec<Segment>,
     /// SHA-256 of this file with this field's digits zeroed (see the module documentation).
     pub checksum: String,
+}
+
+/// Consecutive frames whose depth came from the same place.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DepthRun {
+    /// Its first frame.
+    pub first: u32,
+    /// Its last frame.
+    pub last: u32,
+    /// Where their depth came from (e.g. `video: 81 % of pixels from 4 views, ...` or
+    /// `fallback: the camera only turns; model ...`).
+    pub note: String,
+}
+
+impl DepthRun {
+    /// Whether the frames fell back from the depth asked for.
+    pub fn is_fallback(&self) -> bool {
+        self.note.starts_with("fallback")
+    }
 }
 
 /// Why a manifest was rejected.
@@ -424,6 +453,42 @@ impl PackageManifest {
                 "segments",
                 format!("cover {next} frames, the package has {}", self.frames),
             ));
+        }
+        self.check_depth()
+    }
+
+    fn check_depth(&self) -> Result<(), PackageManifestError> {
+        if self.depth.is_empty() {
+            return Ok(());
+        }
+        if self.version < DEPTH_VERSION {
+            return Err(field(
+                "depth",
+                format!("version {} packages have no depth notes", self.version),
+            ));
+        }
+        let mut next = 0u64;
+        for (i, r) in self.depth.iter().enumerate() {
+            let at = |f: &str| format!("depth[{i}].{f}");
+            if (r.first as u64) < next || r.last < r.first || r.last >= self.frames {
+                return Err(field(
+                    at("first"),
+                    format!(
+                        "frames {}-{}: runs are in order, apart, and within the {} frames",
+                        r.first, r.last, self.frames
+                    ),
+                ));
+            }
+            if r.note.is_empty()
+                || r.note.len() > MAX_DEPTH_NOTE
+                || r.note.chars().any(char::is_control)
+            {
+                return Err(field(
+                    at("note"),
+                    format!("1 to {MAX_DEPTH_NOTE} bytes of printable text"),
+                ));
+            }
+            next = r.last as u64 + 1;
         }
         Ok(())
     }

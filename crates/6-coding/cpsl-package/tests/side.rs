@@ -179,6 +179,11 @@ fn manifest() -> PackageManifest {
         },
         budget: Some(3_000_000),
         inits: vec![file("init_64x96.mp4")],
+        depth: vec![DepthRun {
+            first: 0,
+            last: 4,
+            note: "video: 81 % of pixels from 4 views".into(),
+        }],
         segments: vec![Segment {
             start: 0,
             frames: 5,
@@ -202,6 +207,7 @@ fn manifest_v3() -> PackageManifest {
     let mut m = manifest();
     m.version = 3;
     m.inits.clear();
+    m.depth.clear();
     m.segments[0].streams[0].init = None;
     m.segments[0].streams[0].file.path = "seg_000000/layer_00.mp4".into();
     m
@@ -239,6 +245,45 @@ fn version_4_streams_name_a_listed_init_segment() {
     // The init segments are files of the package.
     assert_eq!(manifest().files().next().unwrap().path, "init_64x96.mp4");
     assert_eq!(manifest().payload_bytes(), 20);
+}
+
+#[test]
+fn depth_notes_are_checked() {
+    let err = |m: PackageManifest| {
+        PackageManifest::parse(&m.to_json())
+            .unwrap_err()
+            .to_string()
+    };
+    let back = PackageManifest::parse(&manifest().to_json()).unwrap();
+    assert_eq!(back.depth, manifest().depth);
+    assert!(!back.depth[0].is_fallback());
+    // Version 5 brings them: a version 4 package with notes is refused, one without is read.
+    let mut m = manifest();
+    m.version = 4;
+    assert!(err(m.clone()).contains("version 4 packages have no depth notes"));
+    m.depth.clear();
+    assert!(PackageManifest::parse(&m.to_json()).is_ok());
+    let run = |first, last, note: &str| DepthRun {
+        first,
+        last,
+        note: note.into(),
+    };
+    for (runs, why) in [
+        (vec![run(0, 5, "x")], "within the 5 frames"),
+        (vec![run(3, 2, "x")], "in order"),
+        (vec![run(0, 2, "x"), run(2, 4, "y")], "apart"),
+        (vec![run(0, 4, "")], "printable text"),
+        (vec![run(0, 4, "a\nb")], "printable text"),
+        (
+            vec![run(0, 4, &"x".repeat(MAX_DEPTH_NOTE + 1))],
+            "printable text",
+        ),
+    ] {
+        let mut m = manifest();
+        m.depth = runs;
+        let e = err(m);
+        assert!(e.contains("`depth[") && e.contains(why), "{e}");
+    }
 }
 
 #[test]

@@ -2,8 +2,10 @@
 //! per layer the inverse plane-induced homography of its surface ([`cpsl_core::Geometry`]),
 //! bilinear premultiplied sampling at positions rounded to 1/256 px with a transparent border,
 //! front-to-back compositing (paper eq. 2), then the Dynamic Pixel Strip (paper eq. 4) guided
-//! by the Edge-Depth Cache. The shaders are `common.wgsl` + `composite.wgsl` and `common.wgsl`
-//! + `dps.wgsl` next to this file (validated by naga in a test).
+//! by the Edge-Depth Cache. The shaders are `common.wgsl` followed by `composite.wgsl` or by
+//! `dps.wgsl`, next to this file (validated by naga in a test). Each pass runs as a compute
+//! shader where the adapter has them and as a full-screen fragment pass where not
+//! ([`Passes`]); mesh layers' source maps are rasterised (`mesh.wgsl`).
 //!
 //! Runs on any adapter wgpu finds (Vulkan, Metal, GL; on a machine without a GPU, Mesa's
 //! lavapipe). [`GpuRenderer::new`] fails with [`GpuError::NoAdapter`] where there is none, so

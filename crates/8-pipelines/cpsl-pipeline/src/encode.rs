@@ -215,10 +215,12 @@ pub fn encode(
     if stop.load(Ordering::SeqCst) {
         return Err(interrupted());
     }
+    let depth_runs = crate::video::depth_runs(notes.iter().map(|(i, n)| (*i, n.as_deref())));
     let mut packages = Vec::new();
     for ((writer, (path, _)), reports) in writers.into_iter().zip(&outputs).zip(&mut reports) {
         let t = Instant::now();
         let mut writer = writer;
+        writer.set_depth(depth_runs.clone());
         let report = writer
             .flush()
             .context_with(|| "coding the last segment".into())?;
@@ -254,7 +256,7 @@ pub fn encode(
         seconds: t.elapsed().as_secs_f64(),
         coding_seconds: coding,
         damaged_packets: info.damaged,
-        depth: crate::video::depth_runs(notes.iter().map(|(i, n)| (*i, n.as_deref()))),
+        depth: depth_runs,
     })
 }
 

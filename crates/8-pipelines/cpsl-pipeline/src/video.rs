@@ -288,23 +288,7 @@ impl VideoFrameEntry {
     }
 }
 
-/// Consecutive frames whose depth came from the same place (a run of [`depth_runs`]).
-#[derive(Debug, Clone, PartialEq, Serialize)]
-pub struct DepthRun {
-    /// Its first frame.
-    pub first: u32,
-    /// Its last frame.
-    pub last: u32,
-    /// Where their depth came from (a frame's `depth_note`).
-    pub note: String,
-}
-
-impl DepthRun {
-    /// Whether the frames fell back from the depth asked for (stereo or the video's own).
-    pub fn is_fallback(&self) -> bool {
-        self.note.starts_with("fallback")
-    }
-}
+pub use cpsl_package::DepthRun;
 
 /// The frames' depth notes (`(frame, note)` in frame order) as runs of equal notes: a frame
 /// without a note (its depth carried along the motion) joins the run before it. Empty where

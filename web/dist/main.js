@@ -148,15 +148,21 @@ class Player {
         const seg = variant.manifest.segments[i];
         const files = [...seg.streams.map((s) => s.file), seg.side];
         // Each file's body time runs from its headers to its last byte: the link's rate, without the
-        // round trips before the first byte (which dominate small segments on any link).
+        // round trips before the first byte (which dominate small segments on any link). The
+        // browser's Resource Timing says when the bytes arrived; where it does not (a cross-origin
+        // server without Timing-Allow-Origin), the time until the body has been read here stands in,
+        // which a busy page stretches.
         const bodies = [];
         const bufs = await Promise.all(files.map(async (f) => {
-            const r = await fetchOk(new URL(f.path, variant.base));
+            const url = new URL(f.path, variant.base);
+            const r = await fetchOk(url);
             const t = performance.now();
             const b = await r.arrayBuffer();
-            bodies.push([t, performance.now()]);
+            const timing = performance.getEntriesByName(url.href).pop();
+            bodies.push(timing && timing.responseStart > 0 && timing.responseEnd >= timing.responseStart ? [timing.responseStart, timing.responseEnd] : [t, performance.now()]);
             return b;
         }));
+        performance.clearResourceTimings();
         for (const [k, b] of bufs.entries())
             if (b.byteLength !== files[k].bytes)
                 throw new Error(`${files[k].path}: ${b.byteLength} bytes, the manifest says ${files[k].bytes}`);

@@ -30,6 +30,8 @@ impl Refusal {
     }
 }
 
+/// Bytes read from a file at a time.
+const CHUNK: usize = 256 * 1024;
 /// Longest request path accepted, in bytes (before decoding).
 pub(crate) const MAX_PATH: usize = 2048;
 /// Files up to this size are kept in memory once read (segment files are immutable).
@@ -384,7 +386,17 @@ async fn respond(found: Found, rel: &str, method: &Method, headers: &HeaderMap) 
     if start > 0 && file.seek(SeekFrom::Start(start)).await.is_err() {
         return status(StatusCode::INTERNAL_SERVER_ERROR);
     }
-    let stream = tokio_util::io::ReaderStream::with_capacity(file.take(count), 256 * 1024);
+    // A body of one read goes out with the headers (a layer fragment is a few kB): streamed,
+    // it would follow them after a trip through the blocking pool, which a client measuring
+    // its link (the browser player) would count as transfer time.
+    if count <= CHUNK as u64 {
+        let mut body = vec![0u8; count as usize];
+        return match file.read_exact(&mut body).await {
+            Ok(_) => builder.body(Body::from(body)).expect("valid response"),
+            Err(_) => status(StatusCode::INTERNAL_SERVER_ERROR),
+        };
+    }
+    let stream = tokio_util::io::ReaderStream::with_capacity(file.take(count), CHUNK);
     builder
         .body(Body::from_stream(stream))
         .expect("valid response")

@@ -122,11 +122,18 @@ pub trait FrameSource {
     fn next_frame(&mut self) -> Result<Option<InputFrame>, MediaError>;
 }
 
-/// Opens a video file or an image folder.
+/// Opens a video file or an image folder; an H.264 file's frames carry the decoder's motion
+/// vectors.
 pub fn open(path: &Path) -> Result<Box<dyn FrameSource>, MediaError> {
+    open_with(path, true)
+}
+
+/// [`open`], with the decoder's motion vectors only where `motion` asks for them (a reader
+/// that needs the pictures alone saves their export and conversion).
+pub fn open_with(path: &Path, motion: bool) -> Result<Box<dyn FrameSource>, MediaError> {
     if path.is_dir() {
         Ok(Box::new(ImageSequence::open(path)?))
     } else {
-        Ok(Box::new(VideoFile::open(path)?))
+        Ok(Box::new(VideoFile::open_with(path, motion)?))
     }
 }

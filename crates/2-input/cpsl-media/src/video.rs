@@ -46,8 +46,14 @@ struct YccSource {
 }
 
 impl VideoFile {
-    /// Opens the file and its best video stream.
+    /// Opens the file and its best video stream (an H.264 stream's frames carry the decoder's
+    /// motion vectors).
     pub fn open(path: &Path) -> Result<Self, MediaError> {
+        Self::open_with(path, true)
+    }
+
+    /// [`VideoFile::open`], exporting the decoder's motion vectors only where `motion` asks.
+    pub fn open_with(path: &Path, motion: bool) -> Result<Self, MediaError> {
         let fail = |reason: String| MediaError::Unreadable {
             path: path.to_path_buf(),
             reason,
@@ -78,7 +84,7 @@ impl VideoFile {
         let ctx = ffmpeg::codec::context::Context::from_parameters(st.parameters())
             .map_err(|e| fail(e.to_string()))?;
         let id = ctx.id();
-        let mvs = id == ffmpeg::codec::Id::H264;
+        let mvs = motion && id == ffmpeg::codec::Id::H264;
         let codec =
             ffmpeg::decoder::find(id).ok_or_else(|| fail(format!("no decoder for {id:?}")))?;
         let mut opts = ffmpeg::Dictionary::new();

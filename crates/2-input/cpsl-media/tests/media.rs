@@ -1,6 +1,6 @@
 //! Decoding real files written by the `ffmpeg` command line tool, and image sequences.
 
-use cpsl_media::{open, FrameSource, MediaError};
+use cpsl_media::{open, open_with, FrameSource, MediaError};
 use std::path::Path;
 use std::process::Command;
 
@@ -56,6 +56,11 @@ fn decodes_h264_with_motion_vectors_and_vp9() {
     // The pattern scrolls: some vectors are not zero.
     let m = frames.iter().find_map(|f| f.motion.as_ref()).unwrap();
     assert!(m.data.iter().any(|&v| v.abs() >= 1.0));
+    // Without them where not asked for, and the same pictures.
+    let bare = drain(open_with(&h264, false).unwrap().as_mut()).unwrap();
+    assert_eq!(bare.len(), 12);
+    assert!(bare.iter().all(|f| f.motion.is_none()));
+    assert!(bare.iter().zip(&frames).all(|(a, b)| a.rgb == b.rgb));
 
     let vp9 = encode(
         dir.path(),

@@ -43,8 +43,9 @@ fn track_frames(
     progress: &dyn Progress,
     keep: Option<usize>,
 ) -> Result<(Trajectory, Camera, Vec<String>, Vec<Mat>), PipelineError> {
-    let mut src =
-        cpsl_media::open(input).context_with(|| format!("opening {}", input.display()))?;
+    // Tracking needs the pictures alone, not the decoder's motion vectors.
+    let mut src = cpsl_media::open_with(input, false)
+        .context_with(|| format!("opening {}", input.display()))?;
     let info = src.info().clone();
     let cam = camera.camera(info.width, info.height)?;
     let mut tracker = Tracker::new(cam, TrackConfig::default())?;

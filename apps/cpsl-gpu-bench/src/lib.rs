@@ -6,6 +6,7 @@
 //! It links neither FFmpeg nor ONNX Runtime, so that the binary runs on a machine that has a
 //! Vulkan driver and nothing else of cpsl's dependencies.
 
+use cpsl_core::image::psnr;
 use cpsl_core::run::{RunInfo, Timing};
 use cpsl_core::{LayerSet, Pose, PremulImage};
 use cpsl_layering::GeometryMode;
@@ -152,17 +153,6 @@ pub fn case_set(w: u32, h: u32, k: usize, g: GeometryMode, c: Coverage) -> Layer
     }
 }
 
-/// PSNR in dB of two equally sized 8-bit buffers, at most 99 (identical).
-pub fn psnr(a: &[u8], b: &[u8]) -> f64 {
-    let se: u64 = a
-        .iter()
-        .zip(b)
-        .map(|(&x, &y)| (x as i64 - y as i64).pow(2) as u64)
-        .sum();
-    let mse = se as f64 / a.len().max(1) as f64;
-    (10.0 * (255.0f64 * 255.0 / mse).log10()).min(99.0)
-}
-
 /// The name of a way to run the passes.
 pub fn passes_name(p: Passes) -> &'static str {
     match p {
@@ -198,23 +188,27 @@ pub fn bench(
                     let frame = FrameLayers::new(case_set(w, h, k, g, c), None);
                     let cam = *frame.set.camera();
                     let up = gpu.prepare(&frame.set, None)?;
-                    let runs = a
-                        .passes
-                        .iter()
-                        .flat_map(|&p| [None, Some(&DpsConfig::DEFAULT)].map(|d| (p, d)));
-                    for (passes, dps) in runs {
-                        gpu.set_passes(passes)?;
+                    // The CPU reference of the view, without and with the strip: rendered
+                    // once, whichever way the GPU's passes run.
+                    let mut reference = Vec::new();
+                    for dps in [None, Some(&DpsConfig::DEFAULT)] {
                         let mut cpu = PremulImage::new(w, h);
                         let t = Instant::now();
                         CpuRenderer
                             .render(&frame, &a.pose, &cam, dps, &mut cpu)
                             .map_err(|e| cpsl_render_gpu::GpuError::Layers(e.to_string()))?;
                         let cpu_ms = t.elapsed().as_secs_f64() * 1e3;
+                        reference.push((dps, cpu.over_background([0, 0, 0]), cpu_ms));
+                    }
+                    let runs = a
+                        .passes
+                        .iter()
+                        .flat_map(|&p| reference.iter().map(move |r| (p, r)));
+                    for (passes, (dps, cpu, cpu_ms)) in runs {
+                        let (dps, cpu_ms) = (*dps, *cpu_ms);
+                        gpu.set_passes(passes)?;
                         let img = gpu.render(&up, &a.pose, &cam, dps)?;
-                        let p = psnr(
-                            &cpu.over_background([0, 0, 0]),
-                            &img.over_background([0, 0, 0]),
-                        );
+                        let p = psnr(cpu, &img.over_background([0, 0, 0])).min(99.0);
                         let warm = Instant::now();
                         while warm.elapsed().as_secs_f64() < a.warm_up_s {
                             gpu.throughput(&up, &a.pose, &cam, dps, 10)?;

@@ -312,8 +312,7 @@ fn clear_errors_and_nothing_written() {
 
 #[test]
 fn slice_with_a_depth_model() {
-    if !models_present(&["fastdepth_7.onnx"]) {
-        eprintln!("skipped slice_with_a_depth_model: run scripts/setup-models.sh");
+    if !common::fastdepth_present() {
         return;
     }
     let d = tempfile::tempdir().unwrap();

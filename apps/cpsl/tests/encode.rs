@@ -1,12 +1,11 @@
 //! `cpsl encode`, `info`, `verify` and `render` of a package, end to end on a short clip.
 
 mod common;
-use common::{cpsl, models_present, ok, s, test_clip};
+use common::{cpsl, ok, s, test_clip};
 
 #[test]
 fn encodes_verifies_and_renders_a_package() {
-    if !models_present(&["fastdepth_7.onnx"]) {
-        eprintln!("skipped: FastDepth not in the model cache (scripts/setup-models.sh)");
+    if !common::fastdepth_present() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();

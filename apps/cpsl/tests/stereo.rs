@@ -253,8 +253,7 @@ fn track_writes_poses_and_transforms() {
 #[test]
 fn layers_the_fox_with_depth_from_its_own_video() {
     let Some(teddy) = data() else { return };
-    if !common::models_present(&["fastdepth_7.onnx"]) {
-        eprintln!("skipped: FastDepth not in the model cache (scripts/setup-models.sh)");
+    if !common::fastdepth_present() {
         return;
     }
     let fox = teddy.join("../../../instant_ngp_fox_video_frames/images");

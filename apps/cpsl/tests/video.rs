@@ -1,12 +1,11 @@
 //! `cpsl layer-video` end to end on a short clip, and its errors.
 
 mod common;
-use common::{cpsl, models_present, ok, s, test_clip};
+use common::{cpsl, ok, s, test_clip};
 
 #[test]
 fn layers_a_clip_and_refuses_bad_input() {
-    if !models_present(&["fastdepth_7.onnx"]) {
-        eprintln!("skipped: FastDepth not in the model cache (scripts/setup-models.sh)");
+    if !common::fastdepth_present() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();
@@ -88,8 +87,7 @@ fn layers_a_clip_and_refuses_bad_input() {
 
 #[test]
 fn a_damaged_packet_costs_its_frame_only() {
-    if !models_present(&["fastdepth_7.onnx"]) {
-        eprintln!("skipped: FastDepth not in the model cache (scripts/setup-models.sh)");
+    if !common::fastdepth_present() {
         return;
     }
     let dir = tempfile::tempdir().unwrap();

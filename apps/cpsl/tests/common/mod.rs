@@ -46,6 +46,16 @@ pub fn models_present(models: &[&str]) -> bool {
     present
 }
 
+/// Whether FastDepth is in the model cache ([`models_present`]); says the test is skipped
+/// where it is not.
+pub fn fastdepth_present() -> bool {
+    let present = models_present(&["fastdepth_7.onnx"]);
+    if !present {
+        eprintln!("skipped: FastDepth not in the model cache (scripts/setup-models.sh)");
+    }
+    present
+}
+
 /// Writes a 7-frame 192x128 H.264 clip of FFmpeg's `testsrc2` at 10 fps to `path`, with
 /// `extra` encoder arguments.
 pub fn test_clip(path: &Path, extra: &[&str]) {

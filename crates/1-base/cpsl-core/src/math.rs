@@ -203,6 +203,36 @@ impl Mat3 {
             .add(&kx.scale(s))
             .add(&(kx * kx).scale(1.0 - c))
     }
+    /// The rotation of a rotation vector (axis times angle in radians).
+    pub fn exp(w: Vec3) -> Self {
+        let th = w.norm();
+        if th > 0.0 {
+            Self::axis_angle(w * (1.0 / th), th)
+        } else {
+            Self::IDENTITY
+        }
+    }
+    /// The rotation vector of a rotation matrix (inverse of [`Mat3::exp`]; angle in `[0, pi]`).
+    pub fn log(&self) -> Vec3 {
+        let m = &self.0;
+        let v = Vec3([m[2][1] - m[1][2], m[0][2] - m[2][0], m[1][0] - m[0][1]]);
+        let th = ((m[0][0] + m[1][1] + m[2][2] - 1.0) / 2.0)
+            .clamp(-1.0, 1.0)
+            .acos();
+        if th < 1e-8 {
+            return v * 0.5;
+        }
+        if th < std::f64::consts::PI - 1e-4 {
+            return v * (th / (2.0 * th.sin()));
+        }
+        // Near a half turn the skew part vanishes: the axis is the largest column of R + I.
+        let i = (0..3)
+            .max_by(|&a, &b| m[a][a].total_cmp(&m[b][b]))
+            .expect("three entries");
+        let mut col = self.col(i);
+        col.0[i] += 1.0;
+        col.normalized() * th
+    }
     /// True when every entry is finite.
     pub fn is_finite(&self) -> bool {
         self.0.iter().flatten().all(|v| v.is_finite())
@@ -236,6 +266,27 @@ impl Mul<Vec3> for Mat3 {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn log_inverts_exp() {
+        for (axis, angle) in [
+            (Vec3([0.0, 1.0, 0.0]), 0.3),
+            (Vec3([1.0, 2.0, -0.5]).normalized(), 2.9),
+            (
+                Vec3([0.2, -1.0, 0.4]).normalized(),
+                std::f64::consts::PI - 2e-5,
+            ),
+            (Vec3([0.0, 0.0, 1.0]), 1e-10),
+        ] {
+            let r = Mat3::axis_angle(axis, angle);
+            let back = Mat3::exp(r.log());
+            let d = (back.transpose() * r).0;
+            let tr = d[0][0] + d[1][1] + d[2][2];
+            let err = ((tr - 1.0) / 2.0).clamp(-1.0, 1.0).acos();
+            assert!(err < 1e-4, "{angle}: {err} rad");
+            assert!((r.log().norm() - angle).abs() < 1e-6, "{angle}");
+        }
+    }
+
     use super::*;
 
     #[test]

@@ -4,7 +4,7 @@
 
 use crate::mvs::{self, MvsConfig};
 use crate::{CameraMotion, Mat, Result, TrackError, Trajectory};
-use cpsl_core::{median_depth, Pose};
+use cpsl_core::Pose;
 use opencv::prelude::*;
 
 /// Where a frame's depth came from.
@@ -26,9 +26,9 @@ pub enum DepthFrom {
 /// [`TrackedDepth::NEIGHBOURS`] nearest placed frames ([`mvs::depth_from_views`]), fused with
 /// its monocular prior ([`mvs::fuse`]) at the tracking resolution and brought back to the
 /// prior's. The clip is put in the prior's units: the trajectory's scale (its first baseline
-/// is 1) is fixed by the first fused frame's median against its prior's. A frame the views
-/// cannot serve takes its prior, scaled by the median fused-to-prior ratio of the frames fused
-/// so far, and says why: the camera does not translate (rotating, static, untracked), the
+/// is 1) is fixed by the first fused frame's median per-pixel ratio of prior to fused depth. A
+/// frame the views cannot serve takes its prior, scaled by the median fused-to-prior ratio of
+/// the frames fused so far, and says why: the camera does not translate (rotating, static, untracked), the
 /// frame was not placed, its views saw too little, or the prior's depth order disagrees with
 /// theirs (using the views alone there scored lower on the fox).
 pub struct TrackedDepth {
@@ -114,13 +114,13 @@ impl TrackedDepth {
                 )?;
                 let small = mvs::resize_depth(prior, (width, height), size)?;
                 let fused = mvs::fuse(&views, &small, Self::MIN_CONFIDENCE)
-                    .and_then(|(z, f)| Some((median_depth(&z)?, median_depth(&small)?, z, f)));
+                    .and_then(|(z, f)| Some((median_ratio(&small, &z)?, z, f)));
                 match fused {
-                    Some((zm, pm, z, fusion)) => {
-                        let scale = *self.scale.get_or_insert(pm as f64 / zm as f64);
+                    Some((ratio, z, fusion)) => {
+                        let scale = *self.scale.get_or_insert(ratio);
                         let mut z = mvs::resize_depth(&z, size, (width, height))?;
                         z.iter_mut().for_each(|v| *v *= scale as f32);
-                        self.ratios.push(zm as f64 * scale / pm as f64);
+                        self.ratios.push(scale / ratio);
                         let from = DepthFrom::Views {
                             share: fusion.from_views,
                             views: near.len(),
@@ -149,4 +149,19 @@ impl TrackedDepth {
             DepthFrom::Fallback(why),
         ))
     }
+}
+
+/// Median over the pixels of `a / b` (both finite and positive).
+fn median_ratio(a: &[f32], b: &[f32]) -> Option<f64> {
+    let mut r: Vec<f64> = a
+        .iter()
+        .zip(b)
+        .filter(|(x, y)| x.is_finite() && y.is_finite() && **x > 0.0 && **y > 0.0)
+        .map(|(x, y)| (x / y) as f64)
+        .collect();
+    if r.is_empty() {
+        return None;
+    }
+    let m = r.len() / 2;
+    Some(*r.select_nth_unstable_by(m, f64::total_cmp).1)
 }

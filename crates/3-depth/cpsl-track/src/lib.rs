@@ -13,8 +13,12 @@
 //! 2. *Registration.* Every other frame is placed by PnP (RANSAC) on the triangulated tracks
 //!    it sees, nearest frames first; each placed frame triangulates the tracks it shares with
 //!    the placed frame that sees them under the widest angle (at least `min_angle_deg`).
-//! 3. *Refinement.* Alternating resection and intersection: every frame re-solved by PnP on
-//!    its inliers, every point re-triangulated from its widest pair, twice.
+//! 3. *Refinement.* One round of alternating resection and intersection (every frame
+//!    re-solved by PnP, every point re-triangulated from all placed frames), then bundle
+//!    adjustment ([`ba`], tiny-solver's Levenberg-Marquardt, Cauchy loss): poses and points
+//!    together, the observations farther than a pixel from their adjusted point dropped, and
+//!    again. Clips with more placed frames than [`TrackConfig::ba_window`] are adjusted in
+//!    overlapping windows, each held to the frames before it.
 //!
 //! Poses are camera-to-world ([`cpsl_core::Pose`]: `X_world = R X_cam + t`), the world being
 //! the first frame's camera, and the first baseline has length 1 (monocular scale).
@@ -23,6 +27,7 @@
 //! forward-backward checked and triangulated per pixel; [`TrackedDepth`] fuses it with a
 //! monocular prior for every frame of a tracked clip.
 
+mod ba;
 mod fused;
 pub mod mvs;
 
@@ -67,6 +72,9 @@ pub struct TrackConfig {
     /// Least median track motion (share of the working image's long side) for the first
     /// baseline.
     pub init_motion: f64,
+    /// Placed frames per bundle-adjustment window (consecutive windows overlap by a third);
+    /// 0 leaves the poses of alternating resection and intersection as they are.
+    pub ba_window: usize,
 }
 
 impl Default for TrackConfig {
@@ -78,6 +86,7 @@ impl Default for TrackConfig {
             max_fb_error: 1.0,
             min_angle_deg: 1.0,
             init_motion: 0.04,
+            ba_window: 120,
         }
     }
 }
@@ -128,7 +137,7 @@ pub struct Trajectory {
 }
 
 /// One observation of a track: frame and working-pixel position.
-type Obs = (u32, f32, f32);
+pub(crate) type Obs = (u32, f32, f32);
 
 /// Follows corners through a clip; see the [crate docs](crate).
 pub struct Tracker {
@@ -334,8 +343,17 @@ pub fn rotation_deg(r: &Mat3) -> f64 {
     ((tr - 1.0) / 2.0).clamp(-1.0, 1.0).acos().to_degrees()
 }
 
-/// Rounds of alternating resection and intersection.
-const REFINE_ROUNDS: usize = 5;
+/// Rounds of alternating resection and intersection before the bundle adjustment. (On the
+/// fox one round leaves 0.19 degrees of rotation error after it, two 0.20, five 0.22.)
+const REFINE_ROUNDS: usize = 1;
+
+/// Most Levenberg-Marquardt steps of the first bundle adjustment (the second, after the
+/// cull, takes half).
+const BA_ITERATIONS: usize = 30;
+
+/// Observations farther than this from their adjusted point are dropped before the second
+/// adjustment (working pixels; on the fox 2 px left 0.26 degrees, 1 px 0.22, 0.7 px 0.24).
+const CULL_PX: f64 = 1.0;
 
 /// Fewer tracks than this surviving into a frame is a break.
 const MIN_LIVE: usize = 150;
@@ -436,7 +454,7 @@ fn lk(
 }
 
 /// The camera-to-world pose of world-to-camera extrinsics `x_cam = R x_world + t`.
-fn from_extrinsics(r: Mat3, t: Vec3) -> Pose {
+pub(crate) fn from_extrinsics(r: Mat3, t: Vec3) -> Pose {
     Pose {
         rotation: r,
         translation: t,
@@ -569,6 +587,13 @@ impl Solver {
 
         for _ in 0..REFINE_ROUNDS {
             self.refine()?;
+        }
+        if let Some(pair) = init {
+            // Adjust, drop the observations the adjusted points disagree with, adjust again.
+            if self.bundle_adjust(pair, BA_ITERATIONS)? {
+                self.cull(CULL_PX);
+                self.bundle_adjust(pair, BA_ITERATIONS / 2)?;
+            }
         }
         let reprojection_px = self.reprojection();
         Ok(Trajectory {
@@ -929,6 +954,62 @@ impl Solver {
             }
         }
         Ok(())
+    }
+
+    /// Bundle adjustment ([`ba`]) over windows of `ba_window` placed frames, the first
+    /// baseline `pair` fixing the gauge; false when it is switched off.
+    fn bundle_adjust(&mut self, pair: (usize, usize), iterations: usize) -> Result<bool> {
+        let w = self.cfg.ba_window;
+        if w == 0 {
+            return Ok(false);
+        }
+        let placed: Vec<usize> = (0..self.frames)
+            .filter(|&f| self.poses[f].is_some())
+            .collect();
+        let mut start = 0;
+        loop {
+            let end = (start + w).min(placed.len());
+            ba::adjust(
+                &self.cam,
+                &mut self.poses,
+                &mut self.points,
+                &self.tracks,
+                &ba::Window {
+                    free: &placed[start..end],
+                    held: &placed[..start],
+                    fixed: pair.0,
+                    scale: pair.1,
+                    iterations,
+                },
+            )?;
+            if end == placed.len() {
+                return Ok(true);
+            }
+            start = end - (w / 3).min(end - start - 1);
+        }
+    }
+
+    /// Drops the observations that reproject farther than `px` from their point (drifted
+    /// tracks), and the points left seen by fewer than two placed frames.
+    fn cull(&mut self, px: f64) {
+        let ids: Vec<usize> = self.points.keys().copied().collect();
+        for id in ids {
+            let x = self.points[&id];
+            let (cam, poses) = (&self.cam, &self.poses);
+            self.tracks[id].retain(|&(f, u, v)| match poses[f as usize] {
+                Some(p) => cam
+                    .project(p.inverse().view_to_ref(x))
+                    .is_some_and(|(pu, pv)| (pu - u as f64).hypot(pv - v as f64) <= px),
+                None => true,
+            });
+            let seen = self.tracks[id]
+                .iter()
+                .filter(|o| poses[o.0 as usize].is_some())
+                .count();
+            if seen < 2 {
+                self.points.remove(&id);
+            }
+        }
     }
 
     fn reprojection(&self) -> f64 {

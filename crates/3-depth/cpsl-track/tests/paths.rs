@@ -26,7 +26,11 @@ fn clip(poses: &[Pose]) -> (Scene, Vec<Vec<u8>>) {
 }
 
 fn track(cam: Camera, frames: &[Vec<u8>]) -> Trajectory {
-    let mut t = Tracker::new(cam, TrackConfig::default()).unwrap();
+    track_with(cam, frames, TrackConfig::default())
+}
+
+fn track_with(cam: Camera, frames: &[Vec<u8>], cfg: TrackConfig) -> Trajectory {
+    let mut t = Tracker::new(cam, cfg).unwrap();
     for f in frames {
         t.push(f, cam.width, cam.height).unwrap();
     }
@@ -73,18 +77,19 @@ fn sideways_and_orbit_are_solved() {
             }
         })
         .collect();
-    // Limits: (rotation, translation direction) in degrees. Sideways measures 0.02 / 0.24;
-    // the orbit 0.69 / 1.11 (its scene is dominated by one wall, which leaves the first
-    // baseline's rotation and translation poorly separated without a bundle adjustment;
-    // issue 29's 0.1 degrees is not met there yet).
+    // Limits: (rotation, translation direction) in degrees. With the bundle adjustment,
+    // sideways measures 0.036 / 0.21 and the orbit 0.10 / 0.22 (before it: 0.02 / 0.24 and
+    // 0.69 / 1.11; the orbit's scene is dominated by one wall, which leaves the first
+    // baseline's rotation and translation poorly separated).
     for (name, path, limits) in [
         ("sideways", sideways(), (0.1, 1.0)),
-        ("orbit", orbit, (1.5, 2.5)),
+        ("orbit", orbit.clone(), (0.2, 0.5)),
     ] {
         let (scene, frames) = clip(&path);
         let est = track(scene.camera, &frames);
         assert_eq!(est.motion, CameraMotion::Translating, "{name}");
         let (rot, dir, placed) = errors(&est, &path);
+        eprintln!("{name}: rotation {rot:.3} deg, translation direction {dir:.3} deg, reprojection {:.3} px", est.reprojection_px);
         assert_eq!(placed, path.len(), "{name}: every frame placed");
         assert!(rot < limits.0, "{name}: rotation error {rot} deg");
         assert!(
@@ -93,6 +98,18 @@ fn sideways_and_orbit_are_solved() {
         );
         assert!(est.reprojection_px < 0.5, "{name}: {}", est.reprojection_px);
     }
+    // Bundle adjustment in overlapping windows of five frames (as on clips longer than the
+    // window), each held to the frames before it: measured 0.29 / 0.29, between no bundle
+    // adjustment and one over the whole clip.
+    let cfg = TrackConfig {
+        ba_window: 5,
+        ..TrackConfig::default()
+    };
+    let (scene, frames) = clip(&orbit);
+    let (rot, dir, placed) = errors(&track_with(scene.camera, &frames, cfg), &orbit);
+    eprintln!("orbit, windows of 5: rotation {rot:.3} deg, translation direction {dir:.3} deg");
+    assert_eq!(placed, orbit.len());
+    assert!(rot < 0.4 && dir < 0.5, "{rot} {dir}");
 }
 
 #[test]
@@ -193,11 +210,11 @@ fn tracked_depth_fuses_views_with_the_prior_in_its_units() {
         let off = rel.iter().filter(|r| (*r - 1.0).abs() > 0.05).count();
         offs.push(off as f64 / rel.len() as f64);
     }
-    // Measured: per-frame median ratios 1.004-1.061 (the first two frames see their
-    // neighbours on one side only), 6-68 % of pixels off by more than 5 % (median 9 %).
-    assert!(ratios.iter().all(|r| (r - 1.0).abs() < 0.08), "{ratios:?}");
+    // Measured: per-frame median ratios 0.978-1.026, 2-43 % of pixels off by more than 5 %
+    // (median 4 %; the frames with a few per cent of scale error carry the most).
+    assert!(ratios.iter().all(|r| (r - 1.0).abs() < 0.04), "{ratios:?}");
     offs.sort_by(f64::total_cmp);
-    assert!(offs[offs.len() / 2] < 0.15, "{offs:?}");
+    assert!(offs[offs.len() / 2] < 0.08, "{offs:?}");
 
     // A static camera: every frame takes its prior as it is, and says why.
     let still = vec![Pose::IDENTITY; 6];

@@ -11,12 +11,15 @@ use opencv::prelude::*;
 #[derive(Debug, Clone, PartialEq)]
 pub enum DepthFrom {
     /// Fused: `share` of the pixels from `views` neighbouring frames, the rest from the
-    /// prior fitted to them.
+    /// prior fitted to them, or left unknown (NaN) when the prior's depth order disagrees
+    /// with the views' (`prior` false).
     Views {
         /// Share of pixels from the views.
         share: f64,
         /// Neighbouring frames used.
         views: usize,
+        /// Whether the prior filled the pixels the views did not see.
+        prior: bool,
     },
     /// The prior (scaled to the clip), and why.
     Fallback(String),
@@ -28,9 +31,9 @@ pub enum DepthFrom {
 /// prior's. The clip is put in the prior's units: the trajectory's scale (its first baseline
 /// is 1) is fixed by the first fused frame's median per-pixel ratio of prior to fused depth. A
 /// frame the views cannot serve takes its prior, scaled by the median fused-to-prior ratio of
-/// the frames fused so far, and says why: the camera does not translate (rotating, static, untracked), the
-/// frame was not placed, its views saw too little, or the prior's depth order disagrees with
-/// theirs (using the views alone there scored lower on the fox).
+/// the frames fused so far, and says why: the camera does not translate (rotating, static,
+/// untracked), the frame was not placed, or its views saw too little. Where the prior's depth
+/// order disagrees with the views', the views are kept and the rest left unknown.
 pub struct TrackedDepth {
     trajectory: Trajectory,
     greys: Vec<Mat>,
@@ -124,6 +127,7 @@ impl TrackedDepth {
                         let from = DepthFrom::Views {
                             share: fusion.from_views,
                             views: near.len(),
+                            prior: fusion.prior.is_some(),
                         };
                         return Ok((z, from));
                     }
@@ -131,7 +135,7 @@ impl TrackedDepth {
                         "the views saw too little ({:.1} % triangulated)",
                         100.0 * views.density()
                     ),
-                    None => "the prior's depth order disagrees with the views".to_string(),
+                    None => "the views were too seldom confident".to_string(),
                 }
             }
             (CameraMotion::Translating, None) => "the frame was not placed".to_string(),

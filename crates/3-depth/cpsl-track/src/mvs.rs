@@ -141,10 +141,10 @@ pub fn depth_from_views(
 pub struct Fusion {
     /// Share of pixels whose depth came from the views.
     pub from_views: f64,
-    /// The prior's inverse depth was mapped by `a / z + b`.
-    pub a: f64,
-    /// See `a`.
-    pub b: f64,
+    /// `(a, b)` when the prior filled the other pixels, its inverse depth mapped by
+    /// `a / z + b`; `None` when its depth order disagrees with the views' and they were left
+    /// unknown (NaN).
+    pub prior: Option<(f64, f64)>,
 }
 
 /// `z` (z-depth, `from` = width x height, NaN where unknown) resized to `to`: its inverse
@@ -202,8 +202,9 @@ pub fn resize_depth(z: &[f32], from: (u32, u32), to: (u32, u32)) -> Result<Vec<f
 /// Fuses multi-view depth with a monocular prior of the same size (any scale): the prior's
 /// inverse depth is fitted to the views' (robust affine fit over pixels with confidence of
 /// at least `min_conf`: weighted least squares re-weighted with Cauchy weights), then every
-/// pixel the views did not see confidently takes the fitted prior. `None` when fewer than
-/// 1 % of the pixels are confident or the fit turns the prior's order around.
+/// pixel the views did not see confidently takes the fitted prior, or is left unknown when
+/// the fit turns the prior's order around. `None` when fewer than 1 % of the pixels are
+/// confident.
 pub fn fuse(views: &ViewDepth, prior: &[f32], min_conf: f32) -> Option<(Vec<f32>, Fusion)> {
     if prior.len() != views.depth.len() {
         return None;
@@ -249,9 +250,11 @@ pub fn fuse(views: &ViewDepth, prior: &[f32], min_conf: f32) -> Option<(Vec<f32>
         r.sort_by(f64::total_cmp);
         scale = (1.4826 * r[r.len() / 2]).max(1e-9);
     }
-    if !(a.is_finite() && b.is_finite() && a > 0.0) {
-        return None;
-    }
+    // A prior whose order the views turn around (a <= 0) has nothing to give: the pixels
+    // the views did not see are left unknown, for the layering to fill from their neighbours.
+    // (On the fox, with bundle-adjusted poses, 13 of 31 placed frames: the novel views scored
+    // 20.47 dB this way against 17.49 dB when those frames kept the prior alone.)
+    let prior_fits = a.is_finite() && b.is_finite() && a > 0.0;
     let floor = samples.iter().map(|s| s.1).fold(f64::INFINITY, f64::min) * 0.5;
     let mut from_views = 0usize;
     let fused = views
@@ -263,7 +266,7 @@ pub fn fuse(views: &ViewDepth, prior: &[f32], min_conf: f32) -> Option<(Vec<f32>
             if z.is_finite() && c >= min_conf {
                 from_views += 1;
                 z
-            } else if p.is_finite() && p > 0.0 {
+            } else if prior_fits && p.is_finite() && p > 0.0 {
                 (1.0 / (a / p as f64 + b).max(floor)) as f32
             } else {
                 f32::NAN
@@ -274,15 +277,49 @@ pub fn fuse(views: &ViewDepth, prior: &[f32], min_conf: f32) -> Option<(Vec<f32>
         fused,
         Fusion {
             from_views: from_views as f64 / prior.len() as f64,
-            a,
-            b,
+            prior: prior_fits.then_some((a, b)),
         },
     ))
 }
 
 #[cfg(test)]
 mod tests {
-    use super::resize_depth;
+    use super::{fuse, resize_depth, ViewDepth};
+
+    #[test]
+    fn fusion_fits_the_prior_or_leaves_what_it_cannot_place() {
+        // A ramp of inverse depth 0.2..0.5 seen by the views on the left half only.
+        let (w, h) = (16u32, 4u32);
+        let inv: Vec<f32> = (0..w * h).map(|i| 0.2 + 0.02 * (i % w) as f32).collect();
+        let seen = |i: usize| i % w as usize >= w as usize / 2;
+        let views = ViewDepth {
+            width: w,
+            height: h,
+            depth: (0..inv.len())
+                .map(|i| if seen(i) { f32::NAN } else { 1.0 / inv[i] })
+                .collect(),
+            confidence: (0..inv.len())
+                .map(|i| if seen(i) { 0.0 } else { 1.0 })
+                .collect(),
+        };
+        // A prior in other units (inverse depth 3x + 0.1) fills the right half exactly.
+        let prior: Vec<f32> = inv.iter().map(|v| 1.0 / (3.0 * v + 0.1)).collect();
+        let (z, f) = fuse(&views, &prior, 0.5).unwrap();
+        let (a, b) = f.prior.unwrap();
+        assert!(
+            (a - 1.0 / 3.0).abs() < 1e-3 && (b + 0.1 / 3.0).abs() < 1e-3,
+            "{a} {b}"
+        );
+        assert!((f.from_views - 0.5).abs() < 1e-9);
+        assert!(z.iter().zip(&inv).all(|(z, v)| (z * v - 1.0).abs() < 1e-3));
+        // A prior whose order is reversed gives nothing: the views stay, the rest is unknown.
+        let reversed = inv.clone();
+        let (z, f) = fuse(&views, &reversed, 0.5).unwrap();
+        assert!(f.prior.is_none());
+        for (i, v) in z.iter().enumerate() {
+            assert_eq!(v.is_nan(), seen(i), "pixel {i}");
+        }
+    }
 
     #[test]
     fn resizing_keeps_depth_and_unknown_pixels() {

@@ -273,8 +273,20 @@ impl VideoTrackedDepth {
         };
         let name = self.prior.name();
         self.note = match from {
-            DepthFrom::Views { share, views } => format!(
+            DepthFrom::Views {
+                share,
+                views,
+                prior: true,
+            } => format!(
                 "video: {:.0} % of pixels from {views} views, the rest {name} fitted to them",
+                100.0 * share
+            ),
+            DepthFrom::Views {
+                share,
+                views,
+                prior: false,
+            } => format!(
+                "video: {:.0} % of pixels from {views} views, the rest filled from them ({name}'s depth order disagrees)",
                 100.0 * share
             ),
             DepthFrom::Fallback(why) => format!("fallback: {why}; {name}"),

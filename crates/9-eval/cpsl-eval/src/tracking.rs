@@ -146,14 +146,15 @@ pub fn video_depth(
         t.push_grey(g)?;
     }
     let mut tracked = TrackedDepth::new(t.finish()?, greys)?;
-    let mut shares = Vec::new();
+    let (mut shares, mut alone) = (Vec::new(), 0);
     let depths = prior
         .iter()
         .enumerate()
         .map(|(i, p)| {
             let (z, from) = tracked.depth(i, p, (w, h))?;
-            if let DepthFrom::Views { share, .. } = from {
+            if let DepthFrom::Views { share, prior, .. } = from {
                 shares.push(share);
+                alone += usize::from(!prior);
             }
             Ok(z)
         })
@@ -163,7 +164,7 @@ pub fn video_depth(
     Ok((
         depths,
         format!(
-            "video ({}, {} fused; median {:.0} % of pixels from the views, the rest FastDepth fitted to them)",
+            "video ({}, {} fused; median {:.0} % of pixels from the views, the rest FastDepth fitted to them or, on {alone} frames where its order disagrees, filled from the views)",
             tracked.summary(),
             shares.len(),
             100.0 * share

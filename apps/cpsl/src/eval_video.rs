@@ -88,13 +88,22 @@ pub fn run(a: EvalVideoArgs) -> Result<()> {
         video_depth: a.depth == "video",
     };
     println!(
-        "{:<10} {:<36} {:>6} {:>9} {:>9} {:>8} {:>8} {:>8} {:>8}",
-        "clip", "method", "I/all", "bnd px^2", "vs fw", "F-SSIM", "warp", "flicker", "PSNR"
+        "{:<10} {:<36} {:>6} {:>9} {:>9} {:>8} {:>8} {:>8} {:>8} {:>8}",
+        "clip",
+        "method",
+        "I/all",
+        "bnd px^2",
+        "vs fw",
+        "F-SSIM",
+        "warp",
+        "flicker",
+        "PSNR",
+        "LPIPS"
     );
     let opt = |v: Option<f64>, p: usize| v.map_or("-".to_string(), |x| format!("{x:.p$}"));
     let rows = evaluate_video(&opts, |row| match row {
         VideoRow::Scored(row) => println!(
-            "{:<10} {:<36} {:>6} {:>9.3} {:>9.3} {:>8.4} {:>8.4} {:>8} {:>8}",
+            "{:<10} {:<36} {:>6} {:>9.3} {:>9.3} {:>8.4} {:>8.4} {:>8} {:>8} {:>8}",
             row.clip,
             row.method,
             format!("{}/{}", row.i_frames, row.frames),
@@ -104,6 +113,7 @@ pub fn run(a: EvalVideoArgs) -> Result<()> {
             row.warping_error,
             opt(row.flicker, 4),
             opt(row.psnr, 2),
+            opt(row.lpips, 3),
         ),
         VideoRow::ObjectPartition {
             clip,

@@ -116,6 +116,9 @@ pub struct StabilityScore {
     pub flicker: Option<f64>,
     /// Novel-view PSNR against the truth, where known.
     pub psnr: Option<f64>,
+    /// Novel-view LPIPS against the truth, where known and scored (pixels the view does not
+    /// cover black in both).
+    pub lpips: Option<f64>,
 }
 
 const METHODS: [&str; 4] = [
@@ -542,6 +545,20 @@ pub fn evaluate_video(
                     .collect();
                 v.iter().sum::<f64>() / v.len().max(1) as f64
             });
+            let novel_lpips = match (lpips.as_mut(), c.truth.as_ref()) {
+                (Some(l), Some(truth)) => {
+                    let mut sum = 0.0;
+                    for ((o, m), t) in renders.iter().zip(truth) {
+                        let mut t = t.clone();
+                        for (px, _) in t.chunks_exact_mut(3).zip(m).filter(|(_, k)| !**k) {
+                            px.fill(0);
+                        }
+                        sum += l.distance(o, &t, nw as u32, nh as u32)? as f64;
+                    }
+                    Some(sum / renders.len().max(1) as f64)
+                }
+                _ => None,
+            };
             let flick = lpips
                 .as_mut()
                 .map(|l| -> Result<f64> {
@@ -573,6 +590,7 @@ pub fn evaluate_video(
                 warping_error: warping_error(&outs, &out_motion),
                 flicker: flick,
                 psnr,
+                lpips: novel_lpips,
             };
             rows.push(row);
         }

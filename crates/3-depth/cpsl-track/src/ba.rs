@@ -120,7 +120,11 @@ pub(crate) fn adjust(
     let mut init: HashMap<String, DVector<f64>> = HashMap::new();
     let mut used_frames: HashSet<usize> = HashSet::new();
     let mut used_points = Vec::new();
-    for (&id, &x) in points.iter() {
+    // In id order, so that the problem (and its rounding) is the same on every run.
+    let mut ids: Vec<usize> = points.keys().copied().collect();
+    ids.sort_unstable();
+    for id in ids {
+        let x = points[&id];
         let obs: Vec<&Obs> = tracks[id]
             .iter()
             .filter(|o| seen.contains(&(o.0 as usize)) && poses[o.0 as usize].is_some())

@@ -15,7 +15,7 @@
 //!    the placed frame that sees them under the widest angle (at least `min_angle_deg`).
 //! 3. *Refinement.* One round of alternating resection and intersection (every frame
 //!    re-solved by PnP, every point re-triangulated from all placed frames), then bundle
-//!    adjustment ([`ba`], tiny-solver's Levenberg-Marquardt, Cauchy loss): poses and points
+//!    adjustment (`ba.rs`, tiny-solver's Levenberg-Marquardt, Cauchy loss): poses and points
 //!    together, the observations farther than a pixel from their adjusted point dropped, and
 //!    again. Clips with more placed frames than [`TrackConfig::ba_window`] are adjusted in
 //!    overlapping windows, each held to the frames before it.
@@ -956,7 +956,7 @@ impl Solver {
         Ok(())
     }
 
-    /// Bundle adjustment ([`ba`]) over windows of `ba_window` placed frames, the first
+    /// Bundle adjustment (`ba.rs`) over windows of `ba_window` placed frames, the first
     /// baseline `pair` fixing the gauge; false when it is switched off.
     fn bundle_adjust(&mut self, pair: (usize, usize), iterations: usize) -> Result<bool> {
         let w = self.cfg.ba_window;

@@ -266,6 +266,8 @@ impl Mul<Vec3> for Mat3 {
 
 #[cfg(test)]
 mod tests {
+    use super::*;
+
     #[test]
     fn log_inverts_exp() {
         for (axis, angle) in [
@@ -286,8 +288,6 @@ mod tests {
             assert!((r.log().norm() - angle).abs() < 1e-6, "{angle}");
         }
     }
-
-    use super::*;
 
     #[test]
     fn inverse_roundtrip() {

@@ -453,6 +453,13 @@ fn lk(
     Ok((next, status.iter().map(|s| s != 0).collect()))
 }
 
+/// How far world point `x` projects, through `cam` at camera-to-world `pose`, from the
+/// observation `(u, v)` (working pixels); `None` behind the camera.
+fn reprojection_px(cam: &Camera, pose: &Pose, x: Vec3, (u, v): (f32, f32)) -> Option<f64> {
+    let (pu, pv) = cam.project(pose.inverse().view_to_ref(x))?;
+    Some((pu - u as f64).hypot(pv - v as f64))
+}
+
 /// The camera-to-world pose of world-to-camera extrinsics `x_cam = R x_world + t`.
 pub(crate) fn from_extrinsics(r: Mat3, t: Vec3) -> Pose {
     Pose {
@@ -588,12 +595,11 @@ impl Solver {
         for _ in 0..REFINE_ROUNDS {
             self.refine()?;
         }
-        if let Some(pair) = init {
+        if let Some(pair) = init.filter(|_| self.cfg.ba_window > 0) {
             // Adjust, drop the observations the adjusted points disagree with, adjust again.
-            if self.bundle_adjust(pair, BA_ITERATIONS)? {
-                self.cull(CULL_PX);
-                self.bundle_adjust(pair, BA_ITERATIONS / 2)?;
-            }
+            self.bundle_adjust(pair, BA_ITERATIONS)?;
+            self.cull(CULL_PX);
+            self.bundle_adjust(pair, BA_ITERATIONS / 2)?;
         }
         let reprojection_px = self.reprojection();
         Ok(Trajectory {
@@ -741,8 +747,7 @@ impl Solver {
             return None;
         }
         for (p, q) in obs {
-            let (u, v) = self.cam.project(p.inverse().view_to_ref(x))?;
-            if (u - q.x as f64).hypot(v - q.y as f64) > 2.0 {
+            if reprojection_px(&self.cam, p, x, (q.x, q.y))? > 2.0 {
                 return None;
             }
         }
@@ -956,13 +961,10 @@ impl Solver {
         Ok(())
     }
 
-    /// Bundle adjustment (`ba.rs`) over windows of `ba_window` placed frames, the first
-    /// baseline `pair` fixing the gauge; false when it is switched off.
-    fn bundle_adjust(&mut self, pair: (usize, usize), iterations: usize) -> Result<bool> {
+    /// Bundle adjustment (`ba.rs`) over windows of `ba_window` (at least 1) placed frames,
+    /// the first baseline `pair` fixing the gauge.
+    fn bundle_adjust(&mut self, pair: (usize, usize), iterations: usize) -> Result<()> {
         let w = self.cfg.ba_window;
-        if w == 0 {
-            return Ok(false);
-        }
         let placed: Vec<usize> = (0..self.frames)
             .filter(|&f| self.poses[f].is_some())
             .collect();
@@ -983,7 +985,7 @@ impl Solver {
                 },
             )?;
             if end == placed.len() {
-                return Ok(true);
+                return Ok(());
             }
             start = end - (w / 3).min(end - start - 1);
         }
@@ -997,9 +999,7 @@ impl Solver {
             let x = self.points[&id];
             let (cam, poses) = (&self.cam, &self.poses);
             self.tracks[id].retain(|&(f, u, v)| match poses[f as usize] {
-                Some(p) => cam
-                    .project(p.inverse().view_to_ref(x))
-                    .is_some_and(|(pu, pv)| (pu - u as f64).hypot(pv - v as f64) <= px),
+                Some(p) => reprojection_px(cam, &p, x, (u, v)).is_some_and(|e| e <= px),
                 None => true,
             });
             let seen = self.tracks[id]
@@ -1017,9 +1017,7 @@ impl Solver {
         for (&id, &x) in &self.points {
             for &(f, u, v) in &self.tracks[id] {
                 if let Some(p) = self.poses[f as usize] {
-                    if let Some((pu, pv)) = self.cam.project(p.inverse().view_to_ref(x)) {
-                        e.push((pu - u as f64).hypot(pv - v as f64));
-                    }
+                    e.extend(reprojection_px(&self.cam, &p, x, (u, v)));
                 }
             }
         }

@@ -2,6 +2,13 @@
 
 pub use cpsl_core::image::psnr;
 
+/// Sets the RGB pixels outside `keep` to black.
+pub fn blacken(rgb: &mut [u8], keep: &[bool]) {
+    for (px, _) in rgb.chunks_exact_mut(3).zip(keep).filter(|(_, k)| !**k) {
+        px.fill(0);
+    }
+}
+
 /// PSNR in dB over the pixels where `mask` is true (RGB, 3 bytes per pixel). `None` when the
 /// mask is empty; `f64::INFINITY` when the masked pixels are identical.
 pub fn psnr_masked(a: &[u8], b: &[u8], mask: &[bool]) -> Option<f64> {

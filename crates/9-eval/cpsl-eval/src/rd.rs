@@ -16,7 +16,7 @@
 
 use crate::baselines::dibr;
 use crate::error::{Context, EvalError};
-use crate::metrics::{psnr, psnr_masked};
+use crate::metrics::{blacken, psnr, psnr_masked};
 use cpsl_codec::yuv::Yuv420;
 use cpsl_codec::{CodingOptions, Container, PackageWriter, RateControl};
 use cpsl_core::{
@@ -338,13 +338,6 @@ fn seen_from(depth: &[f32], cam: &Camera, pose: &Pose) -> Vec<bool> {
             })
         })
         .collect()
-}
-
-/// Sets the RGB pixels outside `keep` to black.
-fn blacken(rgb: &mut [u8], keep: &[bool]) {
-    for (px, _) in rgb.chunks_exact_mut(3).zip(keep).filter(|(_, k)| !**k) {
-        px.fill(0);
-    }
 }
 
 /// Scores views rendered by `render(frame, pose)` against the truth: mean PSNR and LPIPS.

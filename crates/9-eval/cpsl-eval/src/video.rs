@@ -4,7 +4,7 @@
 
 use crate::datasets::Distortion;
 use crate::error::{Context, EvalError};
-use crate::metrics::psnr_masked;
+use crate::metrics::{blacken, psnr_masked};
 use crate::temporal::{alpha_owner, boundary_variance, f_ssim, flicker, warping_error, ClipMotion};
 use cpsl_core::resample::downscale_rgb;
 use cpsl_core::{Camera, DepthSource, Flow, LayerSet, Limits, Pose, Vec3};
@@ -550,9 +550,7 @@ pub fn evaluate_video(
                     let mut sum = 0.0;
                     for ((o, m), t) in renders.iter().zip(truth) {
                         let mut t = t.clone();
-                        for (px, _) in t.chunks_exact_mut(3).zip(m).filter(|(_, k)| !**k) {
-                            px.fill(0);
-                        }
+                        blacken(&mut t, m);
                         sum += l.distance(o, &t, nw as u32, nh as u32)? as f64;
                     }
                     Some(sum / renders.len().max(1) as f64)

@@ -79,9 +79,9 @@ pub struct EvalRdArgs {
     /// Skip LPIPS.
     #[arg(long)]
     pub no_lpips: bool,
-    /// Depth of the fox: `fastdepth` (per frame, one scale for the clip) or `video` (from the
-    /// video itself: camera tracking, multi-view depth, fused with FastDepth).
-    #[arg(long, default_value = "fastdepth", value_parser = ["fastdepth", "video"])]
+    /// Depth of the fox: `video` (the default: from the video itself, camera tracking and
+    /// multi-view depth fused with FastDepth) or `fastdepth` (per frame, one scale for the clip).
+    #[arg(long, default_value = "video", value_parser = ["fastdepth", "video"])]
     pub depth: String,
     /// Write the curves and summary as JSON.
     #[arg(long)]

@@ -66,9 +66,9 @@ pub struct EvalVideoArgs {
     /// synthetic clip has one): what propagation scores with perfect motion.
     #[arg(long)]
     pub true_motion: bool,
-    /// Depth of the fox: `fastdepth` (per frame, one scale for the clip) or `video` (from the
-    /// video itself: camera tracking, multi-view depth, fused with FastDepth).
-    #[arg(long, default_value = "fastdepth", value_parser = ["fastdepth", "video"])]
+    /// Depth of the fox: `video` (the default: from the video itself, camera tracking and
+    /// multi-view depth fused with FastDepth) or `fastdepth` (per frame, one scale for the clip).
+    #[arg(long, default_value = "video", value_parser = ["fastdepth", "video"])]
     pub depth: String,
     /// Write the results as JSON.
     #[arg(long)]

@@ -94,12 +94,13 @@ pub struct VideoLayeringArgs {
     /// single images). Overrides the configuration file's.
     #[arg(long)]
     pub geometry: Option<GeometryMode>,
-    /// Where depth comes from: `model` (the --depth-model on each frame) or `video` (the video
-    /// itself: the camera is tracked through the whole input first, then each frame's depth
-    /// is triangulated from its four nearest frames and fused with the --depth-model, which
-    /// fills what the views cannot see; frames where the camera does not translate, or that
-    /// could not be placed, take the model's depth and say so in `video.json`).
-    #[arg(long, value_enum, default_value_t = DepthArg::Model, conflicts_with_all = ["depth_frames", "stereo"])]
+    /// Where depth comes from: `video` (the default: the video itself; the camera is tracked
+    /// through the whole input first, then each frame's depth is triangulated from its four
+    /// nearest frames and fused with the --depth-model, which fills what the views cannot see;
+    /// where the camera does not translate (static, only turning, too little texture) or a
+    /// frame could not be placed, that frame takes the model's depth and `video.json` says
+    /// why) or `model` (the --depth-model on each frame, without the tracking pass).
+    #[arg(long, value_enum, default_value_t = DepthArg::Video, conflicts_with_all = ["depth_frames", "stereo"])]
     pub depth: DepthArg,
     /// Depth model: `fastdepth` (default) or an .onnx file described by `<model>.json`.
     #[arg(long, default_value = "fastdepth")]

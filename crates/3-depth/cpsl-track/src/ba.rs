@@ -142,12 +142,9 @@ impl Problem {
                     [0.0, fy / z, -fy * p.y() / (z * z)],
                 ];
                 // Point: J_p R.
-                let mut jx = [[0.0; 3]; 2];
-                for a in 0..2 {
-                    for b in 0..3 {
-                        jx[a][b] = (0..3).map(|k| jp[a][k] * f.r.0[k][b]).sum();
-                    }
-                }
+                let jx: [[f64; 3]; 2] = std::array::from_fn(|a| {
+                    std::array::from_fn(|b| (0..3).map(|k| jp[a][k] * f.r.0[k][b]).sum())
+                });
                 let hx = &mut lin.h_xx[j];
                 let gx = &mut lin.g_x[j];
                 for a in 0..3 {
@@ -161,13 +158,12 @@ impl Problem {
                 let q = p - f.t;
                 let (qx, qy, qz) = (q.x(), q.y(), q.z());
                 let skew_neg = [[0.0, qz, -qy], [-qz, 0.0, qx], [qy, -qx, 0.0]];
-                let mut jc = [[0.0; 6]; 2];
-                for a in 0..2 {
-                    for b in 0..3 {
-                        jc[a][b] = (0..3).map(|m| jp[a][m] * skew_neg[m][b]).sum();
-                        jc[a][3 + b] = jp[a][b];
-                    }
-                }
+                let jc: [[f64; 6]; 2] = std::array::from_fn(|a| {
+                    std::array::from_fn(|b| match b {
+                        0..3 => (0..3).map(|m| jp[a][m] * skew_neg[m][b]).sum(),
+                        _ => jp[a][b - 3],
+                    })
+                });
                 let base = 6 * k;
                 for a in 0..6 {
                     lin.g_c[base + a] += w * (jc[0][a] * r[0] + jc[1][a] * r[1]);
@@ -175,8 +171,8 @@ impl Problem {
                         lin.h_cc[(base + a) * n + base + b] +=
                             w * (jc[0][a] * jc[0][b] + jc[1][a] * jc[1][b]);
                     }
-                    for b in 0..3 {
-                        lin.h_cx[o][3 * a + b] = w * (jc[0][a] * jx[0][b] + jc[1][a] * jx[1][b]);
+                    for (b, (x0, x1)) in jx[0].iter().zip(&jx[1]).enumerate() {
+                        lin.h_cx[o][3 * a + b] = w * (jc[0][a] * x0 + jc[1][a] * x1);
                     }
                 }
             }
@@ -257,9 +253,8 @@ impl Problem {
             b[i] = 0.0;
         }
         let dc = cholesky_solve(&mut s, n, b)?;
-        for i in 0..n {
-            let d = damp(lin.h_cc[i * n + i]);
-            pred += d * dc[i] * dc[i] - lin.g_c[i] * dc[i];
+        for (i, d) in dc.iter().enumerate() {
+            pred += damp(lin.h_cc[i * n + i]) * d * d - lin.g_c[i] * d;
         }
         // Back-substitute the points: dx = V^-1 (-g_x - W^T dc).
         let mut dx = Vec::with_capacity(self.points.len());

@@ -251,8 +251,8 @@ pub struct EvalTrackArgs {
 pub fn run_track(a: EvalTrackArgs) -> Result<()> {
     let s = cpsl_eval::tracking::fox(&a.data)?;
     println!(
-        "{}: {} of {} frames placed, motion {}, {} points, reprojection {:.2} px, rotation error {:.3} deg ({:.3} deg aligned), translation direction {:.2} deg, {:.0} ms/frame",
-        s.clip, s.placed, s.frames, s.motion, s.points, s.reprojection_px, s.rotation_deg, s.rotation_aligned_deg, s.translation_dir_deg, s.ms_per_frame
+        "{}: {} of {} frames placed in {} segment(s), motion {}, {} points, reprojection {:.2} px, rotation error {:.3} deg ({:.3} deg aligned), translation direction {:.2} deg, {:.0} ms/frame",
+        s.clip, s.placed, s.frames, s.segments, s.motion, s.points, s.reprojection_px, s.rotation_deg, s.rotation_aligned_deg, s.translation_dir_deg, s.ms_per_frame
     );
     if let Some(path) = &a.json {
         cpsl_io::write_json(path, &s)?;

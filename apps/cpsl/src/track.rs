@@ -15,11 +15,14 @@ pub struct TrackArgs {
     pub input: PathBuf,
     /// Output `poses.json`: per frame the camera-to-world pose (OpenCV axes, the first
     /// frame's camera as the world, the first baseline as the unit), PnP inliers, whether it
-    /// was placed; the camera motion found (translating, rotating, static, untracked).
+    /// was placed and its segment (where tracking broke off, at a jump or a cut, the frames
+    /// after it are solved again as a new segment with its own world and unit); the camera
+    /// motion found (translating, rotating, static, untracked).
     #[arg(short, long)]
     pub output: PathBuf,
     /// Also write the placed frames as a NeRF-style `transforms.json` (OpenGL axes; readable
-    /// by instant-ngp, nerfstudio and Gaussian-splatting tools).
+    /// by instant-ngp, nerfstudio and Gaussian-splatting tools); of several segments, the one
+    /// with the most placed frames.
     #[arg(long)]
     pub transforms: Option<PathBuf>,
     #[command(flatten)]
@@ -40,11 +43,17 @@ pub fn run(a: TrackArgs) -> Result<()> {
         cpsl_io::write_json(path, &nerf)?;
     }
     let placed = t.poses.iter().filter(|p| p.is_some()).count();
+    let segments = t.segments();
     println!(
-        "{}: camera {}, {placed} of {} frames placed, {} points, reprojection {}; wrote {}{}",
+        "{}: camera {}, {placed} of {} frames placed{}, {} points, reprojection {}; wrote {}{}",
         a.input.display(),
         t.motion.name(),
         names.len(),
+        if segments > 1 {
+            format!(" in {segments} segments (tracking broke off between them)")
+        } else {
+            String::new()
+        },
         t.points,
         if t.reprojection_px.is_finite() {
             format!("{:.2} px", t.reprojection_px)
@@ -56,6 +65,13 @@ pub fn run(a: TrackArgs) -> Result<()> {
             .as_ref()
             .map_or(String::new(), |p| format!(" and {}", p.display()))
     );
+    if let Some(path) = a.transforms.as_ref().filter(|_| segments > 1) {
+        eprintln!(
+            "note: {} holds segment {} only (the one with the most placed frames)",
+            path.display(),
+            cpsl_pipeline::track::largest_segment(&t)
+        );
+    }
     if placed == 0 {
         eprintln!(
             "note: no pose without a baseline (the camera {}); depth must come from a model",

@@ -195,12 +195,14 @@ fn tracks_the_fox_without_its_poses() {
     let json = dir.path().join("track.json");
     ok(&["eval-track", "--data", s(&root), "--json", s(&json)]);
     let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
-    // Measured: 31 of 50 frames placed (the clip has a gap the tracks do not cross), median
-    // rotation error 2.2 degrees (issue 29's 0.2 is not met yet).
+    // Measured: 50 of 50 frames placed in two segments (the clip jumps 44 degrees between
+    // frames 30 and 31, which no track crosses), median rotation error 0.265 degrees,
+    // translation direction 0.21.
     assert_eq!(v["motion"], "translating");
-    assert!(v["placed"].as_u64().unwrap() >= 25, "{v}");
-    assert!(v["rotation_deg"].as_f64().unwrap() < 4.0, "{v}");
-    assert!(v["translation_dir_deg"].as_f64().unwrap() < 4.0, "{v}");
+    assert!(v["placed"].as_u64().unwrap() >= 45, "{v}");
+    assert_eq!(v["segments"], 2, "{v}");
+    assert!(v["rotation_deg"].as_f64().unwrap() < 0.4, "{v}");
+    assert!(v["translation_dir_deg"].as_f64().unwrap() < 0.5, "{v}");
 }
 
 #[test]

@@ -6,6 +6,7 @@ use crate::mvs::{self, MvsConfig};
 use crate::{CameraMotion, Mat, Result, TrackError, Trajectory};
 use cpsl_core::Pose;
 use opencv::prelude::*;
+use std::collections::HashMap;
 
 /// Where a frame's depth came from.
 #[derive(Debug, Clone, PartialEq)]
@@ -28,8 +29,10 @@ pub enum DepthFrom {
 /// Depth from a tracked clip: each frame asked for gets multi-view depth from up to
 /// [`TrackedDepth::NEIGHBOURS`] nearest placed frames ([`mvs::depth_from_views`]), fused with
 /// its monocular prior ([`mvs::fuse`]) at the tracking resolution and brought back to the
-/// prior's. The clip is put in the prior's units: the trajectory's scale (its first baseline
-/// is 1) is fixed by the first fused frame's median per-pixel ratio of prior to fused depth. A
+/// prior's. The clip is put in the prior's units: the scale of each segment of the trajectory
+/// (its first baseline is 1) is fixed by its first fused frame's median per-pixel ratio of
+/// prior to fused depth (times the median fused-to-prior ratio of the frames fused before,
+/// for a later segment); only frames of the same segment serve as views. A
 /// frame the views cannot serve takes its prior, scaled by the median fused-to-prior ratio of
 /// the frames fused so far, and says why: the camera does not translate (rotating, static,
 /// untracked), the frame was not placed, or its views saw too little. Where the prior's depth
@@ -37,8 +40,9 @@ pub enum DepthFrom {
 pub struct TrackedDepth {
     trajectory: Trajectory,
     greys: Vec<Mat>,
-    /// Prior units per trajectory unit, once a frame has been fused.
-    scale: Option<f64>,
+    /// Per segment of the trajectory, prior units per trajectory unit, once one of its frames
+    /// has been fused.
+    scale: HashMap<u32, f64>,
     /// Fused-to-prior median ratios of the fused frames (prior units).
     ratios: Vec<f64>,
 }
@@ -72,7 +76,7 @@ impl TrackedDepth {
         Ok(Self {
             trajectory,
             greys,
-            scale: None,
+            scale: HashMap::new(),
             ratios: Vec::new(),
         })
     }
@@ -81,10 +85,16 @@ impl TrackedDepth {
     pub fn summary(&self) -> String {
         let t = &self.trajectory;
         let placed = t.poses.iter().filter(|p| p.is_some()).count();
+        let segments = t.segments();
         format!(
-            "camera {}, {placed} of {} frames placed",
+            "camera {}, {placed} of {} frames placed{}",
             t.motion.name(),
-            t.poses.len()
+            t.poses.len(),
+            if segments > 1 {
+                format!(" in {segments} segments")
+            } else {
+                String::new()
+            }
         )
     }
 
@@ -101,8 +111,9 @@ impl TrackedDepth {
         let size = (work.width, work.height);
         let why = match (t.motion, t.poses.get(index).copied().flatten()) {
             (CameraMotion::Translating, Some(pose)) => {
+                let seg = t.segment[index];
                 let mut near: Vec<usize> = (0..t.poses.len())
-                    .filter(|&j| j != index && t.poses[j].is_some())
+                    .filter(|&j| j != index && t.poses[j].is_some() && t.segment[j] == seg)
                     .collect();
                 near.sort_by_key(|&j| j.abs_diff(index));
                 near.truncate(Self::NEIGHBOURS);
@@ -120,7 +131,10 @@ impl TrackedDepth {
                     .and_then(|(z, f)| Some((median_ratio(&small, &z)?, z, f)));
                 match fused {
                     Some((ratio, z, fusion)) => {
-                        let scale = *self.scale.get_or_insert(ratio);
+                        // A later segment starts at the fused-to-prior ratio typical so far,
+                        // not at its first frame's prior alone.
+                        let typical = self.typical_ratio();
+                        let scale = *self.scale.entry(seg).or_insert(ratio * typical);
                         let mut z = mvs::resize_depth(&z, size, (width, height))?;
                         z.iter_mut().for_each(|v| *v *= scale as f32);
                         self.ratios.push(scale / ratio);
@@ -145,13 +159,20 @@ impl TrackedDepth {
             (CameraMotion::Static, _) => "the camera is static".to_string(),
             (CameraMotion::Untracked, _) => "too little texture to track the camera".to_string(),
         };
-        let mut r = self.ratios.clone();
-        r.sort_by(f64::total_cmp);
-        let k = r.get(r.len() / 2).copied().unwrap_or(1.0) as f32;
+        let k = self.typical_ratio() as f32;
         Ok((
             prior.iter().map(|v| v * k).collect(),
             DepthFrom::Fallback(why),
         ))
+    }
+}
+
+impl TrackedDepth {
+    /// The median fused-to-prior ratio of the frames fused so far (1 before the first).
+    fn typical_ratio(&self) -> f64 {
+        let mut r = self.ratios.clone();
+        r.sort_by(f64::total_cmp);
+        r.get(r.len() / 2).copied().unwrap_or(1.0)
     }
 }
 

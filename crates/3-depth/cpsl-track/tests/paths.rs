@@ -1,7 +1,8 @@
 //! Tracking on ray-cast clips with exact poses (the built-in scene, objects held still):
 //! sideways and orbiting cameras are solved (sideways within 0.1 degrees of rotation and 1
 //! degree of translation direction); a static camera and a pure rotation are told apart; a
-//! black clip is untracked, without a panic. Multi-view depth on the sideways clip with exact
+//! black clip is untracked, without a panic; after a cut the clip is solved again as a new
+//! segment. Multi-view depth on the sideways clip with exact
 //! poses matches the exact depth, and fused with a prior over a tracked clip it is in the
 //! prior's units.
 
@@ -110,6 +111,34 @@ fn sideways_and_orbit_are_solved() {
     eprintln!("orbit, windows of 5: rotation {rot:.3} deg, translation direction {dir:.3} deg");
     assert_eq!(placed, orbit.len());
     assert!(rot < 0.4 && dir < 0.5, "{rot} {dir}");
+}
+
+#[test]
+fn a_cut_starts_a_new_segment() {
+    // Eight frames sideways, a cut, then the same motion in a negative picture, which no
+    // track or descriptor match crosses.
+    let path = &sideways()[..8];
+    let (scene, mut frames) = clip(path);
+    let negative: Vec<Vec<u8>> = frames
+        .iter()
+        .map(|f| f.iter().map(|v| 255 - v).collect())
+        .collect();
+    frames.extend(negative);
+    let est = track(scene.camera, &frames);
+    assert_eq!(est.motion, CameraMotion::Translating);
+    assert_eq!(est.segments(), 2);
+    for (f, p) in est.poses.iter().enumerate() {
+        assert!(p.is_some(), "frame {f} placed");
+        assert_eq!(est.segment[f], (f >= 8) as u32, "frame {f}");
+    }
+    // Each segment's world is its first frame's camera.
+    let (rot, dir, _) = errors(&est, path);
+    assert!(rot < 0.1 && dir < 1.0, "first segment: {rot} {dir}");
+    let mut second = est.clone();
+    second.poses = est.poses[8..].to_vec();
+    let (rot, dir, _) = errors(&second, path);
+    eprintln!("after the cut: rotation {rot:.3} deg, translation direction {dir:.3} deg");
+    assert!(rot < 0.1 && dir < 1.0, "second segment: {rot} {dir}");
 }
 
 #[test]

@@ -109,6 +109,9 @@ pub struct PoseEntry {
     pub rotation: Option<[[f64; 3]; 3]>,
     /// Camera position in the world (the first frame's camera; unit: the first baseline).
     pub translation: Option<[f64; 3]>,
+    /// The segment the pose belongs to: 0, or a later one where tracking broke off (a jump or
+    /// a cut), with its own world (its first frame's camera) and unit.
+    pub segment: u32,
     /// Triangulated tracks the pose agrees with.
     pub inliers: usize,
 }
@@ -118,7 +121,7 @@ pub struct PoseEntry {
 pub struct PosesFile {
     /// Always `cpsl-poses`.
     pub format: &'static str,
-    /// Format version (1).
+    /// Format version (2: with segments).
     pub version: u32,
     /// The camera at the input's size.
     pub camera: Camera,
@@ -132,7 +135,8 @@ pub struct PosesFile {
     pub frames: Vec<PoseEntry>,
 }
 
-/// The files of a tracked clip: `poses.json` and `transforms.json` (placed frames only; each
+/// The files of a tracked clip: `poses.json` and `transforms.json` (the placed frames of the
+/// segment with the most of them ([`largest_segment`]); each
 /// `file_path` is the frame's file in `dir`, absolute where it can be resolved, when the
 /// input was a folder of frames).
 pub fn pose_files(
@@ -153,11 +157,14 @@ pub fn pose_files(
                 rotation: p.map(|p| p.rotation.0),
                 translation: p.map(|p| [p.translation.x(), p.translation.y(), p.translation.z()]),
                 inliers: t.inliers[i],
+                segment: t.segment[i],
             }
         })
         .collect();
+    let keep = largest_segment(t);
     let transforms: Vec<serde_json::Value> = frames
         .iter()
+        .filter(|f| f.segment == keep)
         .filter_map(|f| {
             let (r, t) = (f.rotation?, f.translation?);
             // OpenCV camera axes to OpenGL's (y up, looking down -z): negate columns 1, 2.
@@ -184,7 +191,7 @@ pub fn pose_files(
     });
     let poses = PosesFile {
         format: "cpsl-poses",
-        version: 1,
+        version: 2,
         camera,
         motion: t.motion.name(),
         points: t.points,
@@ -192,6 +199,18 @@ pub fn pose_files(
         frames,
     };
     (poses, nerf)
+}
+
+/// The segment with the most placed frames (the first of equals; 0 when none is placed).
+pub fn largest_segment(t: &Trajectory) -> u32 {
+    let mut count: Vec<(usize, std::cmp::Reverse<u32>)> = Vec::new();
+    for s in 0..=t.segment.iter().copied().max().unwrap_or(0) {
+        let n = (0..t.poses.len())
+            .filter(|&f| t.poses[f].is_some() && t.segment[f] == s)
+            .count();
+        count.push((n, std::cmp::Reverse(s)));
+    }
+    count.into_iter().max().map_or(0, |(_, s)| s.0)
 }
 
 /// Depth from the video itself: a first pass tracks the camera through the whole input

@@ -6,7 +6,7 @@
 
 use crate::datasets::PosedVideo;
 use crate::error::EvalError;
-use cpsl_core::{Camera, Mat3, Vec3};
+use cpsl_core::{Camera, Mat3, Pose, Vec3};
 use cpsl_track::{DepthFrom, TrackConfig, TrackedDepth, Tracker, Trajectory};
 use serde::Serialize;
 use std::path::Path;
@@ -23,6 +23,8 @@ pub struct TrackScore {
     pub frames: usize,
     /// Frames placed.
     pub placed: usize,
+    /// Segments the placed frames fall in (tracking broke off between them).
+    pub segments: usize,
     /// The camera motion found.
     pub motion: String,
     /// Triangulated points.
@@ -44,28 +46,62 @@ pub struct TrackScore {
 
 use cpsl_track::rotation_deg as angle;
 
-/// Scores `est` (camera-to-world, world = frame 0) against `truth`'s poses: median rotation
-/// error, median rotation error after aligning the paths' rotations, and median
-/// translation-direction error, degrees.
+/// Scores `est` (camera-to-world; per segment, the world is its first frame's camera) against
+/// `truth`'s poses: median rotation error, median rotation error after aligning each
+/// segment's rotations with the truth's, and median translation-direction error, degrees,
+/// over every placed frame; each segment is compared with the truth relative to its first
+/// frame.
 pub fn score(est: &Trajectory, truth: &PosedVideo) -> (f64, f64, f64) {
-    let rel = |i: usize| truth.relative(0, i);
-    let far = (0..truth.poses.len())
-        .map(|i| rel(i).translation.norm())
-        .fold(0.0, f64::max);
-    let (mut rot, mut dir, mut pairs) = (Vec::new(), Vec::new(), Vec::new());
-    for (i, p) in est.poses.iter().enumerate() {
-        let Some(p) = p else { continue };
-        let g = rel(i);
-        rot.push(angle(&(p.rotation.transpose() * g.rotation)));
-        pairs.push((p.rotation, g.rotation));
-        if g.translation.norm() >= 0.1 * far && p.translation.norm() > 0.0 {
-            let c = p
-                .translation
-                .normalized()
-                .dot(g.translation.normalized())
-                .clamp(-1.0, 1.0);
-            dir.push(c.acos().to_degrees());
+    let (mut rot, mut aligned, mut dir) = (Vec::new(), Vec::new(), Vec::new());
+    let mut segments: Vec<u32> = est.segment.clone();
+    segments.sort_unstable();
+    segments.dedup();
+    for seg in segments {
+        let frames: Vec<usize> = (0..est.poses.len())
+            .filter(|&i| est.poses[i].is_some() && est.segment[i] == seg)
+            .collect();
+        let Some(&first) = frames.first() else {
+            continue;
+        };
+        let origin = est.poses[first].expect("placed");
+        let rt = origin.rotation.transpose();
+        let rel = |i: usize| truth.relative(first, i);
+        let far = (first..truth.poses.len())
+            .map(|i| rel(i).translation.norm())
+            .fold(0.0, f64::max);
+        let mut pairs = Vec::new();
+        for &i in &frames {
+            let e = est.poses[i].expect("placed");
+            let p = Pose {
+                rotation: rt * e.rotation,
+                translation: rt * (e.translation - origin.translation),
+            };
+            let g = rel(i);
+            rot.push(angle(&(p.rotation.transpose() * g.rotation)));
+            pairs.push((p.rotation, g.rotation));
+            if g.translation.norm() >= 0.1 * far && p.translation.norm() > 0.0 {
+                let c = p
+                    .translation
+                    .normalized()
+                    .dot(g.translation.normalized())
+                    .clamp(-1.0, 1.0);
+                dir.push(c.acos().to_degrees());
+            }
         }
+        // The aligning rotation A (truth = A est): the Karcher mean of G_i E_i^T.
+        let mut a = Mat3::IDENTITY;
+        for _ in 0..10 {
+            let mut step = Vec3::ZERO;
+            for (e, g) in &pairs {
+                step = step + (a.transpose() * *g * e.transpose()).log();
+            }
+            a = a * Mat3::exp(step * (1.0 / pairs.len() as f64));
+        }
+        aligned.extend(
+            pairs
+                .iter()
+                .map(|(e, g)| angle(&((a * *e).transpose() * *g))),
+        );
     }
     let med = |mut v: Vec<f64>| {
         if v.is_empty() {
@@ -74,19 +110,6 @@ pub fn score(est: &Trajectory, truth: &PosedVideo) -> (f64, f64, f64) {
         v.sort_by(f64::total_cmp);
         v[v.len() / 2]
     };
-    // The aligning rotation A (truth = A est): the Karcher mean of G_i E_i^T.
-    let mut a = Mat3::IDENTITY;
-    for _ in 0..10 {
-        let mut step = Vec3::ZERO;
-        for (e, g) in &pairs {
-            step = step + (a.transpose() * *g * e.transpose()).log();
-        }
-        a = a * Mat3::exp(step * (1.0 / pairs.len().max(1) as f64));
-    }
-    let aligned = pairs
-        .iter()
-        .map(|(e, g)| angle(&((a * *e).transpose() * *g)))
-        .collect();
     (med(rot), med(aligned), med(dir))
 }
 
@@ -119,6 +142,7 @@ pub fn fox(data: &Path) -> Result<TrackScore> {
         clip: "fox".into(),
         frames: frames.len(),
         placed: est.poses.iter().filter(|p| p.is_some()).count(),
+        segments: est.segments(),
         motion: est.motion.name().into(),
         points: est.points,
         reprojection_px: est.reprojection_px,

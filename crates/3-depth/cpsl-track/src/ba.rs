@@ -489,10 +489,10 @@ mod tests {
     fn problem() -> Problem {
         let cam = Camera::from_fov(320, 240, 60.0);
         let frames = (0..3)
-            .map(|i| Frame {
+            .map(|i: usize| Frame {
                 r: Mat3::exp(Vec3::new(0.01 * i as f64, -0.02 * i as f64, 0.005)),
                 t: Vec3::new(-0.3 * i as f64, 0.02, 0.0),
-                var: (i > 0).then_some(i - 1),
+                var: i.checked_sub(1),
             })
             .collect();
         let mut points = Vec::new();

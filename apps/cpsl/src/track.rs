@@ -27,6 +27,8 @@ pub struct TrackArgs {
     pub transforms: Option<PathBuf>,
     #[command(flatten)]
     pub camera: CameraArgs,
+    #[command(flatten)]
+    pub tracking: crate::layer::TrackArgs,
     /// Stop after this many frames.
     #[arg(long)]
     pub max_frames: Option<usize>,
@@ -34,8 +36,13 @@ pub struct TrackArgs {
 
 /// Runs `cpsl track`.
 pub fn run(a: TrackArgs) -> Result<()> {
-    let (t, camera, names) =
-        track_video(&a.input, &a.camera.choice(), a.max_frames, &Bars::default())?;
+    let (t, camera, names) = track_video(
+        &a.input,
+        &a.camera.choice(),
+        a.tracking.config(),
+        a.max_frames,
+        &Bars::default(),
+    )?;
     let dir = a.input.is_dir().then_some(a.input.as_path());
     let (poses, nerf) = pose_files(&t, camera, &names, dir);
     cpsl_io::write_json(&a.output, &poses)?;

@@ -122,6 +122,8 @@ pub struct VideoLayeringArgs {
     pub stereo: StereoArgs,
     #[command(flatten)]
     pub camera: CameraArgs,
+    #[command(flatten)]
+    pub tracking: crate::layer::TrackArgs,
     /// Temporal organisation.
     #[arg(long, value_enum, default_value_t = Temporal::Full)]
     pub temporal: Temporal,
@@ -155,9 +157,13 @@ impl VideoLayeringArgs {
                 DepthArg::Model => {
                     VideoDepth::model(&self.depth_model, self.model_desc.as_deref())?
                 }
-                DepthArg::Video => VideoDepth::Tracked(VideoTrackedDepth::new(Box::new(
-                    open_depth_model(&self.depth_model, self.model_desc.as_deref())?,
-                ))),
+                DepthArg::Video => VideoDepth::Tracked(
+                    VideoTrackedDepth::new(Box::new(open_depth_model(
+                        &self.depth_model,
+                        self.model_desc.as_deref(),
+                    )?))
+                    .with_config(self.tracking.config()),
+                ),
             },
         };
         let job = VideoJob {

@@ -235,6 +235,23 @@ fn track_writes_poses_and_transforms() {
     assert!(std::path::Path::new(tf_frames[0]["file_path"].as_str().unwrap()).is_file());
     // The first frame is the world: identity with OpenGL's axes.
     assert_eq!(tf_frames[0]["transform_matrix"][1][1], -1.0);
+    // Tracking at another size works too; a size out of range is refused.
+    let msg = ok(&[
+        "track",
+        s(&fox),
+        "-o",
+        s(&dir.path().join("small.json")),
+        "--fov",
+        "42.9",
+        "--max-frames",
+        "12",
+        "--track-side",
+        "320",
+    ]);
+    assert!(msg.contains("camera translating"), "{msg}");
+    let o = cpsl(&["track", s(&fox), "-o", s(&poses), "--track-side", "10"]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("64..=4096"));
 
     // A static clip (one image three times) is detected, not guessed; one frame is refused.
     let still = dir.path().join("still");

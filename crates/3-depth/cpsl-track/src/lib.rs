@@ -69,7 +69,7 @@ pub struct TrackConfig {
     /// a 720p clip tracks in 2.0 s instead of 3.5 s for 50 frames at 640, which brings
     /// `layer-video --depth video` to 5 frames/s; the fox at 540x960 then tracks less well
     /// (rotation error 0.69 against 0.40 degrees) and its coded novel views score 0.1 dB lower
-    /// (EVALUATION.md).
+    /// (EVALUATION.md). `--track-side` on the command line.
     pub work_side: u32,
     /// Most corners tracked at once.
     pub max_features: usize,

@@ -7,23 +7,26 @@
 use crate::error::{Context, PipelineError};
 use crate::sources::CameraChoice;
 use cpsl_core::{Camera, DepthSource, Progress, ProgressEvent};
-use cpsl_track::{DepthFrom, Mat, TrackConfig, TrackedDepth, Tracker, Trajectory};
+use cpsl_track::{DepthFrom, Mat, TrackedDepth, Tracker, Trajectory};
+
+pub use cpsl_track::TrackConfig;
 use serde::Serialize;
 use std::path::Path;
 
 /// The progress stage of tracking.
 pub const TRACKING: &str = "tracking";
 
-/// Tracks every frame of `input` (a video file or a folder of frames) seen by `camera`.
-/// Returns the trajectory (at tracking resolution), the camera at the input's size and a name
+/// Tracks every frame of `input` (a video file or a folder of frames) seen by `camera`, with
+/// `cfg` ([`TrackConfig::default`] unless a user asks otherwise). Returns the trajectory (at tracking resolution), the camera at the input's size and a name
 /// per frame (its file for a folder, `frame_NNNNNN` for a video).
 pub fn track_video(
     input: &Path,
     camera: &CameraChoice,
+    cfg: TrackConfig,
     max_frames: Option<usize>,
     progress: &dyn Progress,
 ) -> Result<(Trajectory, Camera, Vec<String>), PipelineError> {
-    let (t, cam, names, _) = track_frames(input, camera, max_frames, progress, None)?;
+    let (t, cam, names, _) = track_frames(input, camera, cfg, max_frames, progress, None)?;
     if names.len() < 2 {
         return Err(PipelineError::Invalid(format!(
             "{}: {} frame(s); tracking needs at least two",
@@ -39,6 +42,7 @@ pub fn track_video(
 fn track_frames(
     input: &Path,
     camera: &CameraChoice,
+    cfg: TrackConfig,
     max_frames: Option<usize>,
     progress: &dyn Progress,
     keep: Option<usize>,
@@ -48,7 +52,7 @@ fn track_frames(
         .context_with(|| format!("opening {}", input.display()))?;
     let info = src.info().clone();
     let cam = camera.camera(info.width, info.height)?;
-    let mut tracker = Tracker::new(cam, TrackConfig::default())?;
+    let mut tracker = Tracker::new(cam, cfg)?;
     let total = crate::video::frames_to_read(info.frames, max_frames);
     progress.event(ProgressEvent::Start {
         stage: TRACKING,
@@ -219,6 +223,8 @@ pub fn largest_segment(t: &Trajectory) -> u32 {
 /// from (in `video.json`).
 pub struct VideoTrackedDepth {
     prior: Box<dyn DepthSource>,
+    /// How the first pass tracks.
+    cfg: TrackConfig,
     /// Once prepared: the tracked clip, or why every frame takes the prior.
     tracked: Option<Result<TrackedDepth, String>>,
     note: String,
@@ -234,9 +240,15 @@ impl VideoTrackedDepth {
     pub fn new(prior: Box<dyn DepthSource>) -> Self {
         Self {
             prior,
+            cfg: TrackConfig::default(),
             tracked: None,
             note: String::new(),
         }
+    }
+
+    /// The same, tracking with `cfg` instead of [`TrackConfig::default`].
+    pub fn with_config(self, cfg: TrackConfig) -> Self {
+        Self { cfg, ..self }
     }
 
     /// The first pass: tracks every frame of `input` (at most `max_frames`) seen by `camera`.
@@ -248,7 +260,7 @@ impl VideoTrackedDepth {
         progress: &dyn Progress,
     ) -> Result<(), PipelineError> {
         let keep = Some(Self::MAX_FRAMES);
-        let (t, _, _, greys) = track_frames(input, camera, max_frames, progress, keep)?;
+        let (t, _, _, greys) = track_frames(input, camera, self.cfg, max_frames, progress, keep)?;
         self.tracked = Some(match greys.len() {
             0 | 1 => Err("one frame: nothing to track".into()),
             _ => Ok(TrackedDepth::new(t, greys)?),

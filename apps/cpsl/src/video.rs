@@ -157,13 +157,13 @@ impl VideoLayeringArgs {
                 DepthArg::Model => {
                     VideoDepth::model(&self.depth_model, self.model_desc.as_deref())?
                 }
-                DepthArg::Video => VideoDepth::Tracked(
+                DepthArg::Video => VideoDepth::Tracked(Box::new(
                     VideoTrackedDepth::new(Box::new(open_depth_model(
                         &self.depth_model,
                         self.model_desc.as_deref(),
                     )?))
                     .with_config(self.tracking.config()),
-                ),
+                )),
             },
         };
         let job = VideoJob {

@@ -80,7 +80,7 @@ pub enum VideoDepth {
     /// Stereo matching of each frame's two views.
     Stereo(StereoDepth),
     /// The video itself: camera tracking and multi-view depth, fused with a monocular prior.
-    Tracked(crate::track::VideoTrackedDepth),
+    Tracked(Box<crate::track::VideoTrackedDepth>),
 }
 
 /// Depth from a stereo pair per frame: z-depth `f b / (d + offset)` from the left view's

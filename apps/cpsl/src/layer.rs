@@ -79,14 +79,14 @@ pub struct CameraArgs {
 /// How a video's camera is tracked (`cpsl track`, and `layer-video`/`encode` with depth from
 /// the video).
 #[derive(Args, Clone, Copy, Debug)]
-pub struct TrackArgs {
+pub struct TrackingArgs {
     /// Longest side, in pixels, the frames are tracked at (downscaled to it): 640 tracks a
     /// 720p or larger clip more accurately than the default 480, at about 1.7 times the time.
     #[arg(long, default_value_t = cpsl_pipeline::track::TrackConfig::default().work_side, value_parser = clap::value_parser!(u32).range(64..=4096))]
     pub track_side: u32,
 }
 
-impl TrackArgs {
+impl TrackingArgs {
     /// The tracking configuration.
     pub fn config(&self) -> cpsl_pipeline::track::TrackConfig {
         cpsl_pipeline::track::TrackConfig {

@@ -28,7 +28,7 @@ pub struct TrackArgs {
     #[command(flatten)]
     pub camera: CameraArgs,
     #[command(flatten)]
-    pub tracking: crate::layer::TrackArgs,
+    pub tracking: crate::layer::TrackingArgs,
     /// Stop after this many frames.
     #[arg(long)]
     pub max_frames: Option<usize>,

@@ -123,7 +123,7 @@ pub struct VideoLayeringArgs {
     #[command(flatten)]
     pub camera: CameraArgs,
     #[command(flatten)]
-    pub tracking: crate::layer::TrackArgs,
+    pub tracking: crate::layer::TrackingArgs,
     /// Temporal organisation.
     #[arg(long, value_enum, default_value_t = Temporal::Full)]
     pub temporal: Temporal,

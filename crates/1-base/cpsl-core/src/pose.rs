@@ -108,6 +108,15 @@ impl Pose {
         }
     }
 
+    /// `other` seen from this pose: `other` with this pose's camera as the reference
+    /// (`self⁻¹ · other`).
+    pub fn relative_to(&self, other: &Pose) -> Self {
+        Self {
+            rotation: self.rotation.transpose() * other.rotation,
+            translation: self.ref_to_view(other.translation),
+        }
+    }
+
     /// True when all entries are finite.
     pub fn is_finite(&self) -> bool {
         self.rotation.is_finite() && self.translation.is_finite()
@@ -117,6 +126,20 @@ impl Pose {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn relative_pose_maps_through_the_reference() {
+        let a = Pose::from_euler_deg(Vec3::new(0.3, -0.1, 1.2), 5.0, -20.0, 3.0);
+        let b = Pose::from_euler_deg(Vec3::new(-0.4, 0.2, 0.5), -7.0, 12.0, 1.0);
+        let r = a.relative_to(&b);
+        // A point in b's camera, taken to the reference through b, equals it taken to a's
+        // camera through r and then to the reference through a.
+        let p = Vec3::new(0.7, -0.3, 2.5);
+        let d = a.view_to_ref(r.view_to_ref(p)) - b.view_to_ref(p);
+        assert!(d.norm() < 1e-12);
+        let same = a.relative_to(&a);
+        assert!((same.rotation.log().norm() + same.translation.norm()) < 1e-12);
+    }
 
     #[test]
     fn euler_roundtrip() {

@@ -165,14 +165,13 @@ impl TrackedDepth {
             DepthFrom::Fallback(why),
         ))
     }
-}
 
-impl TrackedDepth {
     /// The median fused-to-prior ratio of the frames fused so far (1 before the first).
     fn typical_ratio(&self) -> f64 {
-        let mut r = self.ratios.clone();
-        r.sort_by(f64::total_cmp);
-        r.get(r.len() / 2).copied().unwrap_or(1.0)
+        if self.ratios.is_empty() {
+            return 1.0;
+        }
+        crate::median(&mut self.ratios.clone())
     }
 }
 

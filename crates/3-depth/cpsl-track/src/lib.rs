@@ -151,15 +151,21 @@ pub struct Trajectory {
 }
 
 impl Trajectory {
-    /// Segments with placed frames (see [`Trajectory::segment`]).
+    /// The segments with placed frames (see [`Trajectory::segment`]), in order, each with
+    /// its number of placed frames.
+    pub fn segment_sizes(&self) -> Vec<(u32, usize)> {
+        let mut sizes = std::collections::BTreeMap::new();
+        for (p, &s) in self.poses.iter().zip(&self.segment) {
+            if p.is_some() {
+                *sizes.entry(s).or_insert(0) += 1;
+            }
+        }
+        sizes.into_iter().collect()
+    }
+
+    /// How many segments have placed frames.
     pub fn segments(&self) -> usize {
-        let mut s: Vec<u32> = (0..self.poses.len())
-            .filter(|&f| self.poses[f].is_some())
-            .map(|f| self.segment[f])
-            .collect();
-        s.sort_unstable();
-        s.dedup();
-        s.len()
+        self.segment_sizes().len()
     }
 }
 
@@ -1123,7 +1129,7 @@ impl Solver {
 }
 
 /// Median (NaN when empty); sorts `v`.
-fn median(v: &mut [f64]) -> f64 {
+pub(crate) fn median(v: &mut [f64]) -> f64 {
     v.sort_by(f64::total_cmp);
     v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
 }

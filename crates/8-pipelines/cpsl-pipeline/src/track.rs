@@ -207,14 +207,10 @@ pub fn pose_files(
 
 /// The segment with the most placed frames (the first of equals; 0 when none is placed).
 pub fn largest_segment(t: &Trajectory) -> u32 {
-    let mut count: Vec<(usize, std::cmp::Reverse<u32>)> = Vec::new();
-    for s in 0..=t.segment.iter().copied().max().unwrap_or(0) {
-        let n = (0..t.poses.len())
-            .filter(|&f| t.poses[f].is_some() && t.segment[f] == s)
-            .count();
-        count.push((n, std::cmp::Reverse(s)));
-    }
-    count.into_iter().max().map_or(0, |(_, s)| s.0)
+    t.segment_sizes()
+        .into_iter()
+        .max_by_key(|&(s, n)| (n, std::cmp::Reverse(s)))
+        .map_or(0, |(s, _)| s)
 }
 
 /// Depth from the video itself: a first pass tracks the camera through the whole input

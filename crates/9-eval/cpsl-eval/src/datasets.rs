@@ -319,12 +319,7 @@ impl PosedVideo {
     /// Frame `to`'s camera relative to frame `from`'s: the pose at which `from`'s layers
     /// reproduce frame `to`.
     pub fn relative(&self, from: usize, to: usize) -> Pose {
-        let (a, b) = (&self.poses[from], &self.poses[to]);
-        let rt = a.rotation.transpose();
-        Pose {
-            rotation: rt * b.rotation,
-            translation: rt * (b.translation - a.translation),
-        }
+        self.poses[from].relative_to(&self.poses[to])
     }
 }
 

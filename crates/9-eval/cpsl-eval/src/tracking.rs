@@ -6,7 +6,7 @@
 
 use crate::datasets::PosedVideo;
 use crate::error::EvalError;
-use cpsl_core::{Camera, Mat3, Pose, Vec3};
+use cpsl_core::{Camera, Mat3, Vec3};
 use cpsl_track::{DepthFrom, TrackConfig, TrackedDepth, Tracker, Trajectory};
 use serde::Serialize;
 use std::path::Path;
@@ -53,10 +53,7 @@ use cpsl_track::rotation_deg as angle;
 /// frame.
 pub fn score(est: &Trajectory, truth: &PosedVideo) -> (f64, f64, f64) {
     let (mut rot, mut aligned, mut dir) = (Vec::new(), Vec::new(), Vec::new());
-    let mut segments: Vec<u32> = est.segment.clone();
-    segments.sort_unstable();
-    segments.dedup();
-    for seg in segments {
+    for (seg, _) in est.segment_sizes() {
         let frames: Vec<usize> = (0..est.poses.len())
             .filter(|&i| est.poses[i].is_some() && est.segment[i] == seg)
             .collect();
@@ -64,18 +61,13 @@ pub fn score(est: &Trajectory, truth: &PosedVideo) -> (f64, f64, f64) {
             continue;
         };
         let origin = est.poses[first].expect("placed");
-        let rt = origin.rotation.transpose();
         let rel = |i: usize| truth.relative(first, i);
         let far = (first..truth.poses.len())
             .map(|i| rel(i).translation.norm())
             .fold(0.0, f64::max);
         let mut pairs = Vec::new();
         for &i in &frames {
-            let e = est.poses[i].expect("placed");
-            let p = Pose {
-                rotation: rt * e.rotation,
-                translation: rt * (e.translation - origin.translation),
-            };
+            let p = origin.relative_to(&est.poses[i].expect("placed"));
             let g = rel(i);
             rot.push(angle(&(p.rotation.transpose() * g.rotation)));
             pairs.push((p.rotation, g.rotation));

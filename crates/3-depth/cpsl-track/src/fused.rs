@@ -2,7 +2,7 @@
 //! with a monocular prior, in the prior's units, with a fallback to the prior (and why) where
 //! the views cannot serve.
 
-use crate::mvs::{self, MvsConfig};
+use crate::mvs::{self, MvsConfig, Neighbour};
 use crate::{CameraMotion, Mat, Result, TrackError, Trajectory};
 use cpsl_core::Pose;
 use opencv::prelude::*;
@@ -12,8 +12,9 @@ use std::collections::HashMap;
 #[derive(Debug, Clone, PartialEq)]
 pub enum DepthFrom {
     /// Fused: `share` of the pixels from `views` neighbouring frames, the rest from the
-    /// prior fitted to them, or left unknown (NaN) when the prior's depth order disagrees
-    /// with the views' (`prior` false).
+    /// prior fitted to them and bent to them, or, when the prior's depth order disagrees with
+    /// the views' (`prior` false), spread from the views alone and unknown (NaN) far from
+    /// them ([`mvs::fuse`]).
     Views {
         /// Share of pixels from the views.
         share: f64,
@@ -35,8 +36,8 @@ pub enum DepthFrom {
 /// for a later segment); only frames of the same segment serve as views. A
 /// frame the views cannot serve takes its prior, scaled by the median fused-to-prior ratio of
 /// the frames fused so far, and says why: the camera does not translate (rotating, static,
-/// untracked), the frame was not placed, or its views saw too little. Where the prior's depth
-/// order disagrees with the views', the views are kept and the rest left unknown.
+/// untracked), the frame was not placed, or its views saw too little. The flows between two
+/// frames serve both; they are kept until the frames asked for have passed them.
 pub struct TrackedDepth {
     trajectory: Trajectory,
     greys: Vec<Mat>,
@@ -45,6 +46,9 @@ pub struct TrackedDepth {
     scale: HashMap<u32, f64>,
     /// Fused-to-prior median ratios of the fused frames (prior units).
     ratios: Vec<f64>,
+    /// Flows between frames (from, to), kept while a later frame may use them: each flow
+    /// serves both frames of its pair.
+    flows: HashMap<(usize, usize), Mat>,
 }
 
 impl TrackedDepth {
@@ -78,6 +82,7 @@ impl TrackedDepth {
             greys,
             scale: HashMap::new(),
             ratios: Vec::new(),
+            flows: HashMap::new(),
         })
     }
 
@@ -98,11 +103,12 @@ impl TrackedDepth {
         )
     }
 
-    /// Depth of frame `index` from its `prior` (`width x height`, any scale, NaN where
-    /// unknown), at that size.
+    /// Depth of frame `index`, whose picture is `rgb`, from its `prior` (both `width x
+    /// height`; the prior in any scale, NaN where unknown), at that size.
     pub fn depth(
         &mut self,
         index: usize,
+        rgb: &[u8],
         prior: &[f32],
         (width, height): (u32, u32),
     ) -> Result<(Vec<f32>, DepthFrom)> {
@@ -118,17 +124,32 @@ impl TrackedDepth {
                 near.sort_by_key(|&j| j.abs_diff(index));
                 near.truncate(Self::NEIGHBOURS);
                 let poses: Vec<Pose> = near.iter().map(|&j| t.poses[j].expect("placed")).collect();
-                let nb: Vec<(&Mat, &Pose)> =
-                    near.iter().map(|&j| &self.greys[j]).zip(&poses).collect();
-                let views = mvs::depth_from_views(
-                    &work,
-                    (&self.greys[index], &pose),
-                    &nb,
-                    &MvsConfig::default(),
-                )?;
+                for &j in &near {
+                    for pair in [(index, j), (j, index)] {
+                        if !self.flows.contains_key(&pair) {
+                            let f = mvs::flow(&self.greys[pair.0], &self.greys[pair.1])?;
+                            self.flows.insert(pair, f);
+                        }
+                    }
+                }
+                let nb: Vec<Neighbour> = near
+                    .iter()
+                    .zip(&poses)
+                    .map(|(&j, pose)| Neighbour {
+                        pose,
+                        forward: &self.flows[&(index, j)],
+                        backward: &self.flows[&(j, index)],
+                    })
+                    .collect();
+                let views = mvs::depth_from_flows(&work, &pose, &nb, &MvsConfig::default())?;
+                // Frames are mostly asked for in order: pairs below every neighbour of this
+                // frame are seldom needed again.
+                let low = near.iter().copied().min().unwrap_or(index).min(index);
+                self.flows.retain(|&(a, b), _| a.max(b) >= low);
                 let small = mvs::resize_depth(prior, (width, height), size)?;
-                let fused = mvs::fuse(&views, &small, Self::MIN_CONFIDENCE)
-                    .and_then(|(z, f)| Some((median_ratio(&small, &z)?, z, f)));
+                let guide = crate::work_rgb(rgb, width, height, size)?;
+                let fused = mvs::fuse(&views, &small, &guide, Self::MIN_CONFIDENCE)?
+                    .and_then(|(z, f)| Some((median_ratio(&small, &z.depth)?, z.depth, f)));
                 match fused {
                     Some((ratio, z, fusion)) => {
                         // A later segment starts at the fused-to-prior ratio typical so far,

@@ -385,6 +385,18 @@ impl Tracker {
 
 /// Working grey image: RGB to grey, area-downscaled to `size`.
 pub fn work_grey(rgb: &[u8], width: u32, height: u32, size: (u32, u32)) -> Result<Mat> {
+    let m = rgb_mat(rgb, width, height)?;
+    let mut g = Mat::default();
+    imgproc::cvt_color(&m, &mut g, imgproc::COLOR_RGB2GRAY, 0)?;
+    shrink(g, size)
+}
+
+/// Working colour image: RGB area-downscaled to `size` (8-bit, three channels).
+pub fn work_rgb(rgb: &[u8], width: u32, height: u32, size: (u32, u32)) -> Result<Mat> {
+    shrink(rgb_mat(rgb, width, height)?, size)
+}
+
+fn rgb_mat(rgb: &[u8], width: u32, height: u32) -> Result<Mat> {
     let n = width as usize * height as usize * 3;
     if rgb.len() != n || width == 0 || height == 0 {
         return Err(TrackError::Input(format!(
@@ -392,16 +404,21 @@ pub fn work_grey(rgb: &[u8], width: u32, height: u32, size: (u32, u32)) -> Resul
             rgb.len()
         )));
     }
-    let m = Mat::new_rows_cols_with_bytes::<core::Vec3b>(height as i32, width as i32, rgb)?
-        .try_clone()?;
-    let mut g = Mat::default();
-    imgproc::cvt_color(&m, &mut g, imgproc::COLOR_RGB2GRAY, 0)?;
-    if (width, height) == size {
-        return Ok(g);
+    Ok(
+        Mat::new_rows_cols_with_bytes::<core::Vec3b>(height as i32, width as i32, rgb)?
+            .try_clone()?,
+    )
+}
+
+/// `m` area-resized to `size` (itself when it has that size).
+fn shrink(m: Mat, size: (u32, u32)) -> Result<Mat> {
+    let s = m.size()?;
+    if (s.width as u32, s.height as u32) == size {
+        return Ok(m);
     }
     let mut out = Mat::default();
     imgproc::resize(
-        &g,
+        &m,
         &mut out,
         Size::new(size.0 as i32, size.1 as i32),
         0.0,

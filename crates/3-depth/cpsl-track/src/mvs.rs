@@ -1,16 +1,22 @@
 //! Per-pixel depth of a frame from posed neighbouring frames: dense optical flow (OpenCV's
-//! DIS, medium preset) to each neighbour and back, pixels whose forward and backward flow
-//! disagree by more than `max_fb` px dropped, each remaining pixel triangulated (closest
-//! point of the two rays) and kept when in front of both cameras and seen under at least
-//! `min_angle_deg`. Over the neighbours the median inverse depth is taken; the confidence
-//! is the share of neighbours that triangulated the pixel and agree with the median within
-//! 5 %.
+//! DIS, [`flow`]) to each neighbour and back, pixels whose forward
+//! and backward flow disagree by more than `max_fb` px dropped, each remaining pixel
+//! triangulated (closest point of the two rays) and kept when in front of both cameras and
+//! seen under at least `min_angle_deg`. Over the neighbours the median inverse depth is
+//! taken; the confidence is the share of the neighbours that could see the pixel (in view,
+//! under enough angle) that triangulated it within 5 % of the median, and 0 unless two did,
+//! and 0 within `edge_band` px of a jump in the depth (where flow smooths across an occlusion
+//! boundary).
+//!
+//! [`fuse`] combines such depth with a monocular prior: the prior fitted to the confident
+//! pixels, then the views' departure from it spread over the frame by an edge-aware filter
+//! guided by the colour picture.
 
 use crate::{Result, TrackError};
 use cpsl_core::{Camera, Pose, Vec3};
-use opencv::core::{Mat, Vec2f};
+use opencv::core::{Mat, Point, Scalar, Size, Vec2f, Vec3f, BORDER_CONSTANT};
 use opencv::prelude::*;
-use opencv::video;
+use opencv::{imgproc, video, ximgproc};
 
 /// Depth of one frame from its neighbours, at working resolution.
 #[derive(Debug, Clone)]
@@ -39,22 +45,50 @@ pub struct MvsConfig {
     pub min_angle_deg: f64,
     /// Largest forward-backward flow disagreement in working pixels.
     pub max_fb: f32,
+    /// Pixels within this many working pixels of a depth jump get no confidence.
+    pub edge_band: u32,
+    /// A jump: neighbouring inverse depths differing by more than this share.
+    pub edge_jump: f32,
 }
 
 impl Default for MvsConfig {
     fn default() -> Self {
+        // Measured on the built-in scene moving sideways (exact poses, 320x240,
+        // tests/paths.rs): DIS's medium preset at half resolution with 1 degree, no band and
+        // the confidence counted over every neighbour had 59 % of the pixels confident at
+        // AbsRel 4.3 %; these settings and [`flow`] 70 % at 1.3 %.
         Self {
-            min_angle_deg: 1.0,
+            min_angle_deg: 0.5,
             max_fb: 1.0,
+            edge_band: 3,
+            edge_jump: 0.1,
         }
     }
 }
 
-fn flow(a: &Mat, b: &Mat) -> Result<Mat> {
-    let mut dis = video::DISOpticalFlow::create(video::DISOpticalFlow_PRESET_MEDIUM)?;
+/// Dense optical flow from `a` to `b` (working grey images), two channels of `f32`: DIS's
+/// fast preset down to full resolution, without its variational refinement. Measured on the
+/// built-in scene moving sideways at 480x270 (exact poses, four neighbours): the medium
+/// preset, which stops at half resolution, 12.8 ms a flow with 73 % of the pixels confident
+/// at AbsRel 1.7 %; this 13.9 ms with 72 % at 1.0 %; the fast preset at full resolution with
+/// its refinement 36 ms for 76 % at 1.0 %.
+pub fn flow(a: &Mat, b: &Mat) -> Result<Mat> {
+    let mut dis = video::DISOpticalFlow::create(video::DISOpticalFlow_PRESET_FAST)?;
+    dis.set_finest_scale(0)?;
+    dis.set_variational_refinement_iterations(0)?;
     let mut f = Mat::default();
     dis.calc(a, b, &mut f)?;
     Ok(f)
+}
+
+/// A posed neighbour with the flows from the reference frame to it and back ([`flow`]).
+pub struct Neighbour<'a> {
+    /// Camera-to-world pose.
+    pub pose: &'a Pose,
+    /// Flow from the reference frame to this one.
+    pub forward: &'a Mat,
+    /// Flow from this frame to the reference.
+    pub backward: &'a Mat,
 }
 
 /// Depth of `reference` (a working grey image and its camera-to-world pose) from
@@ -65,22 +99,52 @@ pub fn depth_from_views(
     neighbours: &[(&Mat, &Pose)],
     cfg: &MvsConfig,
 ) -> Result<ViewDepth> {
+    let flows = neighbours
+        .iter()
+        .map(|(img, _)| Ok((flow(reference.0, img)?, flow(img, reference.0)?)))
+        .collect::<Result<Vec<_>>>()?;
+    let nb: Vec<Neighbour> = neighbours
+        .iter()
+        .zip(&flows)
+        .map(|((_, pose), (forward, backward))| Neighbour {
+            pose,
+            forward,
+            backward,
+        })
+        .collect();
+    depth_from_flows(cam, reference.1, &nb, cfg)
+}
+
+/// [`depth_from_views`] from flows already computed: the depth of the frame at `pose`.
+pub fn depth_from_flows(
+    cam: &Camera,
+    pose: &Pose,
+    neighbours: &[Neighbour],
+    cfg: &MvsConfig,
+) -> Result<ViewDepth> {
     let (w, h) = (cam.width as usize, cam.height as usize);
-    let size = reference.0.size()?;
-    if (size.width as usize, size.height as usize) != (w, h) {
-        return Err(TrackError::Input(format!(
-            "a {}x{} frame for a {w}x{h} camera",
-            size.width, size.height
-        )));
-    }
-    let (p0, c0) = (reference.1, reference.1.translation);
+    let (p0, c0) = (pose, pose.translation);
     let cos_min = cfg.min_angle_deg.to_radians().cos();
     let mut samples: Vec<Vec<f32>> = vec![Vec::new(); w * h];
-    for &(img, pose) in neighbours {
-        let fwd = flow(reference.0, img)?;
-        let bwd = flow(img, reference.0)?;
-        let (fwd, bwd) = (fwd.data_typed::<Vec2f>()?, bwd.data_typed::<Vec2f>()?);
-        let c1 = pose.translation;
+    // Per pixel, the neighbours that could see it under enough angle (triangulated or not).
+    let mut seen = vec![0u8; w * h];
+    for nb in neighbours {
+        for m in [nb.forward, nb.backward] {
+            let size = m.size()?;
+            if (size.width as usize, size.height as usize) != (w, h) || m.channels() != 2 {
+                return Err(TrackError::Input(format!(
+                    "a {}x{} flow of {} channels for a {w}x{h} camera",
+                    size.width,
+                    size.height,
+                    m.channels()
+                )));
+            }
+        }
+        let (fwd, bwd) = (
+            nb.forward.data_typed::<Vec2f>()?,
+            nb.backward.data_typed::<Vec2f>()?,
+        );
+        let c1 = nb.pose.translation;
         for y in 0..h {
             for x in 0..w {
                 let f = fwd[y * w + x];
@@ -88,12 +152,8 @@ pub fn depth_from_views(
                 if !(u >= 0.0 && v >= 0.0 && u <= (w - 1) as f32 && v <= (h - 1) as f32) {
                     continue;
                 }
-                let b = bwd[(v.round() as usize) * w + u.round() as usize];
-                if (f[0] + b[0]).hypot(f[1] + b[1]) > cfg.max_fb {
-                    continue;
-                }
                 let d0 = p0.rotation * cam.unproject(x as f64, y as f64, 1.0);
-                let d1 = pose.rotation * cam.unproject(u as f64, v as f64, 1.0);
+                let d1 = nb.pose.rotation * cam.unproject(u as f64, v as f64, 1.0);
                 let w0 = c0 - c1;
                 let (a, bb, c) = (d0.dot(d0), d0.dot(d1), d1.dot(d1));
                 let (d, e) = (d0.dot(w0), d1.dot(w0));
@@ -112,11 +172,15 @@ pub fn depth_from_views(
                 if r0.dot(r1) > cos_min {
                     continue;
                 }
+                seen[y * w + x] += 1;
+                let b = bwd[(v.round() as usize) * w + u.round() as usize];
+                if (f[0] + b[0]).hypot(f[1] + b[1]) > cfg.max_fb {
+                    continue;
+                }
                 samples[y * w + x].push((1.0 / s) as f32);
             }
         }
     }
-    let n = neighbours.len().max(1) as f32;
     let (mut depth, mut confidence) = (vec![f32::NAN; w * h], vec![0.0f32; w * h]);
     for (i, s) in samples.iter_mut().enumerate() {
         if s.is_empty() {
@@ -124,9 +188,19 @@ pub fn depth_from_views(
         }
         s.sort_by(f32::total_cmp);
         let m = s[s.len() / 2];
-        let agree = s.iter().filter(|&&v| (v - m).abs() <= 0.05 * m).count() as f32;
+        let agree = s.iter().filter(|&&v| (v - m).abs() <= 0.05 * m).count();
         depth[i] = 1.0 / m;
-        confidence[i] = agree / n;
+        if agree >= 2 {
+            confidence[i] = agree as f32 / f32::from(seen[i]);
+        }
+    }
+    if cfg.edge_band > 0 {
+        let band = edge_band(&depth, (w, h), cfg)?;
+        for (c, b) in confidence.iter_mut().zip(band) {
+            if b != 0 {
+                *c = 0.0;
+            }
+        }
     }
     Ok(ViewDepth {
         width: cam.width,
@@ -134,6 +208,48 @@ pub fn depth_from_views(
         depth,
         confidence,
     })
+}
+
+/// Non-zero within `cfg.edge_band` pixels of a jump of more than `cfg.edge_jump` between
+/// neighbouring inverse depths.
+fn edge_band(depth: &[f32], (w, h): (usize, usize), cfg: &MvsConfig) -> Result<Vec<u8>> {
+    let mut jump = vec![0u8; w * h];
+    let ratio = 1.0 + cfg.edge_jump;
+    for y in 0..h {
+        for x in 0..w {
+            let a = depth[y * w + x];
+            if !a.is_finite() {
+                continue;
+            }
+            for (xx, yy) in [(x + 1, y), (x, y + 1)] {
+                if xx < w && yy < h {
+                    let b = depth[yy * w + xx];
+                    if b.is_finite() && a.max(b) > ratio * a.min(b) {
+                        jump[y * w + x] = 1;
+                        jump[yy * w + xx] = 1;
+                    }
+                }
+            }
+        }
+    }
+    let src = Mat::new_rows_cols_with_data(h as i32, w as i32, &jump)?;
+    let side = 2 * cfg.edge_band as i32 + 1;
+    let kernel = imgproc::get_structuring_element(
+        imgproc::MORPH_RECT,
+        Size::new(side, side),
+        Point::new(-1, -1),
+    )?;
+    let mut out = Mat::default();
+    imgproc::dilate(
+        &src,
+        &mut out,
+        &kernel,
+        Point::new(-1, -1),
+        1,
+        BORDER_CONSTANT,
+        Scalar::all(0.0),
+    )?;
+    Ok(out.data_typed::<u8>()?.to_vec())
 }
 
 /// How [`fuse`] combined the two depths.
@@ -199,32 +315,160 @@ pub fn resize_depth(z: &[f32], from: (u32, u32), to: (u32, u32)) -> Result<Vec<f
         .collect())
 }
 
-/// Fuses multi-view depth with a monocular prior of the same size (any scale): the prior's
-/// inverse depth is fitted to the views' (robust affine fit over pixels with confidence of
-/// at least `min_conf`: weighted least squares re-weighted with Cauchy weights), then every
-/// pixel the views did not see confidently takes the fitted prior, or is left unknown when
-/// the fit turns the prior's order around. `None` when fewer than 1 % of the pixels are
-/// confident.
-pub fn fuse(views: &ViewDepth, prior: &[f32], min_conf: f32) -> Option<(Vec<f32>, Fusion)> {
-    if prior.len() != views.depth.len() {
-        return None;
+/// Fuses multi-view depth with a monocular prior of the same size (any scale), guided by
+/// `guide`, the frame's picture at that size (8-bit, one or three channels):
+///
+/// 1. the prior's inverse depth is fitted to the views' (robust affine fit over pixels with
+///    confidence of at least `min_conf`: weighted least squares re-weighted with Cauchy
+///    weights);
+/// 2. confident pixels keep the views' depth;
+/// 3. every other pixel takes what an edge-aware filter (OpenCV's fast global smoother,
+///    confidence weighted: the filtered values over the filtered confidence) spreads from the
+///    confident pixels around it, within regions of similar colour: where the fitted prior
+///    explains the views well (its misfit at most 1 % of the inverse depth), the fitted
+///    prior plus the views' departure from it, so the prior bends to the views and keeps its
+///    own shape; where it explains them badly (5 % or more, as FastDepth on real footage),
+///    the views' own inverse depth; a blend between. Far from any confident pixel the fitted
+///    prior stands; where the fit turns the prior's order around, those pixels stay unknown
+///    (NaN).
+///
+/// The result's confidence is the views' where they are kept, the filtered confidence where
+/// their depth was spread (times `min_conf`), and 0 where the fitted prior stands alone.
+/// `None` when fewer than 1 % of the pixels are confident.
+pub fn fuse(
+    views: &ViewDepth,
+    prior: &[f32],
+    guide: &Mat,
+    min_conf: f32,
+) -> Result<Option<(ViewDepth, Fusion)>> {
+    let size = guide.size()?;
+    if prior.len() != views.depth.len()
+        || (size.width as u32, size.height as u32) != (views.width, views.height)
+    {
+        return Err(TrackError::Input(format!(
+            "fusing {}x{} views with a prior of {} values and a {}x{} picture",
+            views.width,
+            views.height,
+            prior.len(),
+            size.width,
+            size.height
+        )));
     }
+    let confident = |z: f32, c: f32| z.is_finite() && c >= min_conf;
     let samples: Vec<(f64, f64)> = views
         .depth
         .iter()
         .zip(&views.confidence)
         .zip(prior)
-        .filter(|((z, &c), p)| z.is_finite() && c >= min_conf && p.is_finite() && **p > 0.0)
+        .filter(|((&z, &c), p)| confident(z, c) && p.is_finite() && **p > 0.0)
         .map(|((z, _), p)| (1.0 / *p as f64, 1.0 / *z as f64))
         .collect();
     if samples.len() < prior.len() / 100 || samples.len() < 10 {
-        return None;
+        return Ok(None);
     }
+    let Some((a, b, spread_scale)) = fit_affine(&samples) else {
+        return Ok(None);
+    };
+    // How far the prior's shape is trusted: by how well it explains the views (the fit's
+    // robust residual scale relative to the inverse depth).
+    let mut ys: Vec<f64> = samples.iter().map(|s| s.1).collect();
+    let misfit = spread_scale / crate::median(&mut ys);
+    let own =
+        ((misfit - TRUSTED_MISFIT) / (UNTRUSTED_MISFIT - TRUSTED_MISFIT)).clamp(0.0, 1.0) as f32;
+    // A prior whose order the views turn around (a <= 0) has nothing to give.
+    let prior_fits = a > 0.0;
+    let floor = samples.iter().map(|s| s.1).fold(f64::INFINITY, f64::min) * 0.5;
+    let fitted: Vec<f32> = prior
+        .iter()
+        .map(|&p| {
+            if prior_fits && p.is_finite() && p > 0.0 {
+                (a / p as f64 + b).max(floor) as f32
+            } else {
+                f32::NAN
+            }
+        })
+        .collect();
+    let (n, floor) = (prior.len(), floor as f32);
+    // The views' departure from the fitted prior (or their inverse depth, where it does not
+    // fit), weighted by confidence, and the weights, filtered together.
+    let weighted: Vec<Vec3f> = views
+        .depth
+        .iter()
+        .zip(&views.confidence)
+        .zip(&fitted)
+        .map(|((&z, &c), &f)| {
+            if !confident(z, c) {
+                return Vec3f::from([0.0, 0.0, 0.0]);
+            }
+            let departure = if f.is_finite() { 1.0 / z - f } else { 0.0 };
+            Vec3f::from([c * departure, c / z, c])
+        })
+        .collect();
+    let spread = edge_aware(guide, &weighted)?;
+    let mut from_views = 0usize;
+    let (mut depth, mut confidence) = (Vec::with_capacity(n), Vec::with_capacity(n));
+    for ((&z, &c), (&f, s)) in views
+        .depth
+        .iter()
+        .zip(&views.confidence)
+        .zip(fitted.iter().zip(&spread))
+    {
+        let (z, c) = if confident(z, c) {
+            from_views += 1;
+            (z, c)
+        } else if s[2] > SPREAD_MIN_WEIGHT {
+            let near = s[1] / s[2];
+            let inv = if f.is_finite() {
+                own * near + (1.0 - own) * (f + s[0] / s[2])
+            } else {
+                near
+            };
+            (1.0 / inv.max(floor), s[2] * min_conf)
+        } else {
+            (1.0 / f, 0.0)
+        };
+        depth.push(if z.is_finite() && z > 0.0 {
+            z
+        } else {
+            f32::NAN
+        });
+        confidence.push(c);
+    }
+    let fused = ViewDepth {
+        width: views.width,
+        height: views.height,
+        depth,
+        confidence,
+    };
+    Ok(Some((
+        fused,
+        Fusion {
+            from_views: from_views as f64 / n as f64,
+            prior: prior_fits.then_some((a, b)),
+        },
+    )))
+}
+
+/// Least filtered confidence for the views' spread depth to count.
+const SPREAD_MIN_WEIGHT: f32 = 1e-4;
+
+/// Misfit (robust residual scale over the median inverse depth) of a prior whose shape is
+/// trusted: the views' departure from it is spread. Measured on the built-in scene: the exact
+/// depth in other units 0.9 %, blurred and bent as a monocular network's 6 %; FastDepth on
+/// the fox 2.5 % to 25 %, median 13 %.
+const TRUSTED_MISFIT: f64 = 0.01;
+/// Misfit of a prior whose shape is not trusted at all: the views' own inverse depth is
+/// spread (between the two, a blend).
+const UNTRUSTED_MISFIT: f64 = 0.05;
+
+/// Robust affine fit `y = a x + b` (least squares re-weighted with Cauchy weights); `None`
+/// when degenerate.
+fn fit_affine(samples: &[(f64, f64)]) -> Option<(f64, f64, f64)> {
     let (mut a, mut b) = (1.0, 0.0);
     let mut scale = f64::INFINITY;
     for _ in 0..6 {
         let (mut sw, mut sx, mut sy, mut sxx, mut sxy) = (0.0, 0.0, 0.0, 0.0, 0.0);
-        for &(x, y) in &samples {
+        for &(x, y) in samples {
             let w = if scale.is_finite() {
                 let r = (y - (a * x + b)) / scale;
                 1.0 / (1.0 + r * r)
@@ -250,41 +494,26 @@ pub fn fuse(views: &ViewDepth, prior: &[f32], min_conf: f32) -> Option<(Vec<f32>
         r.sort_by(f64::total_cmp);
         scale = (1.4826 * r[r.len() / 2]).max(1e-9);
     }
-    // A prior whose order the views turn around (a <= 0) has nothing to give: the pixels
-    // the views did not see are left unknown, for the layering to fill from their neighbours.
-    // (On the fox, with bundle-adjusted poses, 13 of 31 placed frames: the novel views scored
-    // 20.47 dB this way against 17.49 dB when those frames kept the prior alone.)
-    let prior_fits = a.is_finite() && b.is_finite() && a > 0.0;
-    let floor = samples.iter().map(|s| s.1).fold(f64::INFINITY, f64::min) * 0.5;
-    let mut from_views = 0usize;
-    let fused = views
-        .depth
-        .iter()
-        .zip(&views.confidence)
-        .zip(prior)
-        .map(|((&z, &c), &p)| {
-            if z.is_finite() && c >= min_conf {
-                from_views += 1;
-                z
-            } else if prior_fits && p.is_finite() && p > 0.0 {
-                (1.0 / (a / p as f64 + b).max(floor)) as f32
-            } else {
-                f32::NAN
-            }
-        })
-        .collect();
-    Some((
-        fused,
-        Fusion {
-            from_views: from_views as f64 / prior.len() as f64,
-            prior: prior_fits.then_some((a, b)),
-        },
-    ))
+    (a.is_finite() && b.is_finite()).then_some((a, b, scale))
+}
+
+/// `values` (per pixel of `guide`) filtered by OpenCV's fast global smoother guided by
+/// `guide`: smooth within regions of similar colour, not across edges. Settings measured on
+/// the built-in scene (a blurred prior: 3.0 % AbsRel over every pixel with the colour
+/// picture as guide, 4.6 % with grey).
+fn edge_aware(guide: &Mat, values: &[Vec3f]) -> Result<Vec<Vec3f>> {
+    let size = guide.size()?;
+    let src = Mat::new_rows_cols_with_data(size.height, size.width, values)?;
+    let mut out = Mat::default();
+    ximgproc::fast_global_smoother_filter(guide, &src, &mut out, 30.0, 8.0, 0.25, 3)?;
+    Ok(out.data_typed::<Vec3f>()?.to_vec())
 }
 
 #[cfg(test)]
 mod tests {
     use super::{fuse, resize_depth, ViewDepth};
+    use opencv::core::{Mat, Scalar, CV_8U};
+    use opencv::prelude::*;
 
     #[test]
     fn fusion_fits_the_prior_or_leaves_what_it_cannot_place() {
@@ -302,9 +531,12 @@ mod tests {
                 .map(|i| if seen(i) { 0.0 } else { 1.0 })
                 .collect(),
         };
+        let guide =
+            Mat::new_rows_cols_with_default(h as i32, w as i32, CV_8U, Scalar::all(128.0)).unwrap();
         // A prior in other units (inverse depth 3x + 0.1) fills the right half exactly.
         let prior: Vec<f32> = inv.iter().map(|v| 1.0 / (3.0 * v + 0.1)).collect();
-        let (z, f) = fuse(&views, &prior, 0.5).unwrap();
+        let (z, f) = fuse(&views, &prior, &guide, 0.5).unwrap().unwrap();
+        let z = z.depth;
         let (a, b) = f.prior.unwrap();
         assert!(
             (a - 1.0 / 3.0).abs() < 1e-3 && (b + 0.1 / 3.0).abs() < 1e-3,
@@ -312,12 +544,55 @@ mod tests {
         );
         assert!((f.from_views - 0.5).abs() < 1e-9);
         assert!(z.iter().zip(&inv).all(|(z, v)| (z * v - 1.0).abs() < 1e-3));
-        // A prior whose order is reversed gives nothing: the views stay, the rest is unknown.
+        // A prior whose order is reversed gives nothing: the views stay, the rest is the
+        // views' inverse depth spread from the seen half.
         let reversed = inv.clone();
-        let (z, f) = fuse(&views, &reversed, 0.5).unwrap();
+        let (z, f) = fuse(&views, &reversed, &guide, 0.5).unwrap().unwrap();
+        let z = z.depth;
         assert!(f.prior.is_none());
         for (i, v) in z.iter().enumerate() {
-            assert_eq!(v.is_nan(), seen(i), "pixel {i}");
+            if seen(i) {
+                assert!((0.2..=0.36).contains(&(1.0 / v)), "pixel {i}: {v}");
+            } else {
+                assert!((v * inv[i] - 1.0).abs() < 1e-6, "pixel {i}");
+            }
+        }
+        // Wrong sizes are errors.
+        assert!(fuse(&views, &prior[1..], &guide, 0.5).is_err());
+    }
+
+    #[test]
+    fn the_views_bend_the_prior_up_to_colour_edges() {
+        // The prior's inverse depth ramps 0.2..0.35 down the rows; the views see columns 0..12
+        // as the prior has it and columns 28..32 nearer (inverse depth 0.05 more); the
+        // picture changes colour at column 20, where the truth steps.
+        let (w, h) = (32usize, 4usize);
+        let inv: Vec<f32> = (0..w * h).map(|i| 0.2 + 0.05 * (i / w) as f32).collect();
+        let col = |i: usize| i % w;
+        let truth = |i: usize| inv[i] + if col(i) >= 20 { 0.05 } else { 0.0 };
+        let seen = |i: usize| col(i) < 12 || col(i) >= 28;
+        let views = ViewDepth {
+            width: w as u32,
+            height: h as u32,
+            depth: (0..w * h)
+                .map(|i| if seen(i) { 1.0 / truth(i) } else { f32::NAN })
+                .collect(),
+            confidence: (0..w * h).map(|i| f32::from(u8::from(seen(i)))).collect(),
+        };
+        let prior: Vec<f32> = inv.iter().map(|v| 1.0 / (3.0 * v)).collect();
+        let guide = Mat::from_exact_iter((0..w * h).map(|i| if col(i) < 20 { 40u8 } else { 200 }))
+            .unwrap()
+            .reshape(1, h as i32)
+            .unwrap()
+            .try_clone()
+            .unwrap();
+        let (z, f) = fuse(&views, &prior, &guide, 0.5).unwrap().unwrap();
+        let z = z.depth;
+        let (a, _) = f.prior.unwrap();
+        assert!((a - 1.0 / 3.0).abs() < 0.01, "{a}");
+        for (i, z) in z.iter().enumerate() {
+            let r = z * truth(i);
+            assert!((r - 1.0).abs() < 0.02, "pixel {i}: {r}");
         }
     }
 

@@ -8,17 +8,24 @@
 
 use cpsl_core::{Camera, Pose, Vec3};
 use cpsl_synth::Scene;
-use cpsl_track::mvs::{depth_from_views, MvsConfig};
+use cpsl_track::mvs::{depth_from_views, fuse, MvsConfig, ViewDepth};
 use cpsl_track::{
-    rotation_deg, work_grey, CameraMotion, DepthFrom, TrackConfig, TrackedDepth, Tracker,
+    rotation_deg, work_grey, work_rgb, CameraMotion, DepthFrom, TrackConfig, TrackedDepth, Tracker,
     Trajectory,
 };
+use opencv::core::{Mat, Size};
+use opencv::imgproc;
+use opencv::prelude::*;
 
 const W: u32 = 320;
 const H: u32 = 240;
 
 fn clip(poses: &[Pose]) -> (Scene, Vec<Vec<u8>>) {
-    let scene = Scene::default_scene(W, H);
+    clip_sized(poses, W, H)
+}
+
+fn clip_sized(poses: &[Pose], width: u32, height: u32) -> (Scene, Vec<Vec<u8>>) {
+    let scene = Scene::default_scene(width, height);
     let frames = poses
         .iter()
         .map(|p| scene.render(&scene.camera, p, 0.0, 1).rgb)
@@ -167,12 +174,14 @@ fn static_rotation_and_black_are_detected() {
 
 #[test]
 fn multi_view_depth_matches_the_scene() {
+    // At the size frames are tracked at (480 on the long side).
+    let (w, h) = (480, 270);
     let path = sideways();
-    let (scene, frames) = clip(&path);
+    let (scene, frames) = clip_sized(&path, w, h);
     let cam = scene.camera;
     let grey: Vec<_> = frames
         .iter()
-        .map(|f| work_grey(f, W, H, (W, H)).unwrap())
+        .map(|f| work_grey(f, w, h, (w, h)).unwrap())
         .collect();
     // Exact poses: this checks the dense triangulation alone.
     let i = 6;
@@ -182,25 +191,93 @@ fn multi_view_depth_matches_the_scene() {
         .collect();
     let d = depth_from_views(&cam, (&grey[i], &path[i]), &nb, &MvsConfig::default()).unwrap();
     let truth = scene.render(&cam, &path[i], 0.0, 1).depth;
-    // Pixels the views agree on (as the fusion with a prior keeps them).
+    let (confident, abs_rel, median) = score(&d, &truth, 0.5);
+    eprintln!(
+        "views: {:.0} % triangulated, {:.0} % confident, AbsRel {abs_rel:.4}, median {median:.4}",
+        100.0 * d.density(),
+        100.0 * confident
+    );
+    // Measured: 98 % triangulated, 69 % confident, AbsRel 0.93 %, median 0.44 % (before
+    // 2026-11-27, DIS's medium preset at half resolution, 1 degree, no band around depth
+    // jumps, at 320x240: 59 % at 4.3 %).
+    assert!(d.density() > 0.9, "density {}", d.density());
+    assert!(confident > 0.6, "confident share {confident}");
+    assert!(median < 0.008, "median relative error {median}");
+    assert!(abs_rel < 0.015, "AbsRel {abs_rel}");
+
+    // Fused with a prior: the exact depth in other units, and one as a monocular network
+    // gives it (inverse depth to the power 0.6, blurred over 8 pixels, other units).
+    // Measured: AbsRel over every pixel 1.56 % and 2.83 %, over the 90 % most confident
+    // 1.27 % and 1.41 % (issue 29: at most 2 % over at least 90 %).
+    let exact: Vec<f32> = truth.iter().map(|z| 3.0 * z).collect();
+    let blurred = {
+        let inv: Vec<f32> = truth.iter().map(|z| (1.0 / z).powf(0.6)).collect();
+        let m = Mat::new_rows_cols_with_data(h as i32, w as i32, &inv).unwrap();
+        let mut o = Mat::default();
+        imgproc::gaussian_blur_def(&m, &mut o, Size::new(0, 0), 8.0).unwrap();
+        o.data_typed::<f32>()
+            .unwrap()
+            .iter()
+            .map(|v| 0.2 / v)
+            .collect::<Vec<_>>()
+    };
+    let guide = work_rgb(&frames[i], w, h, (w, h)).unwrap();
+    for (name, prior, limits) in [
+        ("exact", exact, (0.02, 0.016)),
+        ("blurred", blurred, (0.035, 0.018)),
+    ] {
+        let (f, _) = fuse(&d, &prior, &guide, 0.5).unwrap().unwrap();
+        let (all, abs_all, _) = score(&f, &truth, -1.0);
+        let (_, abs_90, _) = score_best(&f, &truth, 0.9);
+        eprintln!("fused with the {name} prior: AbsRel {abs_all:.4} over {:.0} %, {abs_90:.4} over the 90 % most confident", 100.0 * all);
+        assert!(all > 0.999, "{name}: {all}");
+        assert!(abs_all < limits.0, "{name}: AbsRel {abs_all}");
+        assert!(abs_90 < limits.1, "{name}: AbsRel {abs_90} over 90 %");
+    }
+}
+
+/// Share of the pixels with a depth and a confidence above `min_conf`, their AbsRel and
+/// median relative error against `truth`.
+fn score(d: &ViewDepth, truth: &[f32], min_conf: f32) -> (f64, f64, f64) {
     let mut rel: Vec<f64> = d
         .depth
         .iter()
         .zip(&d.confidence)
-        .zip(&truth)
-        .filter(|((z, &c), t)| z.is_finite() && c >= 0.5 && t.is_finite())
+        .zip(truth)
+        .filter(|((z, &c), t)| z.is_finite() && c > min_conf && t.is_finite())
         .map(|((z, _), t)| ((z - t) / t).abs() as f64)
         .collect();
-    let confident = rel.len() as f64 / truth.len() as f64;
+    let share = rel.len() as f64 / truth.len() as f64;
     rel.sort_by(f64::total_cmp);
-    let abs_rel = rel.iter().sum::<f64>() / rel.len() as f64;
-    let median = rel[rel.len() / 2];
-    // Measured: 86 % triangulated, 59 % confident, median 0.9 %, AbsRel 4.3 % (issue 29's
-    // target, AbsRel 2 % over 90 % of the pixels, is not met yet).
-    assert!(d.density() > 0.75, "density {}", d.density());
-    assert!(confident > 0.5, "confident share {confident}");
-    assert!(median < 0.015, "median relative error {median}");
-    assert!(abs_rel < 0.06, "AbsRel {abs_rel}");
+    let abs_rel = rel.iter().sum::<f64>() / rel.len().max(1) as f64;
+    (
+        share,
+        abs_rel,
+        rel.get(rel.len() / 2).copied().unwrap_or(f64::NAN),
+    )
+}
+
+/// AbsRel over the `share` of the pixels with the highest confidence (unknown ones last).
+fn score_best(d: &ViewDepth, truth: &[f32], share: f64) -> (f64, f64, f64) {
+    let mut order: Vec<usize> = (0..truth.len()).collect();
+    let key = |k: usize| {
+        if d.depth[k].is_finite() {
+            d.confidence[k]
+        } else {
+            -1.0
+        }
+    };
+    order.sort_by(|&a, &b| key(b).total_cmp(&key(a)));
+    order.truncate((share * truth.len() as f64) as usize);
+    let best = ViewDepth {
+        width: d.width,
+        height: d.height,
+        depth: order.iter().map(|&k| d.depth[k]).collect(),
+        confidence: order.iter().map(|&k| d.confidence[k]).collect(),
+    };
+    let t: Vec<f32> = order.iter().map(|&k| truth[k]).collect();
+    let (s, a, m) = score(&best, &t, -1.0);
+    (s * share, a, m)
 }
 
 #[test]
@@ -223,7 +300,7 @@ fn tracked_depth_fuses_views_with_the_prior_in_its_units() {
     for (i, p) in path.iter().enumerate() {
         let truth = scene.render(&cam, p, 0.0, 1).depth;
         let prior: Vec<f32> = truth.iter().map(|z| 3.0 * z).collect();
-        let (z, from) = tracked.depth(i, &prior, (W, H)).unwrap();
+        let (z, from) = tracked.depth(i, &frames[i], &prior, (W, H)).unwrap();
         assert!(
             matches!(from, DepthFrom::Views { share, .. } if share > 0.3),
             "frame {i}: {from:?}"
@@ -239,11 +316,14 @@ fn tracked_depth_fuses_views_with_the_prior_in_its_units() {
         let off = rel.iter().filter(|r| (*r - 1.0).abs() > 0.05).count();
         offs.push(off as f64 / rel.len() as f64);
     }
-    // Measured: per-frame median ratios 0.978-1.026, 2-43 % of pixels off by more than 5 %
-    // (median 4 %; the frames with a few per cent of scale error carry the most).
-    assert!(ratios.iter().all(|r| (r - 1.0).abs() < 0.04), "{ratios:?}");
+    // Measured: per-frame median ratios 0.985-1.007, 3.5-10.6 % of pixels off by more than
+    // 5 % (median 7 %; before the flow at full resolution, the band around depth jumps and
+    // the edge-aware spread of the views: 0.978-1.026 and 2-43 %, median 4 %).
     offs.sort_by(f64::total_cmp);
-    assert!(offs[offs.len() / 2] < 0.08, "{offs:?}");
+    eprintln!("median ratios {ratios:.3?}, shares more than 5 % off {offs:.3?}");
+    assert!(ratios.iter().all(|r| (r - 1.0).abs() < 0.02), "{ratios:?}");
+    assert!(offs[offs.len() - 1] < 0.15, "{offs:?}");
+    assert!(offs[offs.len() / 2] < 0.09, "{offs:?}");
 
     // A static camera: every frame takes its prior as it is, and says why.
     let still = vec![Pose::IDENTITY; 6];
@@ -255,7 +335,7 @@ fn tracked_depth_fuses_views_with_the_prior_in_its_units() {
     }
     let mut tracked = TrackedDepth::new(t.finish().unwrap(), greys).unwrap();
     let prior = scene.render(&cam, &still[0], 0.0, 1).depth;
-    let (z, from) = tracked.depth(2, &prior, (W, H)).unwrap();
+    let (z, from) = tracked.depth(2, &frames[2], &prior, (W, H)).unwrap();
     assert_eq!(from, DepthFrom::Fallback("the camera is static".into()));
     assert_eq!(z, prior);
 }

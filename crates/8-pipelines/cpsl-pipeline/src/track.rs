@@ -295,7 +295,7 @@ impl VideoTrackedDepth {
         let (w, h) = (cam.width, cam.height);
         let prior = self.prior.depth(rgb, w, h)?;
         let (z, from) = match tracked {
-            Ok(t) => t.depth(index, &prior, (w, h))?,
+            Ok(t) => t.depth(index, rgb, &prior, (w, h))?,
             Err(why) => (prior, DepthFrom::Fallback(why.clone())),
         };
         let name = self.prior.name();

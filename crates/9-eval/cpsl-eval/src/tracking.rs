@@ -165,9 +165,10 @@ pub fn video_depth(
     let (mut shares, mut alone) = (Vec::new(), 0);
     let depths = prior
         .iter()
+        .zip(frames)
         .enumerate()
-        .map(|(i, p)| {
-            let (z, from) = tracked.depth(i, p, (w, h))?;
+        .map(|(i, (p, rgb))| {
+            let (z, from) = tracked.depth(i, rgb, p, (w, h))?;
             if let DepthFrom::Views { share, prior, .. } = from {
                 shares.push(share);
                 alone += usize::from(!prior);

@@ -2,7 +2,9 @@
 # Installs the Debian packages cpsl builds and runs against, if any is missing: FFmpeg (the
 # `ffmpeg` tool for sweep videos and test clips, and the libav* development files and clang that
 # the ffmpeg-next crate builds against; see ../shared/STACK.md) and OpenCV 4.6 (the headers and
-# libraries the opencv crate binds to, for stereo matching in cpsl-stereo).
+# libraries the opencv crate binds to, for stereo matching in cpsl-stereo and tracking and
+# multi-view depth in cpsl-track; its ximgproc module comes with libopencv-contrib-dev, which
+# libopencv-dev depends on).
 set -euo pipefail
 PKGS="ffmpeg libavcodec-dev libavformat-dev libavutil-dev libswscale-dev libswresample-dev
 libavfilter-dev libavdevice-dev pkg-config clang libclang-dev libopencv-dev"

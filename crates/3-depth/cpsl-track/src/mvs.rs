@@ -2,7 +2,8 @@
 //! DIS, [`flow`]) to each neighbour and back, pixels whose forward
 //! and backward flow disagree by more than `max_fb` px dropped, each remaining pixel
 //! triangulated (closest point of the two rays) and kept when in front of both cameras and
-//! seen under at least `min_angle_deg`. Over the neighbours the median inverse depth is
+//! seen under at least `min_angle_deg`, and dropped when the flow ends farther than
+//! `max_epipolar` px from the epipolar line (the pixel moved on its own). Over the neighbours the median inverse depth is
 //! taken; the confidence is the share of the neighbours that could see the pixel (in view,
 //! under enough angle) that triangulated it within 5 % of the median, and 0 unless two did,
 //! and 0 within `edge_band` px of a jump in the depth (where flow smooths across an occlusion
@@ -45,6 +46,9 @@ pub struct MvsConfig {
     pub min_angle_deg: f64,
     /// Largest forward-backward flow disagreement in working pixels.
     pub max_fb: f32,
+    /// Largest distance in working pixels between the flow's end and the epipolar line
+    /// (the triangulated point seen from the neighbour): beyond it the pixel moved on its own.
+    pub max_epipolar: f64,
     /// Pixels within this many working pixels of a depth jump get no confidence.
     pub edge_band: u32,
     /// A jump: neighbouring inverse depths differing by more than this share.
@@ -60,6 +64,7 @@ impl Default for MvsConfig {
         Self {
             min_angle_deg: 0.5,
             max_fb: 1.0,
+            max_epipolar: 1.0,
             edge_band: 3,
             edge_jump: 0.1,
         }
@@ -175,6 +180,12 @@ pub fn depth_from_flows(
                 seen[y * w + x] += 1;
                 let b = bwd[(v.round() as usize) * w + u.round() as usize];
                 if (f[0] + b[0]).hypot(f[1] + b[1]) > cfg.max_fb {
+                    continue;
+                }
+                let Some((pu, pv)) = cam.project(nb.pose.rotation.transpose() * (x3 - c1)) else {
+                    continue;
+                };
+                if (pu - u as f64).hypot(pv - v as f64) > cfg.max_epipolar {
                     continue;
                 }
                 samples[y * w + x].push((1.0 / s) as f32);

@@ -4,7 +4,7 @@
 use crate::encode::CodecArg;
 use crate::layer::InstanceArg;
 use crate::progress::Bars;
-use anyhow::Result;
+use anyhow::{Context as _, Result};
 use clap::{Args, ValueEnum};
 use cpsl_eval::views::{evaluate_views, Method, Row, ViewsOptions};
 use cpsl_layering::GeometryMode;
@@ -245,17 +245,61 @@ pub struct EvalTrackArgs {
     /// Write the score as JSON.
     #[arg(long)]
     pub json: Option<PathBuf>,
+    /// Also score the fox's depth (FastDepth alone, and from the video) at the 3-D points of
+    /// an independent reconstruction of its frames, as `scripts/fox_sfm_points.py` writes
+    /// them (pycolmap).
+    #[arg(long, value_name = "POINTS_JSON")]
+    pub depth_points: Option<PathBuf>,
 }
 
 /// Runs `cpsl eval-track`: tracks the fox without its poses and scores the result.
 pub fn run_track(a: EvalTrackArgs) -> Result<()> {
+    // Read first: a bad file fails before the tracking's seconds are spent.
+    let points = a
+        .depth_points
+        .as_deref()
+        .map(cpsl_eval::tracking::read_points)
+        .transpose()?;
     let s = cpsl_eval::tracking::fox(&a.data)?;
     println!(
         "{}: {} of {} frames placed in {} segment(s), motion {}, {} points, reprojection {:.2} px, rotation error {:.3} deg ({:.3} deg aligned), translation direction {:.2} deg, {:.0} ms/frame",
         s.clip, s.placed, s.frames, s.segments, s.motion, s.points, s.reprojection_px, s.rotation_deg, s.rotation_aligned_deg, s.translation_dir_deg, s.ms_per_frame
     );
+    let mut depth = Vec::new();
+    if let Some(points) = &points {
+        let fox = cpsl_eval::video::load_fox(&a.data, 4, false)?;
+        let (video, how) = cpsl_eval::tracking::video_depth(&fox.frames, fox.camera, &fox.depth)?;
+        for (name, z) in [
+            (fox.depth_name.as_str(), &fox.depth),
+            (how.as_str(), &video),
+        ] {
+            let d =
+                cpsl_eval::tracking::depth_at_points(name, z, fox.camera, &fox.video.files, points)
+                    .with_context(|| {
+                        format!("no point of the reconstruction lands on the depth of {name}")
+                    })?;
+            println!(
+                "depth at the reconstruction's points ({} points in {} frames): AbsRel {:.4} with one scale for the clip (median {:.4}), {:.4} with a scale per frame; {}",
+                d.points, d.frames, d.abs_rel, d.median_rel, d.abs_rel_per_frame, d.depth
+            );
+            depth.push(d);
+        }
+    }
     if let Some(path) = &a.json {
-        cpsl_io::write_json(path, &s)?;
+        #[derive(serde::Serialize)]
+        struct Report<'a> {
+            #[serde(flatten)]
+            tracking: &'a cpsl_eval::tracking::TrackScore,
+            #[serde(skip_serializing_if = "Vec::is_empty")]
+            depth_at_points: Vec<cpsl_eval::tracking::PointDepthScore>,
+        }
+        cpsl_io::write_json(
+            path,
+            &Report {
+                tracking: &s,
+                depth_at_points: depth,
+            },
+        )?;
         println!("wrote {}", path.display());
     }
     Ok(())

@@ -188,3 +188,175 @@ pub fn video_depth(
         ),
     ))
 }
+
+/// Depth of the fox's frames scored at the 3-D points of an independent reconstruction.
+#[derive(Debug, Clone, Serialize)]
+pub struct PointDepthScore {
+    /// Where the depth came from.
+    pub depth: String,
+    /// Frames with points in view.
+    pub frames: usize,
+    /// Points scored (one per frame that sees it).
+    pub points: usize,
+    /// AbsRel (mean of |z - z_ref| / z_ref) with one scale for the whole clip: the median
+    /// ratio over every point.
+    pub abs_rel: f64,
+    /// Median relative error with that scale.
+    pub median_rel: f64,
+    /// AbsRel with each frame scaled on its own (the depth's shape alone).
+    pub abs_rel_per_frame: f64,
+    /// Per frame, its own scale over the clip's (NaN without points): how far the depth's
+    /// units drift.
+    pub frame_scales: Vec<f64>,
+}
+
+/// Camera coordinates `(x/z, y/z, z)` of the points each frame (by file name) sees, as
+/// `scripts/fox_sfm_points.py` writes them (`{"frames": {"0004.jpg": [[x, y, z], ...]}}`).
+pub type FramePoints = std::collections::HashMap<String, Vec<[f64; 3]>>;
+
+/// Reads [`FramePoints`] from a JSON file.
+pub fn read_points(path: &Path) -> Result<FramePoints> {
+    #[derive(serde::Deserialize)]
+    struct File {
+        frames: FramePoints,
+    }
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| EvalError::Invalid(format!("{}: {e}", path.display())))?;
+    let f: File = serde_json::from_str(&text)
+        .map_err(|e| EvalError::Invalid(format!("{}: {e}", path.display())))?;
+    if f.frames
+        .values()
+        .flatten()
+        .any(|p| !(p.iter().all(|v| v.is_finite()) && p[2] > 0.0))
+    {
+        return Err(EvalError::Invalid(format!(
+            "{}: a point with a non-finite coordinate or a depth <= 0",
+            path.display()
+        )));
+    }
+    Ok(f.frames)
+}
+
+/// Scores `depth` (one map per frame, `camera`'s size, in any units) at `points`, the
+/// frames named by `files`: each point is projected with `camera` and the depth read at the
+/// nearest pixel. `None` when no point lands on a known depth.
+pub fn depth_at_points(
+    name: &str,
+    depth: &[Vec<f32>],
+    camera: Camera,
+    files: &[std::path::PathBuf],
+    points: &FramePoints,
+) -> Option<PointDepthScore> {
+    let (w, h) = (camera.width as usize, camera.height as usize);
+    // Per frame, (estimate, reference) pairs.
+    let pairs: Vec<Vec<(f64, f64)>> = files
+        .iter()
+        .zip(depth)
+        .map(|(file, z)| {
+            let name = file.file_name().and_then(|n| n.to_str()).unwrap_or("");
+            points
+                .get(name)
+                .into_iter()
+                .flatten()
+                .filter_map(|&[x, y, zr]| {
+                    let (u, v) = (camera.fx * x + camera.cx, camera.fy * y + camera.cy);
+                    let (u, v) = (u.round(), v.round());
+                    if !(u >= 0.0 && v >= 0.0 && (u as usize) < w && (v as usize) < h) {
+                        return None;
+                    }
+                    let e = z[v as usize * w + u as usize] as f64;
+                    (e.is_finite() && e > 0.0).then_some((e, zr))
+                })
+                .collect()
+        })
+        .collect();
+    let ratio = |p: &[(f64, f64)]| {
+        let mut r: Vec<f64> = p.iter().map(|(e, zr)| zr / e).collect();
+        (!r.is_empty()).then(|| median(&mut r))
+    };
+    let all: Vec<(f64, f64)> = pairs.iter().flatten().copied().collect();
+    let k = ratio(&all)?;
+    let rel = |p: &[(f64, f64)], k: f64| -> Vec<f64> {
+        p.iter().map(|(e, zr)| (k * e - zr).abs() / zr).collect()
+    };
+    let mut whole = rel(&all, k);
+    let abs_rel = whole.iter().sum::<f64>() / whole.len() as f64;
+    let per_frame: Vec<f64> = pairs
+        .iter()
+        .filter_map(|p| Some(rel(p, ratio(p)?)))
+        .flatten()
+        .collect();
+    let frame_scales = pairs
+        .iter()
+        .map(|p| ratio(p).map_or(f64::NAN, |r| r / k))
+        .collect();
+    Some(PointDepthScore {
+        depth: name.to_string(),
+        frames: pairs.iter().filter(|p| !p.is_empty()).count(),
+        points: all.len(),
+        abs_rel,
+        median_rel: median(&mut whole),
+        abs_rel_per_frame: per_frame.iter().sum::<f64>() / per_frame.len() as f64,
+        frame_scales,
+    })
+}
+
+fn median(v: &mut [f64]) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{depth_at_points, read_points, FramePoints};
+    use cpsl_core::Camera;
+    use std::path::PathBuf;
+
+    #[test]
+    fn depth_is_scored_at_the_points_in_its_own_units() {
+        let cam = Camera::from_fov(8, 6, 60.0);
+        let files = vec![PathBuf::from("a/0001.jpg"), PathBuf::from("a/0002.jpg")];
+        // Frame 1 at depth 2 (its reference 4: the clip's scale 2); frame 2 at depth 1, its
+        // reference 4 (a scale of its own, 4), except one pixel at depth 3.
+        let mut second = vec![1.0f32; 48];
+        let p = |u: f64, v: f64, z: f64| [(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, z];
+        second[2 * 8 + 3] = 3.0;
+        let depth = vec![vec![2.0f32; 48], second];
+        let mut points = FramePoints::new();
+        points.insert(
+            "0001.jpg".into(),
+            vec![p(1.0, 1.0, 4.0), p(5.0, 4.0, 4.0), p(20.0, 1.0, 4.0)],
+        );
+        points.insert(
+            "0002.jpg".into(),
+            vec![p(0.0, 0.0, 4.0), p(3.0, 2.0, 4.0), p(7.0, 5.0, 4.0)],
+        );
+        let s = depth_at_points("test", &depth, cam, &files, &points).unwrap();
+        // The point off the frame is left out; the clip's scale is the median ratio, 2.
+        assert_eq!((s.frames, s.points), (2, 5));
+        // With the clip's scale frame 2 is off by half at its three points: |2 - 4| / 4
+        // twice and |6 - 4| / 4 once.
+        assert!((s.abs_rel - 3.0 * 0.5 / 5.0).abs() < 1e-9, "{}", s.abs_rel);
+        // Its own scale (4) fits two of its three points; the third is off by |12 - 4| / 4.
+        assert!(
+            (s.abs_rel_per_frame - 2.0 / 5.0).abs() < 1e-9,
+            "{}",
+            s.abs_rel_per_frame
+        );
+        assert_eq!(s.frame_scales, vec![1.0, 2.0]);
+        assert!(depth_at_points("none", &depth, cam, &files, &FramePoints::new()).is_none());
+    }
+
+    #[test]
+    fn bad_point_files_are_refused() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("points.json");
+        std::fs::write(&path, r#"{"frames": {"0001.jpg": [[0.1, 0.2, 3.0]]}}"#).unwrap();
+        assert_eq!(read_points(&path).unwrap()["0001.jpg"].len(), 1);
+        std::fs::write(&path, r#"{"frames": {"0001.jpg": [[0.1, 0.2, -3.0]]}}"#).unwrap();
+        let e = read_points(&path).unwrap_err().to_string();
+        assert!(e.contains("points.json") && e.contains("depth"), "{e}");
+        std::fs::write(&path, "{").unwrap();
+        assert!(read_points(&path).is_err());
+    }
+}

@@ -400,8 +400,8 @@ pub fn fuse(
         })
         .collect();
     let (n, floor) = (prior.len(), floor as f32);
-    // The views' departure from the fitted prior (or their inverse depth, where it does not
-    // fit), weighted by confidence, and the weights, filtered together.
+    // Over the confident pixels, weighted by confidence: the views' departure from the fitted
+    // prior (0 where it has none), their inverse depth, and the weights, filtered together.
     let weighted: Vec<Vec3f> = views
         .depth
         .iter()

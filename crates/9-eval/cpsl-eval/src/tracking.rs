@@ -99,8 +99,7 @@ pub fn score(est: &Trajectory, truth: &PosedVideo) -> (f64, f64, f64) {
         if v.is_empty() {
             return f64::NAN;
         }
-        v.sort_by(f64::total_cmp);
-        v[v.len() / 2]
+        median(&mut v)
     };
     (med(rot), med(aligned), med(dir))
 }
@@ -281,15 +280,14 @@ pub fn depth_at_points(
     };
     let mut whole = rel(&all, k);
     let abs_rel = whole.iter().sum::<f64>() / whole.len() as f64;
+    let own: Vec<Option<f64>> = pairs.iter().map(|p| ratio(p)).collect();
     let per_frame: Vec<f64> = pairs
         .iter()
-        .filter_map(|p| Some(rel(p, ratio(p)?)))
+        .zip(&own)
+        .filter_map(|(p, r)| Some(rel(p, (*r)?)))
         .flatten()
         .collect();
-    let frame_scales = pairs
-        .iter()
-        .map(|p| ratio(p).map_or(f64::NAN, |r| r / k))
-        .collect();
+    let frame_scales = own.iter().map(|r| r.map_or(f64::NAN, |r| r / k)).collect();
     Some(PointDepthScore {
         depth: name.to_string(),
         frames: pairs.iter().filter(|p| !p.is_empty()).count(),
@@ -301,6 +299,7 @@ pub fn depth_at_points(
     })
 }
 
+/// The median of `v` (not empty), sorting it.
 fn median(v: &mut [f64]) -> f64 {
     v.sort_by(f64::total_cmp);
     v[v.len() / 2]

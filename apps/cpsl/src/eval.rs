@@ -262,8 +262,8 @@ pub fn run_track(a: EvalTrackArgs) -> Result<()> {
         .transpose()?;
     let s = cpsl_eval::tracking::fox(&a.data)?;
     println!(
-        "{}: {} of {} frames placed in {} segment(s), motion {}, {} points, reprojection {:.2} px, rotation error {:.3} deg ({:.3} deg aligned), translation direction {:.2} deg, {:.0} ms/frame",
-        s.clip, s.placed, s.frames, s.segments, s.motion, s.points, s.reprojection_px, s.rotation_deg, s.rotation_aligned_deg, s.translation_dir_deg, s.ms_per_frame
+        "{}: {} of {} frames placed in {} segment(s) and {} world(s), motion {}, {} points, reprojection {:.2} px, rotation error {:.3} deg ({:.3} deg aligned), translation direction {:.2} deg, {:.0} ms/frame",
+        s.clip, s.placed, s.frames, s.segments, s.worlds, s.motion, s.points, s.reprojection_px, s.rotation_deg, s.rotation_aligned_deg, s.translation_dir_deg, s.ms_per_frame
     );
     let mut depth = Vec::new();
     if let Some(points) = &points {

@@ -50,16 +50,22 @@ pub fn run(a: TrackArgs) -> Result<()> {
         cpsl_io::write_json(path, &nerf)?;
     }
     let placed = t.poses.iter().filter(|p| p.is_some()).count();
-    let segments = t.segments();
+    let (segments, worlds) = (t.segments(), t.worlds());
     println!(
         "{}: camera {}, {placed} of {} frames placed{}, {} points, reprojection {}; wrote {}{}",
         a.input.display(),
         t.motion.name(),
         names.len(),
-        if segments > 1 {
-            format!(" in {segments} segments (tracking broke off between them)")
-        } else {
-            String::new()
+        match (segments, worlds) {
+            (1, _) => String::new(),
+            (s, 1) => format!(
+                " in {s} segments (tracking broke off between them; relocalisation tied them \
+                 into one world)"
+            ),
+            (s, w) => format!(
+                " in {s} segments (tracking broke off between them) and {w} worlds (segments \
+                 relocalisation could not tie have their own origin and scale)"
+            ),
         },
         t.points,
         if t.reprojection_px.is_finite() {
@@ -72,11 +78,11 @@ pub fn run(a: TrackArgs) -> Result<()> {
             .as_ref()
             .map_or(String::new(), |p| format!(" and {}", p.display()))
     );
-    if let Some(path) = a.transforms.as_ref().filter(|_| segments > 1) {
+    if let Some(path) = a.transforms.as_ref().filter(|_| worlds > 1) {
         eprintln!(
-            "note: {} holds segment {} only (the one with the most placed frames)",
+            "note: {} holds world {} only (the one with the most placed frames)",
             path.display(),
-            cpsl_pipeline::track::largest_segment(&t)
+            cpsl_pipeline::track::largest_world(&t)
         );
     }
     if placed == 0 {

@@ -196,12 +196,14 @@ fn tracks_the_fox_without_its_poses() {
     ok(&["eval-track", "--data", s(&root), "--json", s(&json)]);
     let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
     // Measured: 50 of 50 frames placed in two segments (the clip jumps 44 degrees between
-    // frames 30 and 31, which no track crosses), median rotation error 0.265 degrees,
-    // translation direction 0.21.
+    // frames 30 and 31, which no track crosses) that relocalisation ties into one world;
+    // against the fox's poses from frame 0 over both, median rotation error 0.35 degrees,
+    // translation direction 0.26.
     assert_eq!(v["motion"], "translating");
-    assert!(v["placed"].as_u64().unwrap() >= 45, "{v}");
+    assert_eq!(v["placed"], 50, "{v}");
     assert_eq!(v["segments"], 2, "{v}");
-    assert!(v["rotation_deg"].as_f64().unwrap() < 0.4, "{v}");
+    assert_eq!(v["worlds"], 1, "{v}");
+    assert!(v["rotation_deg"].as_f64().unwrap() < 0.5, "{v}");
     assert!(v["translation_dir_deg"].as_f64().unwrap() < 0.5, "{v}");
 }
 

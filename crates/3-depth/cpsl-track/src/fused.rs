@@ -30,10 +30,11 @@ pub enum DepthFrom {
 /// Depth from a tracked clip: each frame asked for gets multi-view depth from up to
 /// [`TrackedDepth::NEIGHBOURS`] nearest placed frames ([`mvs::depth_from_views`]), fused with
 /// its monocular prior ([`mvs::fuse`]) at the tracking resolution and brought back to the
-/// prior's. The clip is put in the prior's units: the scale of each segment of the trajectory
-/// (its first baseline is 1) is fixed by its first fused frame's median per-pixel ratio of
-/// prior to fused depth (times the median fused-to-prior ratio of the frames fused before,
-/// for a later segment); only frames of the same segment serve as views. A
+/// prior's. The clip is put in the prior's units: the scale of each world of the trajectory
+/// (its first baseline is 1; segments tied into one world share it) is fixed by its first
+/// fused frame's median per-pixel ratio of prior to fused depth (times the median
+/// fused-to-prior ratio of the frames fused before, for a later world); only frames of the
+/// same segment serve as views. A
 /// frame the views cannot serve takes its prior, scaled by the median fused-to-prior ratio of
 /// the frames fused so far, and says why: the camera does not translate (rotating, static,
 /// untracked), the frame was not placed, or its views saw too little. The flows between two
@@ -41,7 +42,7 @@ pub enum DepthFrom {
 pub struct TrackedDepth {
     trajectory: Trajectory,
     greys: Vec<Mat>,
-    /// Per segment of the trajectory, prior units per trajectory unit, once one of its frames
+    /// Per world of the trajectory, prior units per trajectory unit, once one of its frames
     /// has been fused.
     scale: HashMap<u32, f64>,
     /// Fused-to-prior median ratios of the fused frames (prior units).
@@ -90,15 +91,15 @@ impl TrackedDepth {
     pub fn summary(&self) -> String {
         let t = &self.trajectory;
         let placed = t.poses.iter().filter(|p| p.is_some()).count();
-        let segments = t.segments();
+        let (segments, worlds) = (t.segments(), t.worlds());
         format!(
             "camera {}, {placed} of {} frames placed{}",
             t.motion.name(),
             t.poses.len(),
-            if segments > 1 {
-                format!(" in {segments} segments")
-            } else {
-                String::new()
+            match (segments, worlds) {
+                (1, _) => String::new(),
+                (s, 1) => format!(" in {s} segments tied into one world"),
+                (s, w) => format!(" in {s} segments, {w} worlds"),
             }
         )
     }
@@ -152,10 +153,10 @@ impl TrackedDepth {
                     .and_then(|(z, f)| Some((median_ratio(&small, &z.depth)?, z.depth, f)));
                 match fused {
                     Some((ratio, z, fusion)) => {
-                        // A later segment starts at the fused-to-prior ratio typical so far,
+                        // A later world starts at the fused-to-prior ratio typical so far,
                         // not at its first frame's prior alone.
                         let typical = self.typical_ratio();
-                        let scale = *self.scale.entry(seg).or_insert(ratio * typical);
+                        let scale = *self.scale.entry(t.world[index]).or_insert(ratio * typical);
                         let mut z = mvs::resize_depth(&z, size, (width, height))?;
                         z.iter_mut().for_each(|v| *v *= scale as f32);
                         self.ratios.push(scale / ratio);

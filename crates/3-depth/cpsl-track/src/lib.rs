@@ -25,6 +25,11 @@
 //!    one relative pose. Where no bridge holds, the frames after the last placed one are
 //!    solved again from step 1 as a new segment with its own origin and scale
 //!    ([`Trajectory::segment`]).
+//! 5. *Relocalisation* (`reloc.rs`). Every frame keeps its ORB features. A later segment
+//!    whose features, triangulated with its posed frames, match an earlier segment's points
+//!    under one similarity is moved into that segment's world, scale included
+//!    ([`Trajectory::world`]); frames still unplaced are placed by PnP on the points of
+//!    their nearest placed frames.
 //!
 //! Poses are camera-to-world ([`cpsl_core::Pose`]: `X_world = R X_cam + t`), the world being
 //! the first frame's camera, and the first baseline has length 1 (monocular scale).
@@ -36,6 +41,7 @@
 mod ba;
 mod fused;
 pub mod mvs;
+mod reloc;
 
 pub use fused::{DepthFrom, TrackedDepth};
 
@@ -146,26 +152,47 @@ pub struct Trajectory {
     pub initial_pair: Option<(usize, usize)>,
     /// Per frame, the segment its pose belongs to: 0 for the first; a later one starts where
     /// tracking broke off (a jump or a cut), with its own origin and scale, so poses of
-    /// different segments are not comparable. 0 for unplaced frames.
+    /// different segments are not comparable unless tied into one world
+    /// ([`Trajectory::world`]). 0 for unplaced frames.
     pub segment: Vec<u32>,
+    /// Per frame, the world its pose is in: the first segment's number among the segments
+    /// tied together by relocalisation (descriptor matches between their 3-D points; see
+    /// `reloc.rs`), whose poses share one origin and scale. A segment that could not be tied
+    /// keeps a world of its own (its number). 0 for unplaced frames.
+    pub world: Vec<u32>,
 }
 
 impl Trajectory {
     /// The segments with placed frames (see [`Trajectory::segment`]), in order, each with
     /// its number of placed frames.
     pub fn segment_sizes(&self) -> Vec<(u32, usize)> {
-        let mut sizes = std::collections::BTreeMap::new();
-        for (p, &s) in self.poses.iter().zip(&self.segment) {
-            if p.is_some() {
-                *sizes.entry(s).or_insert(0) += 1;
-            }
-        }
-        sizes.into_iter().collect()
+        self.sizes(&self.segment)
     }
 
     /// How many segments have placed frames.
     pub fn segments(&self) -> usize {
         self.segment_sizes().len()
+    }
+
+    /// The worlds with placed frames (see [`Trajectory::world`]), in order, each with its
+    /// number of placed frames.
+    pub fn world_sizes(&self) -> Vec<(u32, usize)> {
+        self.sizes(&self.world)
+    }
+
+    /// How many worlds have placed frames: 1 when every segment was tied to the first.
+    pub fn worlds(&self) -> usize {
+        self.world_sizes().len()
+    }
+
+    fn sizes(&self, ids: &[u32]) -> Vec<(u32, usize)> {
+        let mut sizes = std::collections::BTreeMap::new();
+        for (p, &s) in self.poses.iter().zip(ids) {
+            if p.is_some() {
+                *sizes.entry(s).or_insert(0) += 1;
+            }
+        }
+        sizes.into_iter().collect()
     }
 }
 
@@ -182,6 +209,8 @@ pub struct Tracker {
     live: Vec<(usize, Point2f)>,
     tracks: Vec<Vec<Obs>>,
     frames: u32,
+    /// Per frame, its ORB features, for relocalisation (`reloc.rs`).
+    features: Vec<Option<reloc::Features>>,
 }
 
 impl Tracker {
@@ -215,6 +244,7 @@ impl Tracker {
             live: Vec::new(),
             tracks: Vec::new(),
             frames: 0,
+            features: Vec::new(),
         })
     }
 
@@ -245,6 +275,7 @@ impl Tracker {
         }
         let f = self.frames;
         let pyramid = lk_pyramid(&grey)?;
+        let features = reloc::features(&grey, reloc::KEPT_FEATURES)?;
         if let Some((prev, prev_pyramid)) = &self.prev {
             if !self.live.is_empty() {
                 let p0: Vector<Point2f> = self.live.iter().map(|l| l.1).collect();
@@ -271,7 +302,10 @@ impl Tracker {
             if self.live.len() < MIN_LIVE {
                 // A break (a jump or a gap in the frames): seed tracks across it from
                 // descriptor matches.
-                let seeds = matches(prev, &grey)?;
+                let seeds = matches(
+                    &reloc::features(prev, SEED_FEATURES)?,
+                    &reloc::features(&grey, SEED_FEATURES)?,
+                )?;
                 for (a, b) in seeds {
                     let near = self
                         .live
@@ -288,6 +322,7 @@ impl Tracker {
             self.detect(&grey, f)?;
         }
         self.prev = Some((grey, pyramid));
+        self.features.push(Some(features));
         self.frames += 1;
         Ok(())
     }
@@ -349,6 +384,7 @@ impl Tracker {
             None => n,
         };
         let mut segment = 0;
+        let mut skipped = 0;
         while n - start >= MIN_SEGMENT {
             // The tracks from `start` on, their frames counted from it.
             let tracks: Vec<Vec<Obs>> = self
@@ -363,8 +399,16 @@ impl Tracker {
                 .collect();
             let (part, e) = Solver::new(self.camera, self.cfg, n - start, tracks).solve()?;
             let Some(last) = part.poses.iter().rposition(|p| p.is_some()) else {
-                break;
+                // Nothing placed from this frame on (it may be blank, as at a fade): try from
+                // the next, a few times.
+                skipped += 1;
+                if skipped > MAX_SKIPS {
+                    break;
+                }
+                start += 1;
+                continue;
             };
+            skipped = 0;
             segment += 1;
             let t = &mut whole.0;
             for (i, p) in part.poses.iter().enumerate() {
@@ -372,6 +416,7 @@ impl Tracker {
                     t.poses[start + i] = *p;
                     t.inliers[start + i] = part.inliers[i];
                     t.segment[start + i] = segment;
+                    t.world[start + i] = segment;
                 }
             }
             t.points += part.points;
@@ -379,7 +424,12 @@ impl Tracker {
             start += last + 1;
         }
         whole.0.reprojection_px = median(&mut errors);
-        Ok(whole.0)
+        let mut t = whole.0;
+        if t.motion == CameraMotion::Translating {
+            reloc::tie_segments(&mut t, &self.features, self.cfg.min_angle_deg)?;
+            reloc::place_frames(&mut t, &self.features, self.cfg.min_angle_deg, MAX_TURN_DEG)?;
+        }
+        Ok(t)
     }
 }
 
@@ -428,11 +478,19 @@ fn shrink(m: Mat, size: (u32, u32)) -> Result<Mat> {
     Ok(out)
 }
 
-/// Fewest PnP inliers that place a frame.
+/// Fewest PnP inliers that keep a frame's pose when it is solved again.
 const MIN_PNP: usize = 15;
+
+/// Fewest PnP inliers that place a frame the first time. Fewer let wrong solutions in: on the
+/// fox, 15 placed frame 43 on 22 of 50 points about 180 degrees off, and the frames placed
+/// from it with it; 25 to 35 let others in; 40 to 80 none.
+const MIN_PNP_NEW: usize = 50;
 
 /// Least frames after a break in the tracking for a new segment to be tried.
 const MIN_SEGMENT: usize = 3;
+
+/// Frames skipped in a row, after a break, when no segment starts at them.
+const MAX_SKIPS: usize = 4;
 
 /// Largest turn between neighbouring frames, degrees.
 const MAX_TURN_DEG: f64 = 30.0;
@@ -465,37 +523,22 @@ const BRIDGE_MIN: usize = 30;
 /// a jump; descriptor matches may then bridge it).
 const CUT_SURVIVAL: usize = 5;
 
+/// ORB features per frame that seed tracks across a break.
+const SEED_FEATURES: i32 = 3000;
+
 /// Cross-checked ORB matches from `a` to `b` that agree with a fundamental matrix (RANSAC,
 /// 1.5 px).
-fn matches(a: &Mat, b: &Mat) -> Result<Vec<(Point2f, Point2f)>> {
-    let mut orb = features2d::ORB::create(
-        3000,
-        1.2,
-        8,
-        31,
-        0,
-        2,
-        features2d::ORB_ScoreType::HARRIS_SCORE,
-        31,
-        10,
-    )?;
-    let mut detect = |m: &Mat| -> Result<(Vector<core::KeyPoint>, Mat)> {
-        let mut kp = Vector::new();
-        let mut desc = Mat::default();
-        orb.detect_and_compute(m, &core::no_array(), &mut kp, &mut desc, false)?;
-        Ok((kp, desc))
-    };
-    let ((ka, da), (kb, db)) = (detect(a)?, detect(b)?);
-    if ka.len() < 8 || kb.len() < 8 {
+fn matches(a: &reloc::Features, b: &reloc::Features) -> Result<Vec<(Point2f, Point2f)>> {
+    if a.points.len() < 8 || b.points.len() < 8 {
         return Ok(Vec::new());
     }
     let matcher = features2d::BFMatcher::create(core::NORM_HAMMING, true)?;
     let mut m = Vector::new();
-    matcher.train_match(&da, &db, &mut m, &core::no_array())?;
+    matcher.train_match(&a.desc, &b.desc, &mut m, &core::no_array())?;
     let (mut pa, mut pb): (Vector<Point2f>, Vector<Point2f>) = (Vector::new(), Vector::new());
     for d in m.iter().filter(|d| d.distance <= 64.0) {
-        pa.push(ka.get(d.query_idx as usize)?.pt());
-        pb.push(kb.get(d.train_idx as usize)?.pt());
+        pa.push(a.points[d.query_idx as usize]);
+        pb.push(b.points[d.train_idx as usize]);
     }
     if pa.len() < 15 {
         return Ok(Vec::new());
@@ -565,6 +608,50 @@ fn lk(
 fn reprojection_px(cam: &Camera, pose: &Pose, x: Vec3, (u, v): (f32, f32)) -> Option<f64> {
     let (pu, pv) = cam.project(pose.inverse().view_to_ref(x))?;
     Some((pu - u as f64).hypot(pv - v as f64))
+}
+
+/// The point nearest to the rays of `obs` (camera-to-world pose and working-pixel position
+/// each; midpoint least squares), when it is seen by two of them under at least
+/// `min_angle_deg` and reprojects within 2 px in every view.
+pub(crate) fn triangulate(
+    cam: &Camera,
+    min_angle_deg: f64,
+    obs: &[(Pose, Point2f)],
+) -> Option<Vec3> {
+    let ray = |p: &Pose, q: Point2f| {
+        let d = Vec3::new(
+            (q.x as f64 - cam.cx) / cam.fx,
+            (q.y as f64 - cam.cy) / cam.fy,
+            1.0,
+        );
+        (p.translation, (p.rotation * d).normalized())
+    };
+    let rays: Vec<(Vec3, Vec3)> = obs.iter().map(|(p, q)| ray(p, *q)).collect();
+    // Least squares point nearest to all rays: sum (I - d d^T) (x - c) = 0.
+    let mut a = Mat3([[0.0; 3]; 3]);
+    let mut b = Vec3::ZERO;
+    for (c, d) in &rays {
+        let m = Mat3::IDENTITY.add(&Mat3::outer(*d, *d).scale(-1.0));
+        a = a.add(&m);
+        b = b + m * *c;
+    }
+    let x = a.inverse()? * b;
+    let mut widest = 0.0f64;
+    for (i, (ci, _)) in rays.iter().enumerate() {
+        for (cj, _) in &rays[i + 1..] {
+            let (u, v) = ((x - *ci).normalized(), (x - *cj).normalized());
+            widest = widest.max(u.dot(v).clamp(-1.0, 1.0).acos().to_degrees());
+        }
+    }
+    if !x.is_finite() || widest < min_angle_deg {
+        return None;
+    }
+    for (p, q) in obs {
+        if reprojection_px(cam, p, x, (q.x, q.y))? > 2.0 {
+            return None;
+        }
+    }
+    Some(x)
 }
 
 /// The camera-to-world pose of world-to-camera extrinsics `x_cam = R x_world + t`.
@@ -698,6 +785,7 @@ impl Solver {
                     reprojection_px: f64::NAN,
                     initial_pair: None,
                     segment: vec![0; self.frames],
+                    world: vec![0; self.frames],
                 },
                 Vec::new(),
             ));
@@ -719,6 +807,7 @@ impl Solver {
             Trajectory {
                 camera: self.cam,
                 segment: vec![0; self.frames],
+                world: vec![0; self.frames],
                 poses: self.poses,
                 inliers: self.inliers,
                 motion: CameraMotion::Translating,
@@ -835,40 +924,7 @@ impl Solver {
     /// Midpoint triangulation of two or more rays with the checks of
     /// [`Solver::triangulate_between`].
     fn triangulate(&self, obs: &[(Pose, Point2f)]) -> Option<Vec3> {
-        let ray = |p: &Pose, q: Point2f| {
-            let d = Vec3::new(
-                (q.x as f64 - self.cam.cx) / self.cam.fx,
-                (q.y as f64 - self.cam.cy) / self.cam.fy,
-                1.0,
-            );
-            (p.translation, (p.rotation * d).normalized())
-        };
-        let rays: Vec<(Vec3, Vec3)> = obs.iter().map(|(p, q)| ray(p, *q)).collect();
-        // Least squares point nearest to all rays: sum (I - d d^T) (x - c) = 0.
-        let mut a = Mat3([[0.0; 3]; 3]);
-        let mut b = Vec3::ZERO;
-        for (c, d) in &rays {
-            let m = Mat3::IDENTITY.add(&Mat3::outer(*d, *d).scale(-1.0));
-            a = a.add(&m);
-            b = b + m * *c;
-        }
-        let x = a.inverse()? * b;
-        let mut widest = 0.0f64;
-        for (i, (ci, _)) in rays.iter().enumerate() {
-            for (cj, _) in &rays[i + 1..] {
-                let (u, v) = ((x - *ci).normalized(), (x - *cj).normalized());
-                widest = widest.max(u.dot(v).clamp(-1.0, 1.0).acos().to_degrees());
-            }
-        }
-        if !x.is_finite() || widest < self.cfg.min_angle_deg {
-            return None;
-        }
-        for (p, q) in obs {
-            if reprojection_px(&self.cam, p, x, (q.x, q.y))? > 2.0 {
-                return None;
-            }
-        }
-        Some(x)
+        triangulate(&self.cam, self.cfg.min_angle_deg, obs)
     }
 
     /// PnP of frame `f` on its triangulated tracks; `refine` starts from its current pose
@@ -915,7 +971,7 @@ impl Solver {
             &mut inl,
             calib3d::SOLVEPNP_ITERATIVE,
         )?;
-        if !ok || inl.len() < MIN_PNP {
+        if !ok || inl.len() < if refine { MIN_PNP } else { MIN_PNP_NEW } {
             return Ok(false);
         }
         let mut rm = Mat::default();
@@ -955,7 +1011,7 @@ impl Solver {
                 .collect();
             todo.sort_by(|a, b| b.cmp(a));
             for (n, f) in todo {
-                if n < MIN_PNP || !self.resect(f, false)? {
+                if n < MIN_PNP_NEW || !self.resect(f, false)? {
                     continue;
                 }
                 progress = true;

@@ -114,8 +114,12 @@ pub struct PoseEntry {
     /// Camera position in the world (the first frame's camera; unit: the first baseline).
     pub translation: Option<[f64; 3]>,
     /// The segment the pose belongs to: 0, or a later one where tracking broke off (a jump or
-    /// a cut), with its own world (its first frame's camera) and unit.
+    /// a cut).
     pub segment: u32,
+    /// The world the pose is in: 0 (the first frame's camera, unit the first baseline), or a
+    /// later segment's own (its first frame's camera and its own unit) when it could not be
+    /// tied to an earlier one by relocalisation.
+    pub world: u32,
     /// Triangulated tracks the pose agrees with.
     pub inliers: usize,
 }
@@ -125,7 +129,7 @@ pub struct PoseEntry {
 pub struct PosesFile {
     /// Always `cpsl-poses`.
     pub format: &'static str,
-    /// Format version (2: with segments).
+    /// Format version (2: with segments; 3: with worlds).
     pub version: u32,
     /// The camera at the input's size.
     pub camera: Camera,
@@ -140,7 +144,7 @@ pub struct PosesFile {
 }
 
 /// The files of a tracked clip: `poses.json` and `transforms.json` (the placed frames of the
-/// segment with the most of them ([`largest_segment`]); each
+/// world with the most of them ([`largest_world`]); each
 /// `file_path` is the frame's file in `dir`, absolute where it can be resolved, when the
 /// input was a folder of frames).
 pub fn pose_files(
@@ -162,13 +166,14 @@ pub fn pose_files(
                 translation: p.map(|p| [p.translation.x(), p.translation.y(), p.translation.z()]),
                 inliers: t.inliers[i],
                 segment: t.segment[i],
+                world: t.world[i],
             }
         })
         .collect();
-    let keep = largest_segment(t);
+    let keep = largest_world(t);
     let transforms: Vec<serde_json::Value> = frames
         .iter()
-        .filter(|f| f.segment == keep)
+        .filter(|f| f.world == keep)
         .filter_map(|f| {
             let (r, t) = (f.rotation?, f.translation?);
             // OpenCV camera axes to OpenGL's (y up, looking down -z): negate columns 1, 2.
@@ -195,7 +200,7 @@ pub fn pose_files(
     });
     let poses = PosesFile {
         format: "cpsl-poses",
-        version: 2,
+        version: 3,
         camera,
         motion: t.motion.name(),
         points: t.points,
@@ -205,9 +210,9 @@ pub fn pose_files(
     (poses, nerf)
 }
 
-/// The segment with the most placed frames (the first of equals; 0 when none is placed).
-pub fn largest_segment(t: &Trajectory) -> u32 {
-    t.segment_sizes()
+/// The world with the most placed frames (the first of equals; 0 when none is placed).
+pub fn largest_world(t: &Trajectory) -> u32 {
+    t.world_sizes()
         .into_iter()
         .max_by_key(|&(s, n)| (n, std::cmp::Reverse(s)))
         .map_or(0, |(s, _)| s)

@@ -25,6 +25,8 @@ pub struct TrackScore {
     pub placed: usize,
     /// Segments the placed frames fall in (tracking broke off between them).
     pub segments: usize,
+    /// Worlds the segments fall in (those relocalisation tied share one).
+    pub worlds: usize,
     /// The camera motion found.
     pub motion: String,
     /// Triangulated points.
@@ -46,16 +48,16 @@ pub struct TrackScore {
 
 use cpsl_track::rotation_deg as angle;
 
-/// Scores `est` (camera-to-world; per segment, the world is its first frame's camera) against
+/// Scores `est` (camera-to-world; per world, the origin is its first frame's camera) against
 /// `truth`'s poses: median rotation error, median rotation error after aligning each
 /// segment's rotations with the truth's, and median translation-direction error, degrees,
-/// over every placed frame; each segment is compared with the truth relative to its first
+/// over every placed frame; each world is compared with the truth relative to its first
 /// frame.
 pub fn score(est: &Trajectory, truth: &PosedVideo) -> (f64, f64, f64) {
     let (mut rot, mut aligned, mut dir) = (Vec::new(), Vec::new(), Vec::new());
-    for (seg, _) in est.segment_sizes() {
+    for (world, _) in est.world_sizes() {
         let frames: Vec<usize> = (0..est.poses.len())
-            .filter(|&i| est.poses[i].is_some() && est.segment[i] == seg)
+            .filter(|&i| est.poses[i].is_some() && est.world[i] == world)
             .collect();
         let Some(&first) = frames.first() else {
             continue;
@@ -134,6 +136,7 @@ pub fn fox(data: &Path) -> Result<TrackScore> {
         frames: frames.len(),
         placed: est.poses.iter().filter(|p| p.is_some()).count(),
         segments: est.segments(),
+        worlds: est.worlds(),
         motion: est.motion.name().into(),
         points: est.points,
         reprojection_px: est.reprojection_px,

@@ -1,0 +1,510 @@
+//! Relocalisation: ties the segments of a clip into one world and places the frames tracking
+//! left out, by descriptor matches against the 3-D points of other frames.
+//!
+//! Every frame keeps its ORB features ([`Features`], found while tracking). A placed frame's
+//! *map points* are its features triangulated with up to [`MAP_PARTNERS`] placed frames of
+//! its segment (the widest baselines within [`MAP_REACH`] frames and [`MAP_TURN_DEG`] of
+//! turn; their poses are known, so a match is kept only where its rays meet). Then:
+//!
+//! - *Tying* ([`tie_segments`]). The map points of each later segment's frames are matched
+//!   with those of every earlier segment's (at most [`TIE_FRAMES`] frames a side), and a
+//!   similarity (rotation, translation and scale) is fitted to the matched 3-D pairs:
+//!   RANSAC on three pairs, then least squares (Umeyama) on the inliers. With at least
+//!   [`TIE_MIN`] inliers the segment's poses move into the earlier world
+//!   ([`Trajectory::world`]): across a jump of the camera the depth keeps its units.
+//! - *Placing* ([`place_frames`]). A frame left unplaced is matched with the map points of
+//!   the nearest placed frames and placed by PnP (RANSAC) in their world.
+
+use crate::{from_extrinsics, mat3, rotation_deg, triangulate, vec3, Result, Trajectory};
+use cpsl_core::{Camera, Mat3, Pose, Vec3};
+use opencv::core::{self, Point2f, Vector};
+use opencv::prelude::*;
+use opencv::{calib3d, features2d};
+use std::collections::HashMap;
+
+/// ORB features of a frame: positions (working pixels) and descriptors, one row each.
+pub(crate) struct Features {
+    pub(crate) points: Vec<Point2f>,
+    pub(crate) desc: Mat,
+}
+
+/// Most ORB features kept per frame for relocalisation (40 KB a frame).
+pub(crate) const KEPT_FEATURES: i32 = 1000;
+
+/// Up to `count` ORB features of a frame (Harris-scored FAST corners over 8 levels, 1.2
+/// apart).
+pub(crate) fn features(grey: &Mat, count: i32) -> Result<Features> {
+    let mut orb = features2d::ORB::create(
+        count,
+        1.2,
+        8,
+        31,
+        0,
+        2,
+        features2d::ORB_ScoreType::HARRIS_SCORE,
+        31,
+        10,
+    )?;
+    let mut kp = Vector::<core::KeyPoint>::new();
+    let mut desc = Mat::default();
+    orb.detect_and_compute(grey, &core::no_array(), &mut kp, &mut desc, false)?;
+    Ok(Features {
+        points: kp.iter().map(|k| k.pt()).collect(),
+        desc,
+    })
+}
+
+/// Nearest-neighbour matches from the descriptor rows of `a` to those of `b` that pass the
+/// ratio test (the second nearest at least 1/0.8 as far) and are at most 64 bits apart.
+pub(crate) fn matches(a: &Mat, b: &Mat) -> Result<Vec<(usize, usize)>> {
+    if a.rows() < 2 || b.rows() < 2 {
+        return Ok(Vec::new());
+    }
+    let matcher = features2d::BFMatcher::create(core::NORM_HAMMING, false)?;
+    let mut knn = Vector::<Vector<core::DMatch>>::new();
+    matcher.knn_train_match(a, b, &mut knn, 2, &core::no_array(), false)?;
+    let mut out = Vec::new();
+    for m in knn.iter().filter(|m| m.len() == 2) {
+        let (x, y) = (m.get(0)?, m.get(1)?);
+        if x.distance <= 64.0 && x.distance < 0.8 * y.distance {
+            out.push((x.query_idx as usize, x.train_idx as usize));
+        }
+    }
+    Ok(out)
+}
+
+/// Partner frames a frame's map points are triangulated with, each giving at least
+/// [`MAP_GOOD`] of them.
+const MAP_PARTNERS: usize = 2;
+/// Least angle between the two rays of a map point, degrees.
+const MAP_ANGLE_DEG: f64 = 3.0;
+/// Least points a partner must give to count.
+const MAP_GOOD: usize = 20;
+/// Most partners tried.
+const MAP_TRIES: usize = 4;
+/// Farthest partner, in frames.
+const MAP_REACH: usize = 8;
+/// Largest turn to a partner, degrees (descriptors match less well beyond).
+const MAP_TURN_DEG: f64 = 20.0;
+
+/// A placed frame's features with 3-D points (its world's).
+struct MapPoints {
+    points: Vec<Vec3>,
+    /// Their descriptors, one row each.
+    desc: Mat,
+}
+
+/// Map points of the placed frames, built when first asked for.
+struct Maps<'a> {
+    cam: Camera,
+    min_angle_deg: f64,
+    features: &'a [Option<Features>],
+    built: HashMap<usize, MapPoints>,
+}
+
+impl Maps<'_> {
+    fn get(&mut self, t: &Trajectory, f: usize) -> Result<&MapPoints> {
+        if !self.built.contains_key(&f) {
+            let m = self.build(t, f)?;
+            self.built.insert(f, m);
+        }
+        Ok(&self.built[&f])
+    }
+
+    fn build(&self, t: &Trajectory, f: usize) -> Result<MapPoints> {
+        let mut feature = Vec::new();
+        let mut points = Vec::new();
+        if let (Some(pose), Some(ff)) = (t.poses[f], &self.features[f]) {
+            // Partners: placed frames of the segment with features, within reach and turn,
+            // nearest first; one that gives too few points (too short a baseline, too little
+            // overlap) does not count.
+            let lo = f.saturating_sub(MAP_REACH);
+            let hi = (f + MAP_REACH).min(t.poses.len() - 1);
+            let mut partners: Vec<(usize, Pose)> = (lo..=hi)
+                .filter(|&g| g != f && t.segment[g] == t.segment[f])
+                .filter(|&g| self.features[g].is_some())
+                .filter_map(|g| Some((g, t.poses[g]?)))
+                .filter(|(_, p)| {
+                    rotation_deg(&(p.rotation.transpose() * pose.rotation)) <= MAP_TURN_DEG
+                })
+                .collect();
+            partners.sort_by_key(|&(g, _)| g.abs_diff(f));
+            let mut taken = vec![false; ff.points.len()];
+            let mut good = 0;
+            for &(g, pg) in partners.iter().take(MAP_TRIES) {
+                let fg = self.features[g].as_ref().expect("filtered");
+                let before = points.len();
+                for (i, j) in matches(&ff.desc, &fg.desc)? {
+                    if taken[i] {
+                        continue;
+                    }
+                    let obs = [(pose, ff.points[i]), (pg, fg.points[j])];
+                    if let Some(x) =
+                        triangulate(&self.cam, self.min_angle_deg.max(MAP_ANGLE_DEG), &obs)
+                    {
+                        taken[i] = true;
+                        feature.push(i);
+                        points.push(x);
+                    }
+                }
+                good += usize::from(points.len() - before >= MAP_GOOD);
+                if good == MAP_PARTNERS {
+                    break;
+                }
+            }
+        }
+        let mut desc = Mat::default();
+        if let Some(ff) = &self.features[f] {
+            let mut rows = Vector::<Mat>::new();
+            for &i in &feature {
+                rows.push(ff.desc.row(i as i32)?.try_clone()?);
+            }
+            if !rows.is_empty() {
+                core::vconcat(&rows, &mut desc)?;
+            }
+        }
+        Ok(MapPoints { points, desc })
+    }
+}
+
+/// Most frames a side whose map points are matched when tying two segments (evenly spaced).
+const TIE_FRAMES: usize = 16;
+/// Least matched 3-D pairs that agree with one similarity for a tie.
+const TIE_MIN: usize = 40;
+/// A matched pair agrees with a similarity when it maps within this share of the point's
+/// depth (in the earlier frame) of its partner.
+const TIE_TOLERANCE: f64 = 0.05;
+/// RANSAC samples for a tie.
+const TIE_SAMPLES: usize = 500;
+
+/// A similarity `x -> scale * rotation * x + translation`.
+#[derive(Debug, Clone, Copy)]
+pub(crate) struct Similarity {
+    pub(crate) rotation: Mat3,
+    pub(crate) translation: Vec3,
+    pub(crate) scale: f64,
+}
+
+impl Similarity {
+    fn apply(&self, x: Vec3) -> Vec3 {
+        self.rotation * x * self.scale + self.translation
+    }
+
+    /// A camera-to-world pose of the source world in the target world.
+    fn pose(&self, p: &Pose) -> Pose {
+        Pose {
+            rotation: self.rotation * p.rotation,
+            translation: self.apply(p.translation),
+        }
+    }
+}
+
+/// The weighted least-squares similarity taking each `pairs[i].1` to `pairs[i].0`, weighed
+/// by `pairs[i].2` (Umeyama, 1991); `None` when degenerate.
+pub(crate) fn umeyama(pairs: &[(Vec3, Vec3, f64)]) -> Result<Option<Similarity>> {
+    let n: f64 = pairs.iter().map(|p| p.2).sum();
+    if pairs.len() < 3 || n <= 0.0 || n.is_nan() {
+        return Ok(None);
+    }
+    let mean = |f: fn(&(Vec3, Vec3, f64)) -> Vec3| {
+        pairs
+            .iter()
+            .map(|p| f(p) * p.2)
+            .fold(Vec3::ZERO, |a, b| a + b)
+            * (1.0 / n)
+    };
+    let (ma, mb) = (mean(|p| p.0), mean(|p| p.1));
+    let mut cov = Mat3([[0.0; 3]; 3]);
+    let mut var = 0.0;
+    for &(a, b, w) in pairs {
+        let (da, db) = (a - ma, b - mb);
+        cov = cov.add(&Mat3::outer(da, db).scale(w));
+        var += w * db.dot(db);
+    }
+    if var <= 1e-12 * n {
+        return Ok(None);
+    }
+    let m = Mat::from_slice_2d(&cov.scale(1.0 / n).0)?;
+    let (mut w, mut u, mut vt) = (Mat::default(), Mat::default(), Mat::default());
+    core::sv_decomp(&m, &mut w, &mut u, &mut vt, 0)?;
+    let (u, vt, w) = (mat3(&u)?, mat3(&vt)?, vec3(&w)?);
+    let sign = if (u * vt).det() < 0.0 { -1.0 } else { 1.0 };
+    let s = Mat3([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, sign]]);
+    let rotation = u * s * vt;
+    let scale = (w.x() + w.y() + sign * w.z()) / (var / n);
+    if !(scale.is_finite() && scale > 0.0) {
+        return Ok(None);
+    }
+    Ok(Some(Similarity {
+        rotation,
+        translation: ma - rotation * mb * scale,
+        scale,
+    }))
+}
+
+/// A matched 3-D pair: the earlier world's point, the later world's point, and the earlier
+/// one's depth in the frame that saw it.
+#[derive(Clone, Copy)]
+struct Pair {
+    a: Vec3,
+    b: Vec3,
+    z: f64,
+}
+
+/// The similarity most `pairs` agree with (RANSAC on three, then refitted on its inliers
+/// twice), and its inliers.
+fn fit_similarity(pairs: &[Pair]) -> Result<Option<(Similarity, usize)>> {
+    let inliers = |s: &Similarity| -> Vec<usize> {
+        (0..pairs.len())
+            .filter(|&i| {
+                let p = &pairs[i];
+                (s.apply(p.b) - p.a).norm() <= TIE_TOLERANCE * p.z
+            })
+            .collect()
+    };
+    // A point's error grows with the square of its depth: weigh it by the inverse.
+    let refit = |idx: &[usize]| -> Result<Option<Similarity>> {
+        let sel: Vec<(Vec3, Vec3, f64)> = idx
+            .iter()
+            .map(|&i| (pairs[i].a, pairs[i].b, pairs[i].z.powi(-2)))
+            .collect();
+        umeyama(&sel)
+    };
+    if pairs.len() < TIE_MIN {
+        return Ok(None);
+    }
+    // A fixed-seed generator: the same clip ties the same way every run.
+    let mut seed = 0x9e37_79b9_7f4a_7c15u64;
+    let mut next = |n: usize| {
+        seed = seed
+            .wrapping_mul(6_364_136_223_846_793_005)
+            .wrapping_add(1_442_695_040_888_963_407);
+        ((seed >> 33) % n as u64) as usize
+    };
+    let mut best: Vec<usize> = Vec::new();
+    for _ in 0..TIE_SAMPLES {
+        let idx = [next(pairs.len()), next(pairs.len()), next(pairs.len())];
+        if idx[0] == idx[1] || idx[1] == idx[2] || idx[0] == idx[2] {
+            continue;
+        }
+        if let Some(s) = refit(&idx)? {
+            let inl = inliers(&s);
+            if inl.len() > best.len() {
+                best = inl;
+            }
+        }
+    }
+    let mut fit = None;
+    for _ in 0..2 {
+        if best.len() < TIE_MIN {
+            return Ok(None);
+        }
+        let Some(s) = refit(&best)? else {
+            return Ok(None);
+        };
+        best = inliers(&s);
+        fit = Some(s);
+    }
+    Ok(fit
+        .filter(|_| best.len() >= TIE_MIN)
+        .map(|s| (s, best.len())))
+}
+
+/// Up to `n` of `v`, evenly spaced.
+fn spread(v: &[usize], n: usize) -> Vec<usize> {
+    if v.len() <= n {
+        return v.to_vec();
+    }
+    (0..n).map(|i| v[i * v.len() / n]).collect()
+}
+
+/// Ties every segment after the first into an earlier segment's world where their map
+/// points agree with one similarity (see the [module docs](self)): its poses are moved into
+/// that world and [`Trajectory::world`] says so. Returns how many segments were tied.
+pub(crate) fn tie_segments(
+    t: &mut Trajectory,
+    features: &[Option<Features>],
+    min_angle_deg: f64,
+) -> Result<usize> {
+    let mut maps = Maps {
+        cam: t.camera,
+        min_angle_deg,
+        features,
+        built: HashMap::new(),
+    };
+    let n = t.poses.len();
+    let last = t.segment.iter().copied().max().unwrap_or(0);
+    let mut tied = 0;
+    for s in 1..=last {
+        let placed = |f: usize| t.poses[f].is_some() && features[f].is_some();
+        let new: Vec<usize> = (0..n).filter(|&f| placed(f) && t.segment[f] == s).collect();
+        let old: Vec<usize> = (0..n).filter(|&f| placed(f) && t.segment[f] < s).collect();
+        // Matched pairs, by the earlier world.
+        let mut pairs: HashMap<u32, Vec<Pair>> = HashMap::new();
+        for &b in &spread(&new, TIE_FRAMES) {
+            for &a in &spread(&old, TIE_FRAMES) {
+                maps.get(t, a)?;
+                maps.get(t, b)?;
+                let (ma, mb) = (&maps.built[&a], &maps.built[&b]);
+                let m = matches(&ma.desc, &mb.desc)?;
+                if m.is_empty() {
+                    continue;
+                }
+                let to_a = t.poses[a].expect("placed").inverse();
+                let list = pairs.entry(t.world[a]).or_default();
+                for (i, j) in m {
+                    list.push(Pair {
+                        a: ma.points[i],
+                        b: mb.points[j],
+                        z: to_a.view_to_ref(ma.points[i]).z(),
+                    });
+                }
+            }
+        }
+        let mut worlds: Vec<(u32, Vec<Pair>)> = pairs.into_iter().collect();
+        worlds.sort_by_key(|(w, p)| (std::cmp::Reverse(p.len()), *w));
+        for (w, list) in worlds {
+            if let Some((sim, _)) = fit_similarity(&list)? {
+                for f in 0..n {
+                    if t.segment[f] == s {
+                        if let Some(p) = &mut t.poses[f] {
+                            *p = sim.pose(p);
+                            t.world[f] = w;
+                        }
+                    }
+                }
+                // The map points of the segment moved with it.
+                for (&f, m) in maps.built.iter_mut() {
+                    if t.segment[f] == s {
+                        m.points.iter_mut().for_each(|x| *x = sim.apply(*x));
+                    }
+                }
+                tied += 1;
+                break;
+            }
+        }
+    }
+    Ok(tied)
+}
+
+/// A feature of an unplaced frame matched with a map point: the map point's frame, the
+/// feature's position and the map point.
+type Sighting = (usize, Point2f, Vec3);
+
+/// Nearest placed frames whose map points an unplaced frame is matched with.
+const PLACE_FROM: usize = 4;
+/// Least PnP inliers that place a frame by relocalisation.
+const PLACE_MIN: usize = 30;
+
+/// Places the frames left unplaced, by PnP on the map points of the nearest placed frames
+/// (see the [module docs](self)), nearest to a placed frame first. Returns how many were
+/// placed.
+pub(crate) fn place_frames(
+    t: &mut Trajectory,
+    features: &[Option<Features>],
+    min_angle_deg: f64,
+    max_turn_deg: f64,
+) -> Result<usize> {
+    let mut maps = Maps {
+        cam: t.camera,
+        min_angle_deg,
+        features,
+        built: HashMap::new(),
+    };
+    let n = t.poses.len();
+    let cam = t.camera;
+    let k = Mat::from_slice_2d(&[
+        [cam.fx, 0.0, cam.cx],
+        [0.0, cam.fy, cam.cy],
+        [0.0, 0.0, 1.0],
+    ])?;
+    let mut placed = 0;
+    loop {
+        let mut progress = false;
+        for (f, ff) in features.iter().enumerate() {
+            let Some(ff) = ff.as_ref().filter(|_| t.poses[f].is_none()) else {
+                continue;
+            };
+            let mut near: Vec<usize> = (0..n).filter(|&g| t.poses[g].is_some()).collect();
+            near.sort_by_key(|&g| g.abs_diff(f));
+            near.truncate(PLACE_FROM);
+            // 2-D to 3-D matches by world, each feature of f once.
+            let mut by_world: HashMap<u32, (Vec<bool>, Vec<Sighting>)> = HashMap::new();
+            for &g in &near {
+                let m = maps.get(t, g)?;
+                let list = by_world
+                    .entry(t.world[g])
+                    .or_insert_with(|| (vec![false; ff.points.len()], Vec::new()));
+                for (i, j) in matches(&ff.desc, &m.desc)? {
+                    if !list.0[i] {
+                        list.0[i] = true;
+                        list.1.push((g, ff.points[i], m.points[j]));
+                    }
+                }
+            }
+            let Some((w, (_, list))) = by_world.into_iter().max_by_key(|(w, l)| (l.1.len(), *w))
+            else {
+                continue;
+            };
+            if list.len() < PLACE_MIN {
+                continue;
+            }
+            let obj: Vector<core::Point3f> = list
+                .iter()
+                .map(|(_, _, x)| core::Point3f::new(x.x() as f32, x.y() as f32, x.z() as f32))
+                .collect();
+            let img: Vector<Point2f> = list.iter().map(|l| l.1).collect();
+            let (mut rvec, mut tvec) = (Mat::default(), Mat::default());
+            let mut inl = Vector::<i32>::new();
+            let ok = calib3d::solve_pnp_ransac(
+                &obj,
+                &img,
+                &k,
+                &core::no_array(),
+                &mut rvec,
+                &mut tvec,
+                false,
+                300,
+                2.0,
+                0.999,
+                &mut inl,
+                calib3d::SOLVEPNP_ITERATIVE,
+            )?;
+            if !ok || inl.len() < PLACE_MIN {
+                continue;
+            }
+            let mut rm = Mat::default();
+            calib3d::rodrigues(&rvec, &mut rm, &mut core::no_array())?;
+            let pose = from_extrinsics(mat3(&rm)?, vec3(&tvec)?);
+            // No more turn to the nearest placed frame of the world than neighbouring frames
+            // take.
+            let turn_ok = near.iter().filter(|&&g| t.world[g] == w).all(|&g| {
+                let q = t.poses[g].expect("placed");
+                rotation_deg(&(q.rotation.transpose() * pose.rotation))
+                    <= max_turn_deg * g.abs_diff(f) as f64
+            });
+            if !pose.is_finite() || !turn_ok {
+                continue;
+            }
+            // The segment of the frame most inliers came from.
+            let mut votes: HashMap<usize, usize> = HashMap::new();
+            for i in inl.iter() {
+                *votes.entry(list[i as usize].0).or_default() += 1;
+            }
+            let from = votes
+                .into_iter()
+                .max_by_key(|&(g, v)| (v, std::cmp::Reverse(g)))
+                .map(|(g, _)| g)
+                .expect("inliers");
+            t.poses[f] = Some(pose);
+            t.inliers[f] = inl.len();
+            t.segment[f] = t.segment[from];
+            t.world[f] = w;
+            placed += 1;
+            progress = true;
+        }
+        if !progress {
+            return Ok(placed);
+        }
+    }
+}

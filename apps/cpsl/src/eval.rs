@@ -268,7 +268,8 @@ pub fn run_track(a: EvalTrackArgs) -> Result<()> {
     let mut depth = Vec::new();
     if let Some(points) = &points {
         let fox = cpsl_eval::video::load_fox(&a.data, 4, false)?;
-        let (video, how) = cpsl_eval::tracking::video_depth(&fox.frames, fox.camera, &fox.depth)?;
+        let v = cpsl_eval::tracking::video_depth(&fox.frames, fox.camera, &fox.depth)?;
+        let (video, how) = (v.depth, v.how);
         for (name, z) in [
             (fox.depth_name.as_str(), &fox.depth),
             (how.as_str(), &video),

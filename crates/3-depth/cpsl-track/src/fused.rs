@@ -87,6 +87,21 @@ impl TrackedDepth {
         })
     }
 
+    /// Where frame `index`'s camera is in the units of its depth: its position in the
+    /// trajectory's world times that world's scale, once a frame of the world has been fused
+    /// (`None` before, and for unplaced frames).
+    pub fn centre_in_depth_units(&self, index: usize) -> Option<cpsl_core::Vec3> {
+        let t = &self.trajectory;
+        let pose = t.poses.get(index).copied().flatten()?;
+        let scale = self.scale.get(t.world.get(index)?)?;
+        Some(pose.translation * *scale)
+    }
+
+    /// The trajectory the depth comes from.
+    pub fn trajectory(&self) -> &Trajectory {
+        &self.trajectory
+    }
+
     /// How the camera moves and how many frames were placed.
     pub fn summary(&self) -> String {
         let t = &self.trajectory;

@@ -149,12 +149,8 @@ pub fn fox(data: &Path) -> Result<TrackScore> {
 
 /// Depth of every frame from the video itself ([`TrackedDepth`]): tracked poses, multi-view
 /// depth from up to four nearest placed frames, fused with `prior` (per frame, any scale).
-/// Returns the depths and a description.
-pub fn video_depth(
-    frames: &[Vec<u8>],
-    camera: Camera,
-    prior: &[Vec<f32>],
-) -> Result<(Vec<Vec<f32>>, String)> {
+/// Returns the depths, a description and the camera centres in the depth's units.
+pub fn video_depth(frames: &[Vec<u8>], camera: Camera, prior: &[Vec<f32>]) -> Result<VideoDepth> {
     let (w, h) = (camera.width, camera.height);
     let mut t = Tracker::new(camera, TrackConfig::default())?;
     let mut greys = Vec::with_capacity(frames.len());
@@ -180,15 +176,38 @@ pub fn video_depth(
         .collect::<Result<Vec<_>>>()?;
     shares.sort_by(f64::total_cmp);
     let share = shares.get(shares.len() / 2).copied().unwrap_or(0.0);
-    Ok((
-        depths,
-        format!(
+    // The camera centres of the largest world, in the depth's units.
+    let t = tracked.trajectory();
+    let keep = t
+        .world_sizes()
+        .into_iter()
+        .max_by_key(|&(w, n)| (n, std::cmp::Reverse(w)));
+    let centres = (0..frames.len())
+        .map(|i| {
+            keep.filter(|&(w, _)| t.world[i] == w)
+                .and_then(|_| tracked.centre_in_depth_units(i))
+        })
+        .collect();
+    Ok(VideoDepth {
+        depth: depths,
+        how: format!(
             "video ({}, {} fused; median {:.0} % of pixels from the views, the rest FastDepth fitted to them or, on {alone} frames where its order disagrees, filled from the views)",
             tracked.summary(),
             shares.len(),
             100.0 * share
         ),
-    ))
+        centres,
+    })
+}
+
+/// Depth of a clip's frames from the video itself ([`video_depth`]).
+pub struct VideoDepth {
+    /// Per frame, the depth (the prior's size).
+    pub depth: Vec<Vec<f32>>,
+    /// Where it came from, in words.
+    pub how: String,
+    /// Per frame of the trajectory's largest world, its camera centre in the depth's units.
+    pub centres: Vec<Option<cpsl_core::Vec3>>,
 }
 
 /// Depth of the fox's frames scored at the 3-D points of an independent reconstruction.

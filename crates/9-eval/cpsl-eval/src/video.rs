@@ -342,18 +342,30 @@ pub fn load_fox(data: &Path, scale: u32, from_video: bool) -> Result<Fox> {
     let camera = video.camera.scaled(1.0 / scale as f64);
     let (frames, mut depth, mut name) =
         estimate_frames(&video.files, camera, scale as usize, Some(&video.lens))?;
+    let mut path_scale = None;
     if from_video {
-        let (z, how) = crate::tracking::video_depth(&frames, camera, &depth)?;
-        depth = z;
-        name = how;
+        let v = crate::tracking::video_depth(&frames, camera, &depth)?;
+        path_scale = spread_ratio(&video.poses, &v.centres);
+        depth = v.depth;
+        name = v.how;
     }
-    let ratios: Vec<f32> = depth
-        .iter()
-        .zip(&video.centre_depth)
-        .filter_map(|(z, c)| crate::datasets::median(z).map(|m| c / m))
-        .collect();
-    let k = crate::datasets::median(&ratios)
-        .ok_or_else(|| EvalError::Invalid("fox: no depth to scale".into()))?;
+    // Depth from the video is in the units of its own camera path: the path's size against
+    // the poses' scales it. Other depth (and a path of fewer than three frames) is scaled by
+    // the depth of the filmed object, a rougher proxy: its per-frame ratios spread by a
+    // fifth, so their median moves with which frames it is taken over.
+    let (k, how) = match path_scale {
+        Some(k) => (k, "camera path"),
+        None => {
+            let ratios: Vec<f32> = depth
+                .iter()
+                .zip(&video.centre_depth)
+                .filter_map(|(z, c)| crate::datasets::median(z).map(|m| c / m))
+                .collect();
+            let k = crate::datasets::median(&ratios)
+                .ok_or_else(|| EvalError::Invalid("fox: no depth to scale".into()))?;
+            (k, "object depth")
+        }
+    };
     let (w, h) = (camera.width as usize, camera.height as usize);
     for z in &mut depth {
         // Pixels the model gave no positive depth get one from their neighbours (in inverse
@@ -373,8 +385,33 @@ pub fn load_fox(data: &Path, scale: u32, from_video: bool) -> Result<Fox> {
         camera,
         frames,
         depth,
-        depth_name: format!("{name}, pose-scaled x{k:.3}"),
+        depth_name: format!("{name}, pose-scaled x{k:.3} ({how})"),
     })
+}
+
+/// How many times larger the camera path of `poses` is than `centres` (where known, at least
+/// three): the ratio of their root-mean-square distances from their centroids.
+fn spread_ratio(poses: &[cpsl_core::Pose], centres: &[Option<cpsl_core::Vec3>]) -> Option<f32> {
+    let pairs: Vec<(cpsl_core::Vec3, cpsl_core::Vec3)> = poses
+        .iter()
+        .zip(centres)
+        .filter_map(|(p, c)| Some((p.translation, (*c)?)))
+        .collect();
+    if pairs.len() < 3 {
+        return None;
+    }
+    let n = pairs.len() as f64;
+    let spread = |f: &dyn Fn(&(cpsl_core::Vec3, cpsl_core::Vec3)) -> cpsl_core::Vec3| {
+        let m = pairs
+            .iter()
+            .map(f)
+            .fold(cpsl_core::Vec3::ZERO, |a, b| a + b)
+            * (1.0 / n);
+        (pairs.iter().map(|p| (f(p) - m).dot(f(p) - m)).sum::<f64>() / n).sqrt()
+    };
+    let (truth, est) = (spread(&|p| p.0), spread(&|p| p.1));
+    let k = truth / est;
+    (k.is_finite() && k > 0.0).then_some(k as f32)
 }
 
 /// The fox at a quarter of full size. Its poses give every frame a real novel view: frame t is

@@ -210,7 +210,7 @@ pub struct Tracker {
     tracks: Vec<Vec<Obs>>,
     frames: u32,
     /// Per frame, its ORB features, for relocalisation (`reloc.rs`).
-    features: Vec<Option<reloc::Features>>,
+    features: Vec<reloc::Features>,
 }
 
 impl Tracker {
@@ -322,7 +322,7 @@ impl Tracker {
             self.detect(&grey, f)?;
         }
         self.prev = Some((grey, pyramid));
-        self.features.push(Some(features));
+        self.features.push(features);
         self.frames += 1;
         Ok(())
     }

@@ -98,11 +98,20 @@ struct MapPoints {
 struct Maps<'a> {
     cam: Camera,
     min_angle_deg: f64,
-    features: &'a [Option<Features>],
+    features: &'a [Features],
     built: HashMap<usize, MapPoints>,
 }
 
-impl Maps<'_> {
+impl<'a> Maps<'a> {
+    fn new(t: &Trajectory, features: &'a [Features], min_angle_deg: f64) -> Self {
+        Self {
+            cam: t.camera,
+            min_angle_deg,
+            features,
+            built: HashMap::new(),
+        }
+    }
+
     fn get(&mut self, t: &Trajectory, f: usize) -> Result<&MapPoints> {
         if !self.built.contains_key(&f) {
             let m = self.build(t, f)?;
@@ -114,15 +123,15 @@ impl Maps<'_> {
     fn build(&self, t: &Trajectory, f: usize) -> Result<MapPoints> {
         let mut feature = Vec::new();
         let mut points = Vec::new();
-        if let (Some(pose), Some(ff)) = (t.poses[f], &self.features[f]) {
-            // Partners: placed frames of the segment with features, within reach and turn,
+        let ff = &self.features[f];
+        if let Some(pose) = t.poses[f] {
+            // Partners: placed frames of the segment, within reach and turn,
             // nearest first; one that gives too few points (too short a baseline, too little
             // overlap) does not count.
             let lo = f.saturating_sub(MAP_REACH);
             let hi = (f + MAP_REACH).min(t.poses.len() - 1);
             let mut partners: Vec<(usize, Pose)> = (lo..=hi)
                 .filter(|&g| g != f && t.segment[g] == t.segment[f])
-                .filter(|&g| self.features[g].is_some())
                 .filter_map(|g| Some((g, t.poses[g]?)))
                 .filter(|(_, p)| {
                     rotation_deg(&(p.rotation.transpose() * pose.rotation)) <= MAP_TURN_DEG
@@ -132,7 +141,7 @@ impl Maps<'_> {
             let mut taken = vec![false; ff.points.len()];
             let mut good = 0;
             for &(g, pg) in partners.iter().take(MAP_TRIES) {
-                let fg = self.features[g].as_ref().expect("filtered");
+                let fg = &self.features[g];
                 let before = points.len();
                 for (i, j) in matches(&ff.desc, &fg.desc)? {
                     if taken[i] {
@@ -154,14 +163,12 @@ impl Maps<'_> {
             }
         }
         let mut desc = Mat::default();
-        if let Some(ff) = &self.features[f] {
-            let mut rows = Vector::<Mat>::new();
-            for &i in &feature {
-                rows.push(ff.desc.row(i as i32)?.try_clone()?);
-            }
-            if !rows.is_empty() {
-                core::vconcat(&rows, &mut desc)?;
-            }
+        let mut rows = Vector::<Mat>::new();
+        for &i in &feature {
+            rows.push(ff.desc.row(i as i32)?.try_clone()?);
+        }
+        if !rows.is_empty() {
+            core::vconcat(&rows, &mut desc)?;
         }
         Ok(MapPoints { points, desc })
     }
@@ -323,20 +330,15 @@ fn spread(v: &[usize], n: usize) -> Vec<usize> {
 /// that world and [`Trajectory::world`] says so. Returns how many segments were tied.
 pub(crate) fn tie_segments(
     t: &mut Trajectory,
-    features: &[Option<Features>],
+    features: &[Features],
     min_angle_deg: f64,
 ) -> Result<usize> {
-    let mut maps = Maps {
-        cam: t.camera,
-        min_angle_deg,
-        features,
-        built: HashMap::new(),
-    };
+    let mut maps = Maps::new(t, features, min_angle_deg);
     let n = t.poses.len();
     let last = t.segment.iter().copied().max().unwrap_or(0);
     let mut tied = 0;
     for s in 1..=last {
-        let placed = |f: usize| t.poses[f].is_some() && features[f].is_some();
+        let placed = |f: usize| t.poses[f].is_some();
         let new: Vec<usize> = (0..n).filter(|&f| placed(f) && t.segment[f] == s).collect();
         let old: Vec<usize> = (0..n).filter(|&f| placed(f) && t.segment[f] < s).collect();
         // Matched pairs, by the earlier world.
@@ -401,16 +403,11 @@ const PLACE_MIN: usize = 30;
 /// placed.
 pub(crate) fn place_frames(
     t: &mut Trajectory,
-    features: &[Option<Features>],
+    features: &[Features],
     min_angle_deg: f64,
     max_turn_deg: f64,
 ) -> Result<usize> {
-    let mut maps = Maps {
-        cam: t.camera,
-        min_angle_deg,
-        features,
-        built: HashMap::new(),
-    };
+    let mut maps = Maps::new(t, features, min_angle_deg);
     let n = t.poses.len();
     let cam = t.camera;
     let k = Mat::from_slice_2d(&[
@@ -422,9 +419,9 @@ pub(crate) fn place_frames(
     loop {
         let mut progress = false;
         for (f, ff) in features.iter().enumerate() {
-            let Some(ff) = ff.as_ref().filter(|_| t.poses[f].is_none()) else {
+            if t.poses[f].is_some() {
                 continue;
-            };
+            }
             let mut near: Vec<usize> = (0..n).filter(|&g| t.poses[g].is_some()).collect();
             near.sort_by_key(|&g| g.abs_diff(f));
             near.truncate(PLACE_FROM);

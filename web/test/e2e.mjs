@@ -44,10 +44,13 @@ let failures = 0;
 try {
   run(["demo", "-o", work, "--width", "192", "--height", "144", "--clip-frames", "24"]);
   const pkg = join(work, "clip.cpsl");
-  // A variant set of the same clip at two budgets, in GOPs of 8 frames (three segments).
+  // A variant set of the same clip at two budgets, in GOPs of 8 frames (three segments). The
+  // budgets are close together: the segments' files are a few hundred bytes, so the player's
+  // link measure is mostly scheduling jitter, and on a loaded 2-core machine it came out at
+  // 1.3-1.4 Mbit/s, under the 1.43 Mbit/s a 1 Mbit/s variant needs (150k,1M failed there).
   const clip = join(work, "clip");
   run(["encode", join(clip, "frames"), "--depth-frames", join(clip, "depth"), "--camera", join(clip, "camera.json"),
-       "--fps", "30", "--gop", "8", "--variants", "150k,1M", "-o", join(work, "set")]);
+       "--fps", "30", "--gop", "8", "--variants", "60k,300k", "-o", join(work, "set")]);
   // The same clip coded with VP9 and AV1 (the demuxer's other configuration records), and with
   // mesh layers (their grids in the side stream).
   for (const codec of ["vp9", "av1"])
@@ -114,7 +117,7 @@ try {
   // Variants: a fixed variant renders like the CPU reference of that package; left to adapt,
   // the player starts on the cheapest and moves to the best once it has measured the link.
   {
-    for (const [v, name] of ["150k.cpsl", "1000k.cpsl"].entries()) {
+    for (const [v, name] of ["60k.cpsl", "300k.cpsl"].entries()) {
       const ref = join(work, `ref_variant${v}.png`);
       const pose = "0.1,0,0,0,2,0";
       run(["render", join(work, "set", name), "--frame", "10", "--pose", pose, "-o", ref]);

@@ -2,7 +2,7 @@
 //! with a monocular prior, in the prior's units, with a fallback to the prior (and why) where
 //! the views cannot serve.
 
-use crate::mvs::{self, MvsConfig, Neighbour};
+use crate::mvs::{self, MvsConfig, Neighbour, ViewDepth};
 use crate::{CameraMotion, Mat, Result, TrackError, Trajectory};
 use cpsl_core::Pose;
 use opencv::prelude::*;
@@ -23,6 +23,15 @@ pub enum DepthFrom {
         /// Whether the prior filled the pixels the views did not see.
         prior: bool,
     },
+    /// The views were too seldom confident, so the depth of frame `from` (fused from its own
+    /// views, in the same world) was carried here by the two frames' poses and fused with
+    /// the prior like views: `share` of the pixels from it.
+    Carried {
+        /// The frame whose depth was carried.
+        from: usize,
+        /// Share of pixels from it.
+        share: f64,
+    },
     /// The prior (scaled to the clip), and why.
     Fallback(String),
 }
@@ -34,8 +43,10 @@ pub enum DepthFrom {
 /// (its first baseline is 1; segments tied into one world share it) is fixed by its first
 /// fused frame's median per-pixel ratio of prior to fused depth (times the median
 /// fused-to-prior ratio of the frames fused before, for a later world); only frames of the
-/// same segment serve as views. A
-/// frame the views cannot serve takes its prior, scaled by the median fused-to-prior ratio of
+/// same segment serve as views. A placed frame whose views are too seldom confident (at the
+/// end of a segment, or after a jump) takes the depth of the nearest frame fused before it in
+/// its world, carried to it by their poses ([`mvs::carry`]) and fused with its prior in the
+/// same way. A frame the views cannot serve otherwise takes its prior, scaled by the median fused-to-prior ratio of
 /// the frames fused so far, and says why: the camera does not translate (rotating, static,
 /// untracked), the frame was not placed, or its views saw too little. The flows between two
 /// frames serve both; they are kept until the frames asked for have passed them.
@@ -50,6 +61,9 @@ pub struct TrackedDepth {
     /// Flows between frames (from, to), kept while a later frame may use them: each flow
     /// serves both frames of its pair.
     flows: HashMap<(usize, usize), Mat>,
+    /// The last frames fused from their own views, with their depth (working resolution,
+    /// trajectory units), for frames after them that the views cannot serve.
+    recent: Vec<(usize, ViewDepth)>,
 }
 
 impl TrackedDepth {
@@ -84,6 +98,7 @@ impl TrackedDepth {
             scale: HashMap::new(),
             ratios: Vec::new(),
             flows: HashMap::new(),
+            recent: Vec::new(),
         })
     }
 
@@ -165,28 +180,37 @@ impl TrackedDepth {
                 let small = mvs::resize_depth(prior, (width, height), size)?;
                 let guide = crate::work_rgb(rgb, width, height, size)?;
                 let fused = mvs::fuse(&views, &small, &guide, Self::MIN_CONFIDENCE)?
-                    .and_then(|(z, f)| Some((median_ratio(&small, &z.depth)?, z.depth, f)));
-                match fused {
-                    Some((ratio, z, fusion)) => {
-                        // A later world starts at the fused-to-prior ratio typical so far,
-                        // not at its first frame's prior alone.
-                        let typical = self.typical_ratio();
-                        let scale = *self.scale.entry(t.world[index]).or_insert(ratio * typical);
-                        let mut z = mvs::resize_depth(&z, size, (width, height))?;
-                        z.iter_mut().for_each(|v| *v *= scale as f32);
-                        self.ratios.push(scale / ratio);
-                        let from = DepthFrom::Views {
-                            share: fusion.from_views,
-                            views: near.len(),
-                            prior: fusion.prior.is_some(),
-                        };
-                        return Ok((z, from));
+                    .and_then(|(z, f)| Some((median_ratio(&small, &z.depth)?, z, f)));
+                if let Some((ratio, z, fusion)) = fused {
+                    // A later world starts at the fused-to-prior ratio typical so far, not at
+                    // its first frame's prior alone.
+                    let typical = self.typical_ratio();
+                    let scale = *self.scale.entry(t.world[index]).or_insert(ratio * typical);
+                    self.ratios.push(scale / ratio);
+                    let out = scaled(&z.depth, size, (width, height), scale)?;
+                    self.recent.push((index, z));
+                    if self.recent.len() > Self::NEIGHBOURS {
+                        self.recent.remove(0);
                     }
-                    None if views.density() < 0.01 => format!(
+                    let from = DepthFrom::Views {
+                        share: fusion.from_views,
+                        views: near.len(),
+                        prior: fusion.prior.is_some(),
+                    };
+                    return Ok((out, from));
+                }
+                if let Some((from, z, share)) = self.carried(index, &pose, &small, &guide)? {
+                    let scale = self.scale[&t.world[index]];
+                    let out = scaled(&z, size, (width, height), scale)?;
+                    return Ok((out, DepthFrom::Carried { from, share }));
+                }
+                if views.density() < 0.01 {
+                    format!(
                         "the views saw too little ({:.1} % triangulated)",
                         100.0 * views.density()
-                    ),
-                    None => "the views were too seldom confident".to_string(),
+                    )
+                } else {
+                    "the views were too seldom confident".to_string()
                 }
             }
             (CameraMotion::Translating, None) => "the frame was not placed".to_string(),
@@ -203,6 +227,34 @@ impl TrackedDepth {
         ))
     }
 
+    /// The depth of the frame nearest to `index` among those fused from their own views in
+    /// its world, carried to it and fused with its `small` prior (guided by `guide`): the
+    /// frame, the fused depth (working resolution, trajectory units) and the share of pixels
+    /// from the carried depth; `None` when no such frame is at hand or too little of it lands.
+    fn carried(
+        &self,
+        index: usize,
+        pose: &Pose,
+        small: &[f32],
+        guide: &Mat,
+    ) -> Result<Option<(usize, Vec<f32>, f64)>> {
+        let t = &self.trajectory;
+        let Some((from, depth)) = self
+            .recent
+            .iter()
+            .filter(|(j, _)| t.world[*j] == t.world[index])
+            .min_by_key(|(j, _)| j.abs_diff(index))
+        else {
+            return Ok(None);
+        };
+        let Some(from_pose) = t.poses[*from] else {
+            return Ok(None);
+        };
+        let moved = mvs::carry(&t.camera, &from_pose, depth, pose)?;
+        Ok(mvs::fuse(&moved, small, guide, Self::MIN_CONFIDENCE)?
+            .map(|(z, f)| (*from, z.depth, f.from_views)))
+    }
+
     /// The median fused-to-prior ratio of the frames fused so far (1 before the first).
     fn typical_ratio(&self) -> f64 {
         if self.ratios.is_empty() {
@@ -210,6 +262,13 @@ impl TrackedDepth {
         }
         crate::median(&mut self.ratios.clone())
     }
+}
+
+/// Depth `z` at working size `size` brought to `to` and multiplied by `scale`.
+fn scaled(z: &[f32], size: (u32, u32), to: (u32, u32), scale: f64) -> Result<Vec<f32>> {
+    let mut z = mvs::resize_depth(z, size, to)?;
+    z.iter_mut().for_each(|v| *v *= scale as f32);
+    Ok(z)
 }
 
 /// Median over the pixels of `a / b` (both finite and positive).

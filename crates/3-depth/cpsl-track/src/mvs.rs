@@ -274,6 +274,52 @@ pub struct Fusion {
     pub prior: Option<(f64, f64)>,
 }
 
+/// `depth` of the frame at `from` (working resolution, trajectory units) seen from the frame
+/// at `to`: every pixel with a depth moved to where its point projects there, the nearest
+/// point winning where several land on one pixel; each keeps its confidence. Pixels no point
+/// reaches (disoccluded, or outside `from`'s view) are unknown.
+pub fn carry(cam: &Camera, from: &Pose, depth: &ViewDepth, to: &Pose) -> Result<ViewDepth> {
+    let (w, h) = (cam.width as usize, cam.height as usize);
+    if (depth.width, depth.height) != (cam.width, cam.height) {
+        return Err(TrackError::Input(format!(
+            "carrying a {}x{} depth map with a {w}x{h} camera",
+            depth.width, depth.height
+        )));
+    }
+    let back = to.rotation.transpose();
+    let (mut z, mut conf) = (vec![f32::NAN; w * h], vec![0.0f32; w * h]);
+    for y in 0..h {
+        for x in 0..w {
+            let (d, c) = (depth.depth[y * w + x], depth.confidence[y * w + x]);
+            if !(d.is_finite() && d > 0.0) {
+                continue;
+            }
+            let world =
+                from.translation + from.rotation * cam.unproject(x as f64, y as f64, d as f64);
+            let p = back * (world - to.translation);
+            let Some((u, v)) = cam.project(p) else {
+                continue;
+            };
+            let (u, v) = (u.round(), v.round());
+            if !(u >= 0.0 && v >= 0.0 && u < w as f64 && v < h as f64) {
+                continue;
+            }
+            let i = v as usize * w + u as usize;
+            let zt = p.z() as f32;
+            if !(z[i] <= zt) {
+                z[i] = zt;
+                conf[i] = c;
+            }
+        }
+    }
+    Ok(ViewDepth {
+        width: cam.width,
+        height: cam.height,
+        depth: z,
+        confidence: conf,
+    })
+}
+
 /// `z` (z-depth, `from` = width x height, NaN where unknown) resized to `to`: its inverse
 /// depth area-averaged (shrinking) or bilinearly interpolated (enlarging) over the known
 /// pixels; NaN where none is near.

@@ -321,6 +321,10 @@ impl VideoTrackedDepth {
                 "video: {:.0} % of pixels from {views} views, the rest filled from them ({name}'s depth order disagrees)",
                 100.0 * share
             ),
+            DepthFrom::Carried { from, share } => format!(
+                "video: the views too seldom confident, {:.0} % of pixels carried from frame {from}'s depth, the rest {name} fitted to them",
+                100.0 * share
+            ),
             DepthFrom::Fallback(why) => format!("fallback: {why}; {name}"),
         };
         Ok(z)

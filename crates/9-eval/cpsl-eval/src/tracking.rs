@@ -160,16 +160,20 @@ pub fn video_depth(frames: &[Vec<u8>], camera: Camera, prior: &[Vec<f32>]) -> Re
         t.push_grey(g)?;
     }
     let mut tracked = TrackedDepth::new(t.finish()?, greys)?;
-    let (mut shares, mut alone) = (Vec::new(), 0);
+    let (mut shares, mut alone, mut carried) = (Vec::new(), 0, 0);
     let depths = prior
         .iter()
         .zip(frames)
         .enumerate()
         .map(|(i, (p, rgb))| {
             let (z, from) = tracked.depth(i, rgb, p, (w, h))?;
-            if let DepthFrom::Views { share, prior, .. } = from {
-                shares.push(share);
-                alone += usize::from(!prior);
+            match from {
+                DepthFrom::Views { share, prior, .. } => {
+                    shares.push(share);
+                    alone += usize::from(!prior);
+                }
+                DepthFrom::Carried { .. } => carried += 1,
+                DepthFrom::Fallback(_) => {}
             }
             Ok(z)
         })
@@ -191,7 +195,7 @@ pub fn video_depth(frames: &[Vec<u8>], camera: Camera, prior: &[Vec<f32>]) -> Re
     Ok(VideoDepth {
         depth: depths,
         how: format!(
-            "video ({}, {} fused; median {:.0} % of pixels from the views, the rest FastDepth fitted to them or, on {alone} frames where its order disagrees, filled from the views)",
+            "video ({}, {} fused, {carried} carried from a neighbour; median {:.0} % of pixels from the views, the rest FastDepth fitted to them or, on {alone} frames where its order disagrees, filled from the views)",
             tracked.summary(),
             shares.len(),
             100.0 * share

@@ -306,7 +306,7 @@ pub fn carry(cam: &Camera, from: &Pose, depth: &ViewDepth, to: &Pose) -> Result<
             }
             let i = v as usize * w + u as usize;
             let zt = p.z() as f32;
-            if !(z[i] <= zt) {
+            if z[i].is_nan() || zt < z[i] {
                 z[i] = zt;
                 conf[i] = c;
             }

@@ -43,7 +43,10 @@ pub enum DepthFrom {
 /// (its first baseline is 1; segments tied into one world share it) is fixed by its first
 /// fused frame's median per-pixel ratio of prior to fused depth (times the median
 /// fused-to-prior ratio of the frames fused before, for a later world); only frames of the
-/// same segment serve as views. A placed frame whose views are too seldom confident (at the
+/// same segment serve as views. Each fused frame is then averaged with the frame fused before
+/// it, carried to it, where both are confident and agree within [`TrackedDepth::FILTER_AGREE`]
+/// (a per-pixel inverse-depth filter over time; moving points disagree and keep their own
+/// depth). A placed frame whose views are too seldom confident (at the
 /// end of a segment, or after a jump) takes the depth of the nearest frame fused before it in
 /// its world, carried to it by their poses ([`mvs::carry`]) and fused with its prior in the
 /// same way. A frame the views cannot serve otherwise takes its prior, scaled by the median fused-to-prior ratio of
@@ -71,6 +74,13 @@ impl TrackedDepth {
     pub const NEIGHBOURS: usize = 4;
     /// Least confidence of a multi-view pixel kept over the prior.
     pub const MIN_CONFIDENCE: f32 = 0.5;
+    /// Frames back the temporal filter reaches for an earlier fused frame.
+    pub const FILTER_REACH: usize = 2;
+    /// Largest disagreement of two inverse depths the temporal filter averages (a share):
+    /// beyond it the point moved or one of them is wrong, and the frame keeps its own.
+    /// Measured on the fox: the depth at pycolmap's points AbsRel 1.54 % (1.57 % without the
+    /// filter; 10 % the same), its novel views' boundary variance 27.7 against 28.2 px^2.
+    pub const FILTER_AGREE: f32 = 0.05;
 
     /// Depth for the clip solved as `trajectory`, whose frames' working grey images
     /// ([`crate::Tracker::grey`]) are `greys`, one per frame.
@@ -181,7 +191,8 @@ impl TrackedDepth {
                 let guide = crate::work_rgb(rgb, width, height, size)?;
                 let fused = mvs::fuse(&views, &small, &guide, Self::MIN_CONFIDENCE)?
                     .and_then(|(z, f)| Some((median_ratio(&small, &z.depth)?, z, f)));
-                if let Some((ratio, z, fusion)) = fused {
+                if let Some((ratio, mut z, fusion)) = fused {
+                    self.filter(index, &pose, &mut z)?;
                     // A later world starts at the fused-to-prior ratio typical so far, not at
                     // its first frame's prior alone.
                     let typical = self.typical_ratio();
@@ -253,6 +264,24 @@ impl TrackedDepth {
         let moved = mvs::carry(&t.camera, &from_pose, depth, pose)?;
         Ok(mvs::fuse(&moved, small, guide, Self::MIN_CONFIDENCE)?
             .map(|(z, f)| (*from, z.depth, f.from_views)))
+    }
+
+    /// Frame `index`'s fused depth `z` averaged, where both are confident and agree, with the
+    /// depth of the frame fused before it (at most [`Self::FILTER_REACH`] frames back in its
+    /// segment) carried to it ([`mvs::blend`]).
+    fn filter(&self, index: usize, pose: &Pose, z: &mut ViewDepth) -> Result<()> {
+        let t = &self.trajectory;
+        let Some((from, depth)) = self.recent.iter().rev().find(|(j, _)| {
+            t.segment[*j] == t.segment[index] && j.abs_diff(index) <= Self::FILTER_REACH
+        }) else {
+            return Ok(());
+        };
+        let Some(from_pose) = t.poses[*from] else {
+            return Ok(());
+        };
+        let moved = mvs::carry(&t.camera, &from_pose, depth, pose)?;
+        mvs::blend(z, &moved, Self::MIN_CONFIDENCE, Self::FILTER_AGREE);
+        Ok(())
     }
 
     /// The median fused-to-prior ratio of the frames fused so far (1 before the first).

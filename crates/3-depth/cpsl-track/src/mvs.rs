@@ -320,6 +320,28 @@ pub fn carry(cam: &Camera, from: &Pose, depth: &ViewDepth, to: &Pose) -> Result<
     })
 }
 
+/// `z` averaged with `earlier` (another frame's depth carried to it, [`carry`]; same size)
+/// in inverse depth, weighted by confidence, at the pixels where both have at least
+/// `min_conf` and their inverse depths differ by at most `agree` of `z`'s; the confidence
+/// stays `z`'s.
+pub fn blend(z: &mut ViewDepth, earlier: &ViewDepth, min_conf: f32, agree: f32) {
+    for (((a, &ca), &b), &cb) in z
+        .depth
+        .iter_mut()
+        .zip(&z.confidence)
+        .zip(&earlier.depth)
+        .zip(&earlier.confidence)
+    {
+        if !(a.is_finite() && b.is_finite() && ca >= min_conf && cb >= min_conf) {
+            continue;
+        }
+        let (ia, ib) = (1.0 / *a, 1.0 / b);
+        if (ia - ib).abs() <= agree * ia {
+            *a = (ca + cb) / (ca * ia + cb * ib);
+        }
+    }
+}
+
 /// `z` (z-depth, `from` = width x height, NaN where unknown) resized to `to`: its inverse
 /// depth area-averaged (shrinking) or bilinearly interpolated (enlarging) over the known
 /// pixels; NaN where none is near.
@@ -571,6 +593,41 @@ mod tests {
     use super::{fuse, resize_depth, ViewDepth};
     use opencv::core::{Mat, Scalar, CV_8U};
     use opencv::prelude::*;
+
+    #[test]
+    fn blending_averages_agreeing_confident_depth_only() {
+        let view = |depth: Vec<f32>, confidence: Vec<f32>| ViewDepth {
+            width: 5,
+            height: 1,
+            depth,
+            confidence,
+        };
+        // Agreeing (1/2 and 1/2.04, equal weights), agreeing with twice the weight, too far
+        // apart (a moving point), one not confident, one unknown.
+        let mut z = view(
+            vec![2.0, 2.0, 2.0, 2.0, f32::NAN],
+            vec![0.8, 0.5, 0.8, 0.8, 0.0],
+        );
+        let earlier = view(
+            vec![2.04, 2.04, 3.0, 2.04, 2.0],
+            vec![0.8, 1.0, 0.8, 0.4, 1.0],
+        );
+        super::blend(&mut z, &earlier, 0.5, 0.05);
+        let inv = |a: f32, wa: f32, b: f32, wb: f32| (wa + wb) / (wa / a + wb / b);
+        assert!(
+            (z.depth[0] - inv(2.0, 1.0, 2.04, 1.0)).abs() < 1e-5,
+            "{:?}",
+            z.depth
+        );
+        assert!(
+            (z.depth[1] - inv(2.0, 1.0, 2.04, 2.0)).abs() < 1e-5,
+            "{:?}",
+            z.depth
+        );
+        assert_eq!(&z.depth[2..4], &[2.0, 2.0]);
+        assert!(z.depth[4].is_nan());
+        assert_eq!(z.confidence, vec![0.8, 0.5, 0.8, 0.8, 0.0]);
+    }
 
     #[test]
     fn fusion_fits_the_prior_or_leaves_what_it_cannot_place() {

@@ -512,13 +512,14 @@ fn frames_the_views_cannot_serve_take_a_neighbours_depth() {
             DepthFrom::Fallback(why) => panic!("frame {i}: {why}"),
         }
     }
-    // Measured: frames 0-7 (moving) fused from their views, median ratios 0.965-1.007;
-    // frames 8-12 (still) carried from frame 7, at its ratio.
+    // Measured: frames 0-7 (moving) fused from their views, median ratios 0.968-1.002;
+    // frames 8-12 (still) carried from frame 7, within 0.6 % of its ratio (fused with the
+    // prior again, which fills what the carried depth does not reach).
     eprintln!("median ratios {ratios:.4?}, carried {carried:?}");
     assert!(ratios.iter().all(|r| (r - 1.0).abs() < 0.05), "{ratios:?}");
     assert!(carried.len() >= 3, "{carried:?}");
     for &(i, from, share) in &carried {
         assert!(from >= 7 && from < i && share > 0.2, "{carried:?}");
-        assert!((ratios[i] / ratios[from] - 1.0).abs() < 0.005, "{ratios:?}");
+        assert!((ratios[i] / ratios[from] - 1.0).abs() < 0.01, "{ratios:?}");
     }
 }

@@ -47,6 +47,30 @@ fn track_with(cam: Camera, frames: &[Vec<u8>], cfg: TrackConfig) -> Trajectory {
     t.finish().unwrap()
 }
 
+/// The trajectory of `frames` and their working grey images, for [`TrackedDepth`].
+fn track_keeping_greys(cam: Camera, frames: &[Vec<u8>]) -> (Trajectory, Vec<Mat>) {
+    let mut t = Tracker::new(cam, TrackConfig::default()).unwrap();
+    let mut greys = Vec::new();
+    for f in frames {
+        let g = t.grey(f, cam.width, cam.height).unwrap();
+        greys.push(g.clone());
+        t.push_grey(g).unwrap();
+    }
+    (t.finish().unwrap(), greys)
+}
+
+/// The ratios `z / prior` where both are known, in increasing order.
+fn sorted_ratios(z: &[f32], prior: &[f32]) -> Vec<f64> {
+    let mut rel: Vec<f64> = z
+        .iter()
+        .zip(prior)
+        .filter(|(z, p)| z.is_finite() && p.is_finite())
+        .map(|(z, p)| (z / p) as f64)
+        .collect();
+    rel.sort_by(f64::total_cmp);
+    rel
+}
+
 /// Median rotation error and translation-direction error (degrees) against `truth`
 /// (camera-to-world with frame 0 at the origin).
 fn errors(est: &Trajectory, truth: &[Pose]) -> (f64, f64, usize) {
@@ -375,14 +399,7 @@ fn tracked_depth_fuses_views_with_the_prior_in_its_units() {
     let path = sideways();
     let (scene, frames) = clip(&path);
     let cam = scene.camera;
-    let mut t = Tracker::new(cam, TrackConfig::default()).unwrap();
-    let mut greys = Vec::new();
-    for f in &frames {
-        let g = t.grey(f, W, H).unwrap();
-        greys.push(g.clone());
-        t.push_grey(g).unwrap();
-    }
-    let est = t.finish().unwrap();
+    let (est, greys) = track_keeping_greys(cam, &frames);
     assert!(TrackedDepth::new(est.clone(), greys[1..].to_vec()).is_err());
     let mut tracked = TrackedDepth::new(est, greys).unwrap();
     let (mut ratios, mut offs) = (Vec::new(), Vec::new());
@@ -394,13 +411,7 @@ fn tracked_depth_fuses_views_with_the_prior_in_its_units() {
             matches!(from, DepthFrom::Views { share, .. } if share > 0.3),
             "frame {i}: {from:?}"
         );
-        let mut rel: Vec<f64> = z
-            .iter()
-            .zip(&prior)
-            .filter(|(z, p)| z.is_finite() && p.is_finite())
-            .map(|(z, p)| (z / p) as f64)
-            .collect();
-        rel.sort_by(f64::total_cmp);
+        let rel = sorted_ratios(&z, &prior);
         ratios.push(rel[rel.len() / 2]);
         let off = rel.iter().filter(|r| (*r - 1.0).abs() > 0.05).count();
         offs.push(off as f64 / rel.len() as f64);
@@ -482,14 +493,7 @@ fn frames_the_views_cannot_serve_take_a_neighbours_depth() {
     path.extend(std::iter::repeat_n(path[7], 5));
     let (scene, frames) = clip(&path);
     let cam = scene.camera;
-    let mut t = Tracker::new(cam, TrackConfig::default()).unwrap();
-    let mut greys = Vec::new();
-    for f in &frames {
-        let g = t.grey(f, W, H).unwrap();
-        greys.push(g.clone());
-        t.push_grey(g).unwrap();
-    }
-    let est = t.finish().unwrap();
+    let (est, greys) = track_keeping_greys(cam, &frames);
     assert_eq!(est.motion, CameraMotion::Translating);
     let mut tracked = TrackedDepth::new(est, greys).unwrap();
     let mut ratios = Vec::new();
@@ -498,13 +502,7 @@ fn frames_the_views_cannot_serve_take_a_neighbours_depth() {
         let truth = scene.render(&cam, p, 0.0, 1).depth;
         let prior: Vec<f32> = truth.iter().map(|z| 3.0 * z).collect();
         let (z, from) = tracked.depth(i, &frames[i], &prior, (W, H)).unwrap();
-        let mut rel: Vec<f64> = z
-            .iter()
-            .zip(&prior)
-            .filter(|(z, p)| z.is_finite() && p.is_finite())
-            .map(|(z, p)| (z / p) as f64)
-            .collect();
-        rel.sort_by(f64::total_cmp);
+        let rel = sorted_ratios(&z, &prior);
         ratios.push(rel[rel.len() / 2]);
         match from {
             DepthFrom::Views { .. } => assert!(i < 8, "frame {i} fused from its views"),

@@ -46,11 +46,11 @@ pub enum DepthFrom {
 /// same segment serve as views. Each fused frame is then averaged with the frame fused before
 /// it, carried to it, where both are confident and agree within [`TrackedDepth::FILTER_AGREE`]
 /// (a per-pixel inverse-depth filter over time; moving points disagree and keep their own
-/// depth). A placed frame whose views are too seldom confident (at the
-/// end of a segment, or after a jump) takes the depth of the nearest frame fused before it in
-/// its world, carried to it by their poses ([`mvs::carry`]) and fused with its prior in the
-/// same way. A frame the views cannot serve otherwise takes its prior, scaled by the median fused-to-prior ratio of
-/// the frames fused so far, and says why: the camera does not translate (rotating, static,
+/// depth). A placed frame whose views are too seldom confident (at the end of a segment, or
+/// after a jump) takes the depth of the nearest frame fused before it in its world, carried
+/// to it by their poses ([`mvs::carry`]) and fused with its prior in the same way. A frame
+/// the views cannot serve otherwise takes its prior, scaled by the median fused-to-prior
+/// ratio of the frames fused so far, and says why: the camera does not translate (rotating, static,
 /// untracked), the frame was not placed, or its views saw too little. The flows between two
 /// frames serve both; they are kept until the frames asked for have passed them.
 pub struct TrackedDepth {

@@ -82,7 +82,7 @@ pub fn run(a: TrackArgs) -> Result<()> {
         eprintln!(
             "note: {} holds world {} only (the one with the most placed frames)",
             path.display(),
-            cpsl_pipeline::track::largest_world(&t)
+            t.largest_world()
         );
     }
     if placed == 0 {

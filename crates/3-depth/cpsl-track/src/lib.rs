@@ -185,6 +185,14 @@ impl Trajectory {
         self.world_sizes().len()
     }
 
+    /// The world with the most placed frames (the first of equals; 0 when none is placed).
+    pub fn largest_world(&self) -> u32 {
+        self.world_sizes()
+            .into_iter()
+            .max_by_key(|&(w, n)| (n, std::cmp::Reverse(w)))
+            .map_or(0, |(w, _)| w)
+    }
+
     fn sizes(&self, ids: &[u32]) -> Vec<(u32, usize)> {
         let mut sizes = std::collections::BTreeMap::new();
         for (p, &s) in self.poses.iter().zip(ids) {

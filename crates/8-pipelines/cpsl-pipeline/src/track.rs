@@ -144,7 +144,7 @@ pub struct PosesFile {
 }
 
 /// The files of a tracked clip: `poses.json` and `transforms.json` (the placed frames of the
-/// world with the most of them ([`largest_world`]); each
+/// world with the most of them ([`Trajectory::largest_world`]); each
 /// `file_path` is the frame's file in `dir`, absolute where it can be resolved, when the
 /// input was a folder of frames).
 pub fn pose_files(
@@ -170,7 +170,7 @@ pub fn pose_files(
             }
         })
         .collect();
-    let keep = largest_world(t);
+    let keep = t.largest_world();
     let transforms: Vec<serde_json::Value> = frames
         .iter()
         .filter(|f| f.world == keep)
@@ -208,14 +208,6 @@ pub fn pose_files(
         frames,
     };
     (poses, nerf)
-}
-
-/// The world with the most placed frames (the first of equals; 0 when none is placed).
-pub fn largest_world(t: &Trajectory) -> u32 {
-    t.world_sizes()
-        .into_iter()
-        .max_by_key(|&(s, n)| (n, std::cmp::Reverse(s)))
-        .map_or(0, |(s, _)| s)
 }
 
 /// Depth from the video itself: a first pass tracks the camera through the whole input

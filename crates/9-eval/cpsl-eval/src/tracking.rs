@@ -180,16 +180,15 @@ pub fn video_depth(frames: &[Vec<u8>], camera: Camera, prior: &[Vec<f32>]) -> Re
         .collect::<Result<Vec<_>>>()?;
     shares.sort_by(f64::total_cmp);
     let share = shares.get(shares.len() / 2).copied().unwrap_or(0.0);
-    // The camera centres of the largest world, in the depth's units.
+    // The camera centres of the largest world, in the depth's units (none for unplaced
+    // frames).
     let t = tracked.trajectory();
-    let keep = t
-        .world_sizes()
-        .into_iter()
-        .max_by_key(|&(w, n)| (n, std::cmp::Reverse(w)));
+    let keep = t.largest_world();
     let centres = (0..frames.len())
         .map(|i| {
-            keep.filter(|&(w, _)| t.world[i] == w)
-                .and_then(|_| tracked.centre_in_depth_units(i))
+            (t.world[i] == keep)
+                .then(|| tracked.centre_in_depth_units(i))
+                .flatten()
         })
         .collect();
     Ok(VideoDepth {

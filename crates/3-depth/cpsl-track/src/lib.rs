@@ -662,6 +662,51 @@ pub(crate) fn triangulate(
     Some(x)
 }
 
+/// PnP of the camera that sees the points `obj` at `img` (working pixels; OpenCV's RANSAC
+/// over `iterations` samples, 2 px, with its iterative solver), starting from `guess` when
+/// given: the camera-to-world pose and the indices of the inliers; `None` when it fails or
+/// the pose is not finite.
+pub(crate) fn pnp(
+    k: &Mat,
+    obj: &Vector<core::Point3f>,
+    img: &Vector<Point2f>,
+    guess: Option<Pose>,
+    iterations: i32,
+) -> Result<Option<(Pose, Vector<i32>)>> {
+    let (mut rvec, mut tvec) = (Mat::default(), Mat::default());
+    if let Some(p) = guess {
+        let Pose {
+            rotation: r,
+            translation: t,
+        } = p.inverse();
+        let rm = Mat::from_slice_2d(&r.0)?;
+        calib3d::rodrigues(&rm, &mut rvec, &mut core::no_array())?;
+        tvec = Mat::from_slice_2d(&[[t.x()], [t.y()], [t.z()]])?;
+    }
+    let mut inl: Vector<i32> = Vector::new();
+    let ok = calib3d::solve_pnp_ransac(
+        obj,
+        img,
+        k,
+        &core::no_array(),
+        &mut rvec,
+        &mut tvec,
+        guess.is_some(),
+        iterations,
+        2.0,
+        0.999,
+        &mut inl,
+        calib3d::SOLVEPNP_ITERATIVE,
+    )?;
+    if !ok {
+        return Ok(None);
+    }
+    let mut rm = Mat::default();
+    calib3d::rodrigues(&rvec, &mut rm, &mut core::no_array())?;
+    let pose = from_extrinsics(mat3(&rm)?, vec3(&tvec)?);
+    Ok(pose.is_finite().then_some((pose, inl)))
+}
+
 /// OpenCV's 3x3 camera matrix of `cam`.
 pub(crate) fn camera_matrix(cam: &Camera) -> Result<Mat> {
     Ok(Mat::from_slice_2d(&[
@@ -954,43 +999,11 @@ impl Solver {
         if obj.len() < MIN_PNP {
             return Ok(false);
         }
-        let k = self.k()?;
-        let (mut rvec, mut tvec) = (Mat::default(), Mat::default());
-        let guess = match (refine, self.poses[f]) {
-            (true, Some(p)) => {
-                let Pose {
-                    rotation: r,
-                    translation: t,
-                } = p.inverse();
-                let rm = Mat::from_slice_2d(&r.0)?;
-                calib3d::rodrigues(&rm, &mut rvec, &mut core::no_array())?;
-                tvec = Mat::from_slice_2d(&[[t.x()], [t.y()], [t.z()]])?;
-                true
-            }
-            _ => false,
-        };
-        let mut inl: Vector<i32> = Vector::new();
-        let ok = calib3d::solve_pnp_ransac(
-            &obj,
-            &img,
-            &k,
-            &core::no_array(),
-            &mut rvec,
-            &mut tvec,
-            guess,
-            200,
-            2.0,
-            0.999,
-            &mut inl,
-            calib3d::SOLVEPNP_ITERATIVE,
-        )?;
-        if !ok || inl.len() < if refine { MIN_PNP } else { MIN_PNP_NEW } {
+        let guess = self.poses[f].filter(|_| refine);
+        let Some((pose, inl)) = pnp(&self.k()?, &obj, &img, guess, 200)? else {
             return Ok(false);
-        }
-        let mut rm = Mat::default();
-        calib3d::rodrigues(&rvec, &mut rm, &mut core::no_array())?;
-        let pose = from_extrinsics(mat3(&rm)?, vec3(&tvec)?);
-        if !pose.is_finite() {
+        };
+        if inl.len() < if refine { MIN_PNP } else { MIN_PNP_NEW } {
             return Ok(false);
         }
         // A camera does not turn by more than MAX_TURN_DEG between neighbouring frames: a

@@ -15,13 +15,11 @@
 //! - *Placing* ([`place_frames`]). A frame left unplaced is matched with the map points of
 //!   the nearest placed frames and placed by PnP (RANSAC) in their world.
 
-use crate::{
-    camera_matrix, from_extrinsics, mat3, rotation_deg, triangulate, vec3, Result, Trajectory,
-};
+use crate::{camera_matrix, mat3, pnp, rotation_deg, triangulate, vec3, Result, Trajectory};
 use cpsl_core::{Camera, Mat3, Pose, Vec3};
 use opencv::core::{self, Point2f, Vector};
+use opencv::features2d;
 use opencv::prelude::*;
-use opencv::{calib3d, features2d};
 use std::collections::HashMap;
 
 /// ORB features of a frame: positions (working pixels) and descriptors, one row each.
@@ -448,28 +446,12 @@ pub(crate) fn place_frames(
                 .map(|(_, _, x)| core::Point3f::new(x.x() as f32, x.y() as f32, x.z() as f32))
                 .collect();
             let img: Vector<Point2f> = list.iter().map(|l| l.1).collect();
-            let (mut rvec, mut tvec) = (Mat::default(), Mat::default());
-            let mut inl = Vector::<i32>::new();
-            let ok = calib3d::solve_pnp_ransac(
-                &obj,
-                &img,
-                &k,
-                &core::no_array(),
-                &mut rvec,
-                &mut tvec,
-                false,
-                300,
-                2.0,
-                0.999,
-                &mut inl,
-                calib3d::SOLVEPNP_ITERATIVE,
-            )?;
-            if !ok || inl.len() < PLACE_MIN {
+            let Some((pose, inl)) = pnp(&k, &obj, &img, None, 300)? else {
+                continue;
+            };
+            if inl.len() < PLACE_MIN {
                 continue;
             }
-            let mut rm = Mat::default();
-            calib3d::rodrigues(&rvec, &mut rm, &mut core::no_array())?;
-            let pose = from_extrinsics(mat3(&rm)?, vec3(&tvec)?);
             // No more turn to the nearest placed frame of the world than neighbouring frames
             // take.
             let turn_ok = near.iter().filter(|&&g| t.world[g] == w).all(|&g| {
@@ -477,7 +459,7 @@ pub(crate) fn place_frames(
                 rotation_deg(&(q.rotation.transpose() * pose.rotation))
                     <= max_turn_deg * g.abs_diff(f) as f64
             });
-            if !pose.is_finite() || !turn_ok {
+            if !turn_ok {
                 continue;
             }
             // The segment of the frame most inliers came from.

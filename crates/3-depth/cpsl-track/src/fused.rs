@@ -258,10 +258,7 @@ impl TrackedDepth {
         else {
             return Ok(None);
         };
-        let Some(from_pose) = t.poses[*from] else {
-            return Ok(None);
-        };
-        let moved = mvs::carry(&t.camera, &from_pose, depth, pose)?;
+        let moved = self.carry(*from, depth, pose)?;
         Ok(mvs::fuse(&moved, small, guide, Self::MIN_CONFIDENCE)?
             .map(|(z, f)| (*from, z.depth, f.from_views)))
     }
@@ -276,12 +273,17 @@ impl TrackedDepth {
         }) else {
             return Ok(());
         };
-        let Some(from_pose) = t.poses[*from] else {
-            return Ok(());
-        };
-        let moved = mvs::carry(&t.camera, &from_pose, depth, pose)?;
+        let moved = self.carry(*from, depth, pose)?;
         mvs::blend(z, &moved, Self::MIN_CONFIDENCE, Self::FILTER_AGREE);
         Ok(())
+    }
+
+    /// `depth`, that of frame `from` (one of [`TrackedDepth::recent`], so placed), carried to
+    /// the frame at `pose` ([`mvs::carry`]).
+    fn carry(&self, from: usize, depth: &ViewDepth, pose: &Pose) -> Result<ViewDepth> {
+        let t = &self.trajectory;
+        let from_pose = t.poses[from].expect("a frame fused from its views is placed");
+        mvs::carry(&t.camera, &from_pose, depth, pose)
     }
 
     /// The median fused-to-prior ratio of the frames fused so far (1 before the first).

@@ -1,7 +1,9 @@
 #!/usr/bin/env python3
 """An independent SfM reconstruction of the fox's frames (pycolmap, PyPI; no poses read), as
 the oracle of issue 29's depth target: writes, per registered frame, every 3-D point it sees
-as its camera coordinates (x/z, y/z, z), for `cpsl eval-track --depth-points`.
+as its camera coordinates (x/z, y/z, z), and its camera path, for `cpsl eval-track
+--depth-points` (which also scores that path against the fox's poses, as the floor of the
+rotation target: two reconstructions of the same frames disagree by about as much).
 
     python fox_sfm_points.py DATA_DIR OUT.json [--work DIR]
 
@@ -43,11 +45,15 @@ def main():
     if not maps:
         raise SystemExit("pycolmap reconstructed nothing")
     rec = max(maps.values(), key=lambda r: r.num_reg_images())
-    frames = {}
+    frames, poses = {}, {}
     for image in rec.images.values():
         if not image.has_pose:
             continue
         cam_from_world = image.cam_from_world()
+        r = cam_from_world.rotation.matrix()
+        # Camera-to-world, OpenCV axes (as `cpsl track` writes it): rotation and centre.
+        poses[image.name] = {"rotation": r.T.tolist(),
+                             "centre": (-r.T @ cam_from_world.translation).tolist()}
         pts = []
         for p2d in image.points2D:
             if not p2d.has_point3D():
@@ -65,6 +71,7 @@ def main():
         "points": rec.num_points3D(),
         "seconds": round(time.time() - t0, 1),
         "frames": frames,
+        "poses": poses,
     }
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.write_text(json.dumps(out))

@@ -247,26 +247,46 @@ pub struct EvalTrackArgs {
     pub json: Option<PathBuf>,
     /// Also score the fox's depth (FastDepth alone, and from the video) at the 3-D points of
     /// an independent reconstruction of its frames, as `scripts/fox_sfm_points.py` writes
-    /// them (pycolmap).
+    /// them (pycolmap); when the file has that reconstruction's camera path, score it against
+    /// the fox's poses too (how far two reconstructions disagree).
     #[arg(long, value_name = "POINTS_JSON")]
     pub depth_points: Option<PathBuf>,
+    /// Also write the solved camera path as `poses.json` (as `cpsl track` writes it).
+    #[arg(long)]
+    pub poses: Option<PathBuf>,
 }
 
 /// Runs `cpsl eval-track`: tracks the fox without its poses and scores the result.
 pub fn run_track(a: EvalTrackArgs) -> Result<()> {
     // Read first: a bad file fails before the tracking's seconds are spent.
-    let points = a
+    let reconstruction = a
         .depth_points
         .as_deref()
-        .map(cpsl_eval::tracking::read_points)
+        .map(cpsl_eval::tracking::read_reconstruction)
         .transpose()?;
-    let s = cpsl_eval::tracking::fox(&a.data)?;
+    let (s, path, names) = cpsl_eval::tracking::fox(
+        &a.data,
+        reconstruction
+            .as_ref()
+            .map(|r| &r.poses)
+            .filter(|p| !p.is_empty()),
+    )?;
+    if let Some(out) = &a.poses {
+        let (poses, _) = cpsl_pipeline::track::pose_files(&path, path.camera, &names, None);
+        cpsl_io::write_json(out, &poses)?;
+    }
     println!(
         "{}: {} of {} frames placed in {} segment(s) and {} world(s), motion {}, {} points, reprojection {:.2} px, rotation error {:.3} deg ({:.3} deg aligned), translation direction {:.2} deg, {:.0} ms/frame",
         s.clip, s.placed, s.frames, s.segments, s.worlds, s.motion, s.points, s.reprojection_px, s.rotation_deg, s.rotation_aligned_deg, s.translation_dir_deg, s.ms_per_frame
     );
+    if let Some(r) = &s.reference {
+        println!(
+            "the reconstruction's own path ({} frames placed) against the fox's poses: rotation error {:.3} deg ({:.3} deg aligned), translation direction {:.2} deg",
+            r.placed, r.rotation_deg, r.rotation_aligned_deg, r.translation_dir_deg
+        );
+    }
     let mut depth = Vec::new();
-    if let Some(points) = &points {
+    if let Some(points) = reconstruction.as_ref().map(|r| &r.points) {
         let fox = cpsl_eval::video::load_fox(&a.data, 4, false)?;
         let v = cpsl_eval::tracking::video_depth(&fox.frames, fox.camera, &fox.depth)?;
         let (video, how) = (v.depth, v.how);

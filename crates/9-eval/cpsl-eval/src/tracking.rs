@@ -6,9 +6,10 @@
 
 use crate::datasets::PosedVideo;
 use crate::error::EvalError;
-use cpsl_core::{Camera, Mat3, Vec3};
+use cpsl_core::{Camera, Mat3, Pose, Vec3};
 use cpsl_track::{DepthFrom, TrackConfig, TrackedDepth, Tracker, Trajectory};
 use serde::Serialize;
+use std::collections::HashMap;
 use std::path::Path;
 use std::time::Instant;
 
@@ -44,6 +45,24 @@ pub struct TrackScore {
     pub translation_dir_deg: f64,
     /// Milliseconds per frame for tracking and solving.
     pub ms_per_frame: f64,
+    /// A reference reconstruction's own camera path scored the same way (when given): how
+    /// far two reconstructions of the same frames can disagree.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub reference: Option<PathScore>,
+}
+
+/// A camera path's rotation and translation-direction errors against the fox's poses (as
+/// [`score`] computes them), degrees.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct PathScore {
+    /// Frames the path places.
+    pub placed: usize,
+    /// Median rotation error, both paths starting at the first placed frame's camera.
+    pub rotation_deg: f64,
+    /// Median rotation error after the best aligning rotation.
+    pub rotation_aligned_deg: f64,
+    /// Median translation-direction error.
+    pub translation_dir_deg: f64,
 }
 
 use cpsl_track::rotation_deg as angle;
@@ -124,14 +143,18 @@ pub fn track(frames: &[Vec<u8>], camera: Camera, cfg: TrackConfig) -> Result<Tra
     Ok(t.finish()?)
 }
 
-/// Tracks the fox and scores its poses.
-pub fn fox(data: &Path) -> Result<TrackScore> {
+/// Tracks the fox and scores its poses, and `reference`'s path (by file name) when given:
+/// the score, the solved path and the frames' file names.
+pub fn fox(
+    data: &Path,
+    reference: Option<&HashMap<String, Pose>>,
+) -> Result<(TrackScore, Trajectory, Vec<String>)> {
     let (video, camera, frames) = fox_frames(data, 4)?;
     let t0 = Instant::now();
     let est = track(&frames, camera, TrackConfig::default())?;
     let ms = t0.elapsed().as_secs_f64() * 1e3 / frames.len() as f64;
     let (rotation_deg, rotation_aligned_deg, translation_dir_deg) = score(&est, &video);
-    Ok(TrackScore {
+    let mut result = TrackScore {
         clip: "fox".into(),
         frames: frames.len(),
         placed: est.poses.iter().filter(|p| p.is_some()).count(),
@@ -144,7 +167,40 @@ pub fn fox(data: &Path) -> Result<TrackScore> {
         rotation_aligned_deg,
         translation_dir_deg,
         ms_per_frame: ms,
-    })
+        reference: None,
+    };
+    let names: Vec<String> = video
+        .files
+        .iter()
+        .map(|f| {
+            f.file_name()
+                .map_or(String::new(), |n| n.to_string_lossy().into_owned())
+        })
+        .collect();
+    result.reference = reference.map(|r| {
+        // The reference's path as a trajectory of one world over the same frames.
+        let poses: Vec<Option<Pose>> = names.iter().map(|n| r.get(n).copied()).collect();
+        let n = poses.len();
+        let path = Trajectory {
+            camera,
+            inliers: vec![0; n],
+            motion: est.motion,
+            points: 0,
+            reprojection_px: f64::NAN,
+            initial_pair: None,
+            segment: vec![0; n],
+            world: vec![0; n],
+            poses,
+        };
+        let (rotation_deg, rotation_aligned_deg, translation_dir_deg) = score(&path, &video);
+        PathScore {
+            placed: path.poses.iter().flatten().count(),
+            rotation_deg,
+            rotation_aligned_deg,
+            translation_dir_deg,
+        }
+    });
+    Ok((result, est, names))
 }
 
 /// Depth of every frame from the video itself ([`TrackedDepth`]): tracked poses, multi-view
@@ -236,29 +292,66 @@ pub struct PointDepthScore {
 
 /// Camera coordinates `(x/z, y/z, z)` of the points each frame (by file name) sees, as
 /// `scripts/fox_sfm_points.py` writes them (`{"frames": {"0004.jpg": [[x, y, z], ...]}}`).
-pub type FramePoints = std::collections::HashMap<String, Vec<[f64; 3]>>;
+pub type FramePoints = HashMap<String, Vec<[f64; 3]>>;
 
-/// Reads [`FramePoints`] from a JSON file.
-pub fn read_points(path: &Path) -> Result<FramePoints> {
+/// An independent reconstruction of the fox's frames, as `scripts/fox_sfm_points.py` writes
+/// it: the points each frame sees and, when the file has them, the reconstruction's own
+/// camera path.
+#[derive(Debug, Clone, Default)]
+pub struct Reconstruction {
+    /// The points each frame sees.
+    pub points: FramePoints,
+    /// Per frame (by file name), its camera-to-world pose (OpenCV axes).
+    pub poses: HashMap<String, Pose>,
+}
+
+/// Reads a [`Reconstruction`] from a JSON file (`{"frames": {...}, "poses": {"0004.jpg":
+/// {"rotation": [[..]; 3], "centre": [x, y, z]}}}`; `poses` may be left out).
+pub fn read_reconstruction(path: &Path) -> Result<Reconstruction> {
+    #[derive(serde::Deserialize)]
+    struct FilePose {
+        rotation: [[f64; 3]; 3],
+        centre: [f64; 3],
+    }
     #[derive(serde::Deserialize)]
     struct File {
         frames: FramePoints,
+        #[serde(default)]
+        poses: HashMap<String, FilePose>,
     }
-    let text = std::fs::read_to_string(path)
-        .map_err(|e| EvalError::Invalid(format!("{}: {e}", path.display())))?;
-    let f: File = serde_json::from_str(&text)
-        .map_err(|e| EvalError::Invalid(format!("{}: {e}", path.display())))?;
+    let bad = |what: String| EvalError::Invalid(format!("{}: {what}", path.display()));
+    let text = std::fs::read_to_string(path).map_err(|e| bad(e.to_string()))?;
+    let f: File = serde_json::from_str(&text).map_err(|e| bad(e.to_string()))?;
     if f.frames
         .values()
         .flatten()
         .any(|p| !(p.iter().all(|v| v.is_finite()) && p[2] > 0.0))
     {
-        return Err(EvalError::Invalid(format!(
-            "{}: a point with a non-finite coordinate or a depth <= 0",
-            path.display()
-        )));
+        return Err(bad(
+            "a point with a non-finite coordinate or a depth <= 0".into()
+        ));
     }
-    Ok(f.frames)
+    let mut poses = HashMap::new();
+    for (name, p) in f.poses {
+        let pose = Pose {
+            rotation: Mat3(p.rotation),
+            translation: Vec3(p.centre),
+        };
+        let r = pose.rotation;
+        let off = r.transpose() * r;
+        let orthonormal = (0..3)
+            .all(|i| (0..3).all(|j| (off.0[i][j] - if i == j { 1.0 } else { 0.0 }).abs() < 1e-6));
+        if !(pose.is_finite() && orthonormal && r.det() > 0.0) {
+            return Err(bad(format!(
+                "poses.{name}: not a rotation and a finite centre"
+            )));
+        }
+        poses.insert(name, pose);
+    }
+    Ok(Reconstruction {
+        points: f.frames,
+        poses,
+    })
 }
 
 /// Scores `depth` (one map per frame, `camera`'s size, in any units) at `points`, the
@@ -332,7 +425,7 @@ fn median(v: &mut [f64]) -> f64 {
 
 #[cfg(test)]
 mod tests {
-    use super::{depth_at_points, read_points, FramePoints};
+    use super::{depth_at_points, read_reconstruction, FramePoints};
     use cpsl_core::Camera;
     use std::path::PathBuf;
 
@@ -372,15 +465,35 @@ mod tests {
     }
 
     #[test]
-    fn bad_point_files_are_refused() {
+    fn bad_reconstruction_files_are_refused() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("points.json");
-        std::fs::write(&path, r#"{"frames": {"0001.jpg": [[0.1, 0.2, 3.0]]}}"#).unwrap();
-        assert_eq!(read_points(&path).unwrap()["0001.jpg"].len(), 1);
-        std::fs::write(&path, r#"{"frames": {"0001.jpg": [[0.1, 0.2, -3.0]]}}"#).unwrap();
-        let e = read_points(&path).unwrap_err().to_string();
+        let write = |text: &str| std::fs::write(&path, text).unwrap();
+        write(r#"{"frames": {"0001.jpg": [[0.1, 0.2, 3.0]]}}"#);
+        let r = read_reconstruction(&path).unwrap();
+        assert_eq!((r.points["0001.jpg"].len(), r.poses.len()), (1, 0));
+        // A quarter turn about y, at (1, 2, 3).
+        write(
+            r#"{"frames": {}, "poses": {"0001.jpg": {"rotation": [[0, 0, 1], [0, 1, 0], [-1, 0, 0]], "centre": [1, 2, 3]}}}"#,
+        );
+        let p = read_reconstruction(&path).unwrap().poses["0001.jpg"];
+        assert_eq!(p.translation.0, [1.0, 2.0, 3.0]);
+        assert_eq!(p.rotation.0[2], [-1.0, 0.0, 0.0]);
+        write(r#"{"frames": {"0001.jpg": [[0.1, 0.2, -3.0]]}}"#);
+        let e = read_reconstruction(&path).unwrap_err().to_string();
         assert!(e.contains("points.json") && e.contains("depth"), "{e}");
-        std::fs::write(&path, "{").unwrap();
-        assert!(read_points(&path).is_err());
+        // A matrix that is not a rotation: scaled, or a mirror.
+        for pose in [
+            r#"{"rotation": [[2, 0, 0], [0, 1, 0], [0, 0, 1]], "centre": [0, 0, 0]}"#,
+            r#"{"rotation": [[-1, 0, 0], [0, 1, 0], [0, 0, 1]], "centre": [0, 0, 0]}"#,
+        ] {
+            write(&format!(
+                r#"{{"frames": {{}}, "poses": {{"0007.jpg": {pose}}}}}"#
+            ));
+            let e = read_reconstruction(&path).unwrap_err().to_string();
+            assert!(e.contains("poses.0007.jpg"), "{e}");
+        }
+        write("{");
+        assert!(read_reconstruction(&path).is_err());
     }
 }

@@ -17,7 +17,7 @@ fn bench(c: &mut Criterion) {
     });
     let cues = Cues::compute(&view.rgb, &view.depth, 1280, 720, &cfg.cues).unwrap();
     c.bench_function("fusion_720p_k6", |b| {
-        b.iter(|| fuse(&cues.work, cfg.layers, &cfg.fusion))
+        b.iter(|| fuse(&cues.work, cfg.layers, &cfg.fusion, false))
     });
     c.bench_function("layer_cues_720p_k6", |b| {
         b.iter(|| layer_cues(&cues, &view.rgb, scene.camera, &cfg, &NoProgress).unwrap())

@@ -163,7 +163,12 @@ pub fn layer_cues(
     }
     let mut timings = Vec::new();
     let fusion = timed(&mut timings, progress, "fusion", || {
-        fuse(&cues.work, cfg.layers, &cfg.fusion)
+        fuse(
+            &cues.work,
+            cfg.layers,
+            &cfg.fusion,
+            cfg.fusion.slanted_labels && cfg.matte.geometry != crate::GeometryMode::Plane,
+        )
     });
     let plan = timed(&mut timings, progress, "promotion", || {
         promote(&cues.work, &fusion, cfg.layers, &cfg.promote)

@@ -87,6 +87,9 @@ pub struct Fusion {
     pub representatives: Vec<f32>,
     /// Energy after each round.
     pub energy: Vec<f64>,
+    /// Whether the labels were planes in inverse depth (slanted labels): promotion and
+    /// merging then weigh the depth-fit error of a plane per layer.
+    pub slanted: bool,
 }
 
 struct Problem<'a> {
@@ -342,6 +345,7 @@ pub fn fuse(work: &Work, labels: usize, cfg: &FusionConfig, slanted: bool) -> Fu
         labels: lab.iter().map(|&l| rank[l as usize]).collect(),
         representatives: order.iter().map(|&l| reps[l]).collect(),
         energy: energies,
+        slanted,
     }
 }
 

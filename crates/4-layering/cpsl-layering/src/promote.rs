@@ -88,6 +88,9 @@ struct Stats {
     sal: f64,
     luma: f64,
     luma2: f64,
+    /// Moments of the position (`u`, `v`: image widths and heights from the centre) for the
+    /// plane fit: sums of u, v, u^2, uv, v^2, u d and v d.
+    plane: [f64; 7],
 }
 
 impl Stats {
@@ -98,6 +101,9 @@ impl Stats {
         self.sal += o.sal;
         self.luma += o.luma;
         self.luma2 += o.luma2;
+        for (a, b) in self.plane.iter_mut().zip(o.plane) {
+            *a += b;
+        }
     }
     fn mean(&self, v: f64) -> f64 {
         v / self.n.max(1.0)
@@ -106,6 +112,29 @@ impl Stats {
     fn sse(&self) -> f64 {
         (self.disp2 - self.disp * self.disp / self.n.max(1.0)).max(0.0)
     }
+    /// Sum of squared inverse-depth deviations from the least-squares plane (`c + a u + b
+    /// v`); the flat [`Stats::sse`] where the pixels fix no plane.
+    fn sse_plane(&self) -> f64 {
+        let [u, v, uu, uv, vv, ud, vd] = self.plane;
+        let m = cpsl_core::Mat3([[uu, uv, u], [uv, vv, v], [u, v, self.n]]);
+        let r = cpsl_core::Vec3([ud, vd, self.disp]);
+        match m.inverse().map(|i| i * r) {
+            Some(beta) if self.n >= 3.0 && beta.is_finite() => {
+                (self.disp2 - beta.dot(r)).clamp(0.0, self.sse())
+            }
+            _ => self.sse(),
+        }
+    }
+
+    /// The depth-fit error: [`Stats::sse_plane`] with slanted labels, else [`Stats::sse`].
+    fn error(&self, slanted: bool) -> f64 {
+        if slanted {
+            self.sse_plane()
+        } else {
+            self.sse()
+        }
+    }
+
     fn luma_sd(&self) -> f64 {
         (self.mean(self.luma2) - self.mean(self.luma).powi(2))
             .max(0.0)
@@ -162,13 +191,22 @@ pub fn promote(work: &Work, fusion: &Fusion, k: usize, cfg: &PromoteConfig) -> P
     let n = w * h;
     let lab = &fusion.labels;
     let y = luma(&work.rgb);
-    let px = |p: usize| Stats {
-        n: 1.0,
-        disp: work.disparity[p] as f64,
-        disp2: (work.disparity[p] * work.disparity[p]) as f64,
-        sal: work.saliency[p] as f64,
-        luma: y[p] as f64,
-        luma2: (y[p] * y[p]) as f64,
+    let slanted = fusion.slanted;
+    let px = |p: usize| {
+        let d = work.disparity[p] as f64;
+        let (u, v) = (
+            (p % w) as f64 / w as f64 - 0.5,
+            (p / w) as f64 / h as f64 - 0.5,
+        );
+        Stats {
+            n: 1.0,
+            disp: d,
+            disp2: d * d,
+            sal: work.saliency[p] as f64,
+            luma: y[p] as f64,
+            luma2: (y[p] * y[p]) as f64,
+            plane: [u, v, u * u, u * v, v * v, u * d, v * d],
+        }
     };
 
     // Regions: connected components of equal label and instance (instance boundaries split
@@ -218,9 +256,12 @@ pub fn promote(work: &Work, fusion: &Fusion, k: usize, cfg: &PromoteConfig) -> P
                 gs[lab[p] as usize].add(&px(p));
             }
         }
-        let groups = merge(gs, k.saturating_sub(chosen.len()).max(1));
-        let sse = groups.iter().map(|g| g.1.sse()).sum::<f64>()
-            + chosen.iter().map(|&(r, _)| rs[r].sse()).sum::<f64>();
+        let groups = merge(gs, k.saturating_sub(chosen.len()).max(1), slanted);
+        let sse = groups.iter().map(|g| g.1.error(slanted)).sum::<f64>()
+            + chosen
+                .iter()
+                .map(|&(r, _)| rs[r].error(slanted))
+                .sum::<f64>();
         (groups, sse)
     };
     let mut chosen = Vec::new();
@@ -298,8 +339,9 @@ pub fn promote(work: &Work, fusion: &Fusion, k: usize, cfg: &PromoteConfig) -> P
 
 /// Groups the labels' statistics (nearest first; empty labels dropped) into at most `target`
 /// runs of neighbouring labels, merging the cheapest neighbouring pair first: Ward cost in
-/// inverse depth, scaled by texture dissimilarity.
-fn merge(gs: Vec<Stats>, target: usize) -> Vec<(Vec<usize>, Stats)> {
+/// inverse depth (with `slanted`, the growth of the plane fit's error instead), scaled by
+/// texture dissimilarity.
+fn merge(gs: Vec<Stats>, target: usize, slanted: bool) -> Vec<(Vec<usize>, Stats)> {
     let mut groups: Vec<(Vec<usize>, Stats)> = gs
         .into_iter()
         .enumerate()
@@ -307,9 +349,16 @@ fn merge(gs: Vec<Stats>, target: usize) -> Vec<(Vec<usize>, Stats)> {
         .map(|(l, g)| (vec![l], g))
         .collect();
     let cost = |a: &Stats, b: &Stats| {
-        let dd = a.mean(a.disp) - b.mean(b.disp);
         let tex = (a.mean(a.luma) - b.mean(b.luma)).abs() + (a.luma_sd() - b.luma_sd()).abs();
-        dd * dd * a.n * b.n / (a.n + b.n) * (1.0 + 2.0 * tex)
+        let growth = if slanted {
+            let mut both = a.clone();
+            both.add(b);
+            (both.sse_plane() - a.sse_plane() - b.sse_plane()).max(0.0)
+        } else {
+            let dd = a.mean(a.disp) - b.mean(b.disp);
+            dd * dd * a.n * b.n / (a.n + b.n)
+        };
+        growth * (1.0 + 2.0 * tex)
     };
     while groups.len() > target {
         let i = (0..groups.len() - 1)

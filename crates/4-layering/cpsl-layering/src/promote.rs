@@ -373,3 +373,50 @@ fn merge(gs: Vec<Stats>, target: usize, slanted: bool) -> Vec<(Vec<usize>, Stats
     }
     groups
 }
+
+#[cfg(test)]
+mod tests {
+    use super::{merge, Stats};
+
+    /// The statistics of pixels `(u, v, d)` of one grey.
+    fn stats(pixels: impl Iterator<Item = (f64, f64, f64)>) -> Stats {
+        let mut s = Stats::default();
+        for (u, v, d) in pixels {
+            s.add(&Stats {
+                n: 1.0,
+                disp: d,
+                disp2: d * d,
+                sal: 0.0,
+                luma: 0.5,
+                luma2: 0.25,
+                plane: [u, v, u * u, u * v, v * v, u * d, v * d],
+            });
+        }
+        s
+    }
+
+    /// A floor (inverse depth 0.5 + 0.8 v) in two labels, its near and its far half, and a
+    /// small far wall: merged to two layers, the flat cost joins the floor's far half to the
+    /// wall (the nearer means), the plane fit's cost joins the floor's halves (one plane
+    /// holds both exactly).
+    #[test]
+    fn slanted_merging_keeps_a_floor_together() {
+        let grid = |v0: f64, v1: f64| {
+            (0..20).flat_map(move |i| {
+                (0..10).map(move |j| (i as f64 / 20.0 - 0.5, v0 + (v1 - v0) * j as f64 / 10.0))
+            })
+        };
+        let near = stats(grid(0.0, 0.5).map(|(u, v)| (u, v, 0.5 + 0.8 * v)));
+        let far = stats(grid(-0.5, 0.0).map(|(u, v)| (u, v, 0.5 + 0.8 * v)));
+        let wall = stats(grid(-0.5, -0.45).map(|(u, v)| (u, v, 0.05)));
+        assert!(near.sse_plane() < 1e-9 && far.sse_plane() < 1e-9);
+        let labels = |slanted| -> Vec<Vec<usize>> {
+            merge(vec![near.clone(), far.clone(), wall.clone()], 2, slanted)
+                .into_iter()
+                .map(|g| g.0)
+                .collect()
+        };
+        assert_eq!(labels(false), vec![vec![0], vec![1, 2]]);
+        assert_eq!(labels(true), vec![vec![0, 1], vec![2]]);
+    }
+}

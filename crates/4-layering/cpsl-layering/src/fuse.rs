@@ -141,12 +141,22 @@ impl Plane {
     }
 
     fn at(&self, p: usize, w: usize, h: usize) -> f32 {
-        self.at_xy((p % w) as f32, (p / w) as f32, w, h)
+        let (u, v) = centred(p, w, h);
+        self.at_uv(u, v)
     }
 
-    fn at_xy(&self, x: f32, y: f32, w: usize, h: usize) -> f32 {
-        self.c + self.a * (x / w as f32 - 0.5) + self.b * (y / h as f32 - 0.5)
+    fn at_uv(&self, u: f32, v: f32) -> f32 {
+        self.c + self.a * u + self.b * v
     }
+}
+
+/// Pixel `p`'s position `(u, v)` in image widths and heights from the centre of a `w` x `h`
+/// image: the coordinates of the labels' planes and of promotion's plane fit.
+pub(crate) fn centred(p: usize, w: usize, h: usize) -> (f32, f32) {
+    (
+        (p % w) as f32 / w as f32 - 0.5,
+        (p / w) as f32 / h as f32 - 0.5,
+    )
 }
 
 /// The confidence-weighted median of `values` over `pixels`.
@@ -184,15 +194,11 @@ fn fit_plane(pixels: &[usize], prob: &Problem, start: Plane) -> Option<Plane> {
         let mut m = [[0f64; 3]; 3];
         let mut r = [0f64; 3];
         for &p in pixels {
-            let (x, y) = ((p % w) as f32, (p / w) as f32);
+            let (u, v) = centred(p, w, h);
             let d = prob.work.disparity[p] as f64;
-            let e = d - plane.at_xy(x, y, w, h) as f64;
+            let e = d - plane.at_uv(u, v) as f64;
             let wt = prob.w_d[p] as f64 / (1.0 + (e / sigma).powi(2));
-            let f = [
-                (x / w as f32 - 0.5) as f64,
-                (y / h as f32 - 0.5) as f64,
-                1.0,
-            ];
+            let f = [u as f64, v as f64, 1.0];
             for i in 0..3 {
                 r[i] += wt * f[i] * d;
                 for j in 0..3 {
@@ -333,13 +339,14 @@ pub fn fuse(work: &Work, labels: usize, cfg: &FusionConfig, slanted: bool) -> Fu
     // its pixels) by decreasing inverse depth.
     let mut centroid = vec![(0f64, 0f64, 0f64); reps.len()];
     for (p, &l) in lab.iter().enumerate() {
+        let (u, v) = centred(p, w, h);
         let c = &mut centroid[l as usize];
-        *c = (c.0 + (p % w) as f64, c.1 + (p / w) as f64, c.2 + 1.0);
+        *c = (c.0 + u as f64, c.1 + v as f64, c.2 + 1.0);
     }
     let reps: Vec<f32> = reps
         .iter()
         .zip(&centroid)
-        .map(|(r, &(x, y, k))| r.at_xy((x / k.max(1.0)) as f32, (y / k.max(1.0)) as f32, w, h))
+        .map(|(r, &(u, v, k))| r.at_uv((u / k.max(1.0)) as f32, (v / k.max(1.0)) as f32))
         .collect();
     let mut order: Vec<usize> = (0..reps.len()).collect();
     order.sort_by(|&a, &b| reps[b].total_cmp(&reps[a]));

@@ -6,7 +6,7 @@
 //! until the target count is met.
 
 use crate::cues::{luma, Work};
-use crate::fuse::Fusion;
+use crate::fuse::{centred, Fusion};
 use crate::grid::components;
 use serde::{Deserialize, Serialize};
 
@@ -88,8 +88,8 @@ struct Stats {
     sal: f64,
     luma: f64,
     luma2: f64,
-    /// Moments of the position (`u`, `v`: image widths and heights from the centre) for the
-    /// plane fit: sums of u, v, u^2, uv, v^2, u d and v d.
+    /// Moments of the position (`u`, `v`: [`centred`]) for the plane fit: sums of u, v, u^2,
+    /// uv, v^2, u d and v d.
     plane: [f64; 7],
 }
 
@@ -194,10 +194,8 @@ pub fn promote(work: &Work, fusion: &Fusion, k: usize, cfg: &PromoteConfig) -> P
     let slanted = fusion.slanted;
     let px = |p: usize| {
         let d = work.disparity[p] as f64;
-        let (u, v) = (
-            (p % w) as f64 / w as f64 - 0.5,
-            (p / w) as f64 / h as f64 - 0.5,
-        );
+        let (u, v) = centred(p, w, h);
+        let (u, v) = (u as f64, v as f64);
         Stats {
             n: 1.0,
             disp: d,

@@ -162,7 +162,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
         true,
         &sweep.poses(),
         &sweep_dir,
-        Output::Over([0, 0, 0]),
+        Output::Fill,
         30,
         &bars,
     )?;
@@ -192,7 +192,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
             view: entry.name.clone(),
             pose: entry.pose.clone(),
             identity: entry.pose_matrix == cpsl_core::Pose::IDENTITY,
-            psnr_db: Some(psnr(&img.over_background([0, 0, 0]), truth)).filter(|p| p.is_finite()),
+            psnr_db: Some(psnr(&img.over_fill(), truth)).filter(|p| p.is_finite()),
         });
     }
     // The reference view reproduces the input; average the novel views.
@@ -317,7 +317,7 @@ fn clip(a: &DemoArgs, scene: &Scene, bars: &Bars) -> Result<()> {
         true,
         &poses,
         &sweep_dir,
-        Output::Over([0, 0, 0]),
+        Output::Fill,
         CLIP_FPS as u32,
         bars,
     )?;
@@ -333,7 +333,7 @@ fn clip(a: &DemoArgs, scene: &Scene, bars: &Bars) -> Result<()> {
         )?;
         scores.push(serde_json::json!({
             "frame": i,
-            "psnr_db": psnr(&img.over_background([0, 0, 0]), t),
+            "psnr_db": psnr(&img.over_fill(), t),
         }));
     }
     let mean = scores

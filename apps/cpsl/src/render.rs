@@ -30,10 +30,13 @@ pub struct RenderArgs {
     /// Output PNG (with --pose) or folder (with --sweep).
     #[arg(short, long)]
     pub output: PathBuf,
-    /// Colour behind the layers, `R,G,B`.
-    #[arg(long, default_value = "0,0,0", value_parser = crate::util::parse_rgb)]
-    pub background: [u8; 3],
-    /// Keep transparency: write straight-alpha RGBA instead of compositing over --background.
+    /// What shows where the layers leave the view uncovered (beyond the frame's edge when the
+    /// viewpoint looks past it): `fill` (extended from the covered pixels around it, as DIBR
+    /// fills its holes) or a colour `R,G,B`.
+    #[arg(long, default_value = "fill", value_parser = parse_background)]
+    pub background: Output,
+    /// Keep transparency: write straight-alpha RGBA instead of filling or compositing over
+    /// --background.
     #[arg(long)]
     pub alpha: bool,
     /// Frames per second of the sweep video.
@@ -48,6 +51,16 @@ pub struct RenderArgs {
     pub gpu: bool,
 }
 
+/// `fill` or `R,G,B`.
+fn parse_background(s: &str) -> Result<Output, String> {
+    if s == "fill" {
+        return Ok(Output::Fill);
+    }
+    crate::util::parse_rgb(s)
+        .map(Output::Over)
+        .map_err(|e| format!("{e}, or `fill`"))
+}
+
 /// Runs `cpsl render`.
 pub fn run(a: RenderArgs) -> Result<()> {
     let mut source = Source::open(&a.layerset)?;
@@ -57,11 +70,7 @@ pub fn run(a: RenderArgs) -> Result<()> {
         eprintln!("rendering on {}", renderer.name());
     }
     let dps = !a.no_dps;
-    let how = if a.alpha {
-        Output::Alpha
-    } else {
-        Output::Over(a.background)
-    };
+    let how = if a.alpha { Output::Alpha } else { a.background };
     match (a.pose, a.sweep) {
         (Some(pose), None) => {
             let frame = source.frame(a.frame)?;

@@ -3,6 +3,7 @@
 mod common;
 
 use common::{cpsl, models_present, ok, s};
+use std::path::Path;
 use std::process::Command;
 
 fn fails(args: &[&str], fragment: &str) {
@@ -80,6 +81,34 @@ fn synth_slice_render_pose_and_sweep() {
     ]);
     let img = cpsl_io::images::read_rgb8(&png, &Default::default()).unwrap();
     assert_eq!((img.width, img.height), (96, 72));
+    // The view looks past the frame's edge: filled by default, the given colour with
+    // --background R,G,B.
+    let black = d.path().join("view_black.png");
+    let pose = ["--pose", "0.3,0,0,0,0,0"];
+    let filled = d.path().join("view_filled.png");
+    ok(&[&["render", s(&layers), "-o", s(&filled)], &pose[..]].concat());
+    let blacks = |p: &Path| {
+        let i = cpsl_io::images::read_rgb8(p, &Default::default()).unwrap();
+        i.data.chunks_exact(3).filter(|c| c == &[0, 0, 0]).count()
+    };
+    ok(&[
+        &[
+            "render",
+            s(&layers),
+            "-o",
+            s(&black),
+            "--background",
+            "0,0,0",
+        ],
+        &pose[..],
+    ]
+    .concat());
+    assert!(blacks(&black) >= 72, "a black band: {}", blacks(&black));
+    assert_eq!(blacks(&filled), 0, "filled");
+    fails(
+        &["render", s(&layers), "-o", "x.png", "--background", "grey"],
+        "`fill`",
+    );
 
     // Identity render reproduces the input exactly.
     let id = d.path().join("id.png");

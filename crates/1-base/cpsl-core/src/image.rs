@@ -175,6 +175,44 @@ impl PremulImage {
         out
     }
 
+    /// RGB bytes of this image with what it leaves uncovered filled from what it covers: each
+    /// pixel's remainder `1 - alpha` takes the push-pull fill ([`crate::fill::push_pull`]) of
+    /// the image's own colours weighted by their alpha, as DIBR fills its holes. This is what a
+    /// viewer shows where a new viewpoint looks past the layers' extent (beyond the frame's
+    /// edge) instead of the background colour of [`Self::over_background`]. An image with no
+    /// coverage at all comes out black.
+    pub fn over_fill(&self) -> Vec<u8> {
+        let n = self.data.len() / 4;
+        if self.data.chunks_exact(4).all(|p| p[3] == 255) {
+            return self.over_background([0, 0, 0]);
+        }
+        // Straight colour weighted by alpha: push-pull's level 0 multiplies them back to the
+        // premultiplied colour.
+        let mut colour = Vec::with_capacity(n * 3);
+        let mut weight = Vec::with_capacity(n);
+        for p in self.data.chunks_exact(4) {
+            let a = p[3] as f32 / 255.0;
+            let s = if p[3] > 0 { 1.0 / p[3] as f32 } else { 0.0 };
+            colour.extend(p[..3].iter().map(|&c| c as f32 * s));
+            weight.push(a);
+        }
+        if !crate::fill::push_pull(
+            &mut colour,
+            &weight,
+            self.width as usize,
+            self.height as usize,
+            3,
+        ) {
+            return vec![0; n * 3];
+        }
+        // The fill already blends: a partly covered pixel holds its premultiplied colour plus
+        // its remainder's share of the coarser levels.
+        colour
+            .iter()
+            .map(|&v| (v * 255.0).round().clamp(0.0, 255.0) as u8)
+            .collect()
+    }
+
     /// Checks `colour <= alpha` everywhere.
     pub fn check_premultiplied(&self, what: &str) -> Result<(), CoreError> {
         // A branch-free scan first (on whole pixels as integers, so that it vectorises); the
@@ -240,6 +278,45 @@ pub fn psnr(a: &[u8], b: &[u8]) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn over_fill_extends_the_covered_colours_into_the_rest() {
+        // 16x16: the left six columns opaque (red above, green below), a half-covered blue
+        // column, the rest uncovered.
+        let mut img = PremulImage::new(16, 16);
+        for y in 0..16 {
+            for x in 0..6 {
+                let p = if y < 8 {
+                    [200, 0, 0, 255]
+                } else {
+                    [0, 200, 0, 255]
+                };
+                img.set_pixel(x, y, p);
+            }
+            img.set_pixel(6, y, [0, 0, 100, 128]);
+        }
+        let out = img.over_fill();
+        let px = |x: usize, y: usize| &out[(y * 16 + x) * 3..][..3];
+        assert_eq!(px(0, 0), [200, 0, 0], "covered pixels are kept");
+        assert_eq!(px(5, 15), [0, 200, 0]);
+        // The half-covered pixel keeps its blue and fills its remainder from its surroundings.
+        assert!(px(6, 0)[2] >= 100 && px(6, 0)[0] > 20, "{:?}", px(6, 0));
+        // Uncovered pixels take the colour of the covered ones nearby.
+        let (top, bottom) = (px(7, 0), px(7, 15));
+        assert!(
+            top[0] > top[1] && bottom[1] > bottom[0],
+            "{top:?} {bottom:?}"
+        );
+        assert!(out
+            .chunks_exact(3)
+            .all(|p| p.iter().map(|&c| c as u32).sum::<u32>() > 60));
+        // Fully covered: as over any background; nothing covered: black.
+        let mut full = PremulImage::new(2, 1);
+        full.set_pixel(0, 0, [1, 2, 3, 255]);
+        full.set_pixel(1, 0, [4, 5, 6, 255]);
+        assert_eq!(full.over_fill(), full.over_background([9, 9, 9]));
+        assert_eq!(PremulImage::new(2, 2).over_fill(), vec![0; 12]);
+    }
 
     #[test]
     fn premultiply_roundtrip_is_exact() {

@@ -17,6 +17,7 @@ pub mod context;
 pub mod depth;
 pub mod edc;
 pub mod error;
+pub mod fill;
 pub mod frame;
 pub mod geometry;
 pub mod homography;

@@ -3,8 +3,8 @@
 //! at a reduced working resolution where the energy is minimised.
 
 use crate::error::LayeringError;
-use crate::fill::push_pull;
 use crate::grid::{box_blur, components, distance, downsample};
+use cpsl_core::fill::push_pull;
 use cpsl_core::resample::resize_bilinear;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};

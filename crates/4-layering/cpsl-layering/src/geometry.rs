@@ -9,7 +9,7 @@
 //! fronto-parallel. Three numbers per layer cost nothing against the layer's video, so no
 //! rate term is needed.
 
-use crate::fill::push_pull;
+use cpsl_core::fill::push_pull;
 use cpsl_core::{fit_plane, Camera, DepthGrid, Geometry};
 use serde::{Deserialize, Serialize};
 

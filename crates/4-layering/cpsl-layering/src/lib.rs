@@ -9,7 +9,6 @@
 
 pub mod cues;
 pub mod error;
-pub mod fill;
 pub mod fuse;
 pub mod geometry;
 pub mod grid;

@@ -22,10 +22,10 @@
 
 use crate::cues::Cues;
 use crate::error::LayeringError;
-use crate::fill::push_pull;
 use crate::geometry::{fit_geometry, GeometryMode, LayerDepth};
 use crate::grid::distance;
 use crate::promote::{Kind, Plan};
+use cpsl_core::fill::push_pull;
 use cpsl_core::resample::source_coord;
 use cpsl_core::{
     Camera, Edc, EdcSample, Layer, LayerMeta, LayerRole, LayerSet, Limits, PremulImage,

@@ -6,7 +6,7 @@
 //! This is the frame-wise "depth only" baseline; content-promoted layering builds on it.
 
 use crate::error::LayeringError;
-use crate::fill::push_pull;
+use cpsl_core::fill::push_pull;
 use cpsl_core::{Camera, Layer, LayerMeta, LayerRole, LayerSet, Limits, PremulImage};
 use serde::{Deserialize, Serialize};
 

@@ -157,7 +157,7 @@ pub(crate) fn layer_maps(
             // The model plus the residual of the vectors it keeps, filled in elsewhere.
             let mut data = flow.data.clone();
             model.add_to(&mut data, gw, -1.0);
-            if !cpsl_layering::fill::push_pull(&mut data, &weight, gw, gh, 2) {
+            if !cpsl_core::fill::push_pull(&mut data, &weight, gw, gh, 2) {
                 data.fill(0.0);
             }
             model.add_to(&mut data, gw, 1.0);

@@ -75,6 +75,9 @@ impl Sweep {
 /// How a rendered (premultiplied) image is written to PNG.
 #[derive(Debug, Clone, Copy)]
 pub enum Output {
+    /// RGB, with what the layers leave uncovered (beyond the frame's edge where the viewpoint
+    /// looks past it) filled from what they cover ([`PremulImage::over_fill`]).
+    Fill,
     /// Composited over an opaque colour, RGB.
     Over([u8; 3]),
     /// Straight-alpha RGBA, uncovered pixels transparent.
@@ -85,10 +88,21 @@ pub enum Output {
 pub fn write_render(path: &Path, img: &PremulImage, how: Output) -> Result<()> {
     let (w, h) = (img.width(), img.height());
     match how {
-        Output::Over(bg) => write_png(path, w, h, 3, &img.over_background(bg)),
         Output::Alpha => write_png(path, w, h, 4, &img.to_straight()),
+        rgb => write_png(path, w, h, 3, &rgb.rgb(img)),
     }
     .map_err(PlayerError::from)
+}
+
+impl Output {
+    /// The render as RGB bytes (filled, or over the colour; over black for `Alpha`).
+    pub fn rgb(self, img: &PremulImage) -> Vec<u8> {
+        match self {
+            Self::Fill => img.over_fill(),
+            Self::Over(bg) => img.over_background(bg),
+            Self::Alpha => img.over_background([0, 0, 0]),
+        }
+    }
 }
 
 /// Renders `poses` into `dir` as `frame_NNN.png`, plus `sheet.png` (five frames side by side)
@@ -134,7 +148,7 @@ pub fn render_sweep(
         write_render(&dir.join(format!("frame_{i:03}.png")), &img, how)?;
         if picks.contains(&i) {
             let (small, w, h) = cpsl_core::resample::downscale_rgb(
-                &img.over_background([0, 0, 0]),
+                &how.rgb(&img),
                 cam.width as usize,
                 cam.height as usize,
                 320,

@@ -29,6 +29,8 @@ fn bench(c: &mut Criterion) {
             prepared.render_dps_into(&pose, &cam, &mut out, &cpsl_render::DpsConfig::default())
         })
     });
+    // Filling what that view leaves uncovered (the frame's edge the pose looks past).
+    c.bench_function("over_fill_720p", |b| b.iter(|| out.over_fill()));
 }
 
 criterion_group! {

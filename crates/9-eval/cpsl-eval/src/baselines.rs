@@ -1,7 +1,7 @@
 //! Baselines that do not use layers, run through the same evaluation as CPSL.
 
+use cpsl_core::fill::push_pull;
 use cpsl_core::{Camera, Pose};
-use cpsl_layering::fill::push_pull;
 
 /// A view synthesised by a baseline.
 #[derive(Debug, Clone, PartialEq)]

@@ -366,11 +366,13 @@ fn score(
     Ok((p / n, lpips.as_ref().map(|_| l / n)))
 }
 
-/// The view of `frame` at `pose` over black, with or without the Dynamic Pixel Strip.
+/// The view of `frame` at `pose`, with or without the Dynamic Pixel Strip, what it leaves
+/// uncovered filled as a viewer fills it ([`cpsl_core::PremulImage::over_fill`]; DIBR fills its holes
+/// the same way).
 fn render_layers(frame: &FrameLayers, dps: bool, pose: &Pose) -> Vec<u8> {
     let cam = frame.set.camera();
     let img = CpuRenderer.view(frame, pose, cam, dps.then_some(&DpsConfig::DEFAULT));
-    img.over_background([0, 0, 0])
+    img.over_fill()
 }
 
 /// Frames grouped into segments at their I-frames.

@@ -375,7 +375,7 @@ pub fn load_fox(data: &Path, scale: u32, from_video: bool) -> Result<Fox> {
             .iter()
             .map(|v| if v.is_finite() { 1.0 / (v * k) } else { 0.0 })
             .collect();
-        if !cpsl_layering::fill::push_pull(&mut inv, &known, w, h, 1) {
+        if !cpsl_core::fill::push_pull(&mut inv, &known, w, h, 1) {
             return Err(EvalError::Invalid("fox: a frame without depth".into()));
         }
         z.iter_mut().zip(&inv).for_each(|(v, i)| *v = 1.0 / i);

@@ -411,7 +411,7 @@ fn render_layers(frame: &FrameLayers, t: &Target, dps: bool) -> Synth {
         dps.then_some(&DpsConfig::DEFAULT),
     );
     Synth {
-        rgb: img.over_background([0, 0, 0]),
+        rgb: img.over_fill(),
         covered: img.covered(128),
     }
 }

@@ -210,6 +210,49 @@ impl DepthGrid {
         used
     }
 
+    /// This grid at `factor` times its step over a `width x height` image: each vertex takes
+    /// this grid's surface at its position. Vertices that only the coarser cells use (those
+    /// of `used`, [`DepthGrid::used_vertices`], are this grid's) are filled from their
+    /// neighbours by push-pull in inverse depth, so the coarser cells stay on the layer's
+    /// surface. `None` when the step would pass [`DepthGrid::MAX_STEP`] or the grid would
+    /// have fewer than 2x2 cells.
+    pub fn coarsened(&self, width: u32, height: u32, factor: u32, used: &[bool]) -> Option<Self> {
+        let step = self.step.checked_mul(factor)?;
+        let (cols, rows) = Self::dims(width, height, step);
+        if step > Self::MAX_STEP || cols < 3 || rows < 3 {
+            return None;
+        }
+        // A coarse vertex at an exact position of this grid's vertex takes it when used.
+        let (mut inv, mut known) = (Vec::new(), Vec::new());
+        for j in 0..rows {
+            for i in 0..cols {
+                let fine = |n: u32, last: u32| (n * factor).min(last);
+                let (fi, fj) = (fine(i, self.cols - 1), fine(j, self.rows - 1));
+                let k = (fj * self.cols + fi) as usize;
+                inv.push(self.inverse_depth[k]);
+                known.push(if used[k] { 1.0 } else { 0.0 });
+            }
+        }
+        let mut grid = Self {
+            step,
+            cols,
+            rows,
+            inverse_depth: inv,
+        };
+        if factor < 2
+            || !crate::fill::push_pull(
+                &mut grid.inverse_depth,
+                &known,
+                cols as usize,
+                rows as usize,
+                1,
+            )
+        {
+            return None;
+        }
+        grid.check(width, height).ok().map(|()| grid)
+    }
+
     /// Inverse depth at every pixel of a `width x height` image, row by row (as
     /// [`DepthGrid::inverse_depth_at`] gives at pixel centres).
     pub fn inverse_depth_map(&self, width: u32, height: u32) -> Vec<f32> {
@@ -430,6 +473,51 @@ mod tests {
 
     fn cam() -> Camera {
         Camera::from_fov(320, 240, 70.0)
+    }
+
+    #[test]
+    fn coarsened_grid_keeps_the_surface_and_fills_what_only_it_uses() {
+        // 100x60 at step 10: an inverse depth affine in the pixel position (exact on any grid);
+        // the fine grid's right third is unused and holds garbage.
+        let (w, h) = (100, 60);
+        let (cols, rows) = DepthGrid::dims(w, h, 10);
+        let f = |u: f64, v: f64| (0.2 + 0.001 * u + 0.002 * v) as f32;
+        let mut inv = Vec::new();
+        let mut used = Vec::new();
+        for j in 0..rows {
+            for i in 0..cols {
+                let (u, v) = ((i * 10).min(w) as f64 - 0.5, (j * 10).min(h) as f64 - 0.5);
+                let u_ok = i <= 7;
+                inv.push(if u_ok { f(u, v) } else { 9.0 });
+                used.push(u_ok);
+            }
+        }
+        let g = DepthGrid {
+            step: 10,
+            cols,
+            rows,
+            inverse_depth: inv,
+        };
+        let c = g.coarsened(w, h, 2, &used).unwrap();
+        assert_eq!((c.step, c.cols, c.rows), (20, 6, 4));
+        c.check(w, h).unwrap();
+        for j in 0..c.rows {
+            for i in 0..c.cols {
+                let (u, v) = c.vertex(i, j, w, h);
+                let got = c.at(i, j) as f32;
+                if i <= 3 {
+                    assert!((got - f(u, v)).abs() < 1e-6, "({i}, {j}) {got}");
+                } else {
+                    // Filled from the used vertices, never the garbage.
+                    assert!(got > 0.1 && got < 0.6, "({i}, {j}) {got}");
+                }
+            }
+        }
+        assert!(g.coarsened(w, h, 1, &used).is_none());
+        assert!(
+            g.coarsened(w, h, 8, &used).is_none(),
+            "fewer than 2x2 cells"
+        );
     }
 
     #[test]

@@ -98,16 +98,44 @@ impl Layer {
         b
     }
 
-    /// A plane for a mesh layer: the slanted plane that best fits its grid over the cells its
-    /// pixels occupy, or the fronto-parallel plane where that plane would not keep the layer's
-    /// extent in front of the camera. Other layers keep their geometry.
-    pub fn flattened(&self, cam: &Camera) -> Geometry {
+    /// Cheaper surfaces for a mesh layer, in the order a coder under a budget gives up its
+    /// grid: the grid at twice and four times its step ([`crate::DepthGrid::coarsened`],
+    /// where the frame allows), then the plane that best fits it. Empty for other layers.
+    pub fn geometry_ladder(&self, cam: &Camera) -> Vec<Geometry> {
         let Geometry::Mesh(g) = &self.geometry else {
-            return self.geometry.clone();
+            return Vec::new();
         };
+        let (w, h) = (cam.width, cam.height);
         let bytes = self.image.as_bytes();
-        let occupied = g.occupied(cam.width, cam.height, |p| bytes[p * 4 + 3] != 0);
+        let occupied = g.occupied(w, h, |p| bytes[p * 4 + 3] != 0);
         let used = g.used_vertices(&occupied);
+        let mut ladder: Vec<Geometry> = [2, 4]
+            .into_iter()
+            .filter_map(|factor| {
+                let mut coarse = g.coarsened(w, h, factor, &used)?;
+                // A coarse cell is occupied where a fine cell within it is.
+                let (cw, fw) = (coarse.cols - 1, g.cols - 1);
+                let mut cells = vec![false; (cw * (coarse.rows - 1)) as usize];
+                for (k, _) in occupied.iter().enumerate().filter(|(_, &o)| o) {
+                    let (fi, fj) = (k as u32 % fw, k as u32 / fw);
+                    let (ci, cj) = (
+                        (fi / factor).min(cw - 1),
+                        (fj / factor).min(coarse.rows - 2),
+                    );
+                    cells[(cj * cw + ci) as usize] = true;
+                }
+                coarse.settle_unused(&cells, (1.0 / self.depth) as f32);
+                Some(Geometry::Mesh(std::sync::Arc::new(coarse)))
+            })
+            .collect();
+        ladder.push(self.flattened(cam, g, &used));
+        ladder
+    }
+
+    /// A plane for mesh layer with grid `g` whose `used` vertices its pixels occupy: the
+    /// slanted plane that best fits them, or the fronto-parallel plane where that plane would
+    /// not keep the layer's extent in front of the camera.
+    fn flattened(&self, cam: &Camera, g: &crate::DepthGrid, used: &[bool]) -> Geometry {
         let mut samples = Vec::new();
         for j in 0..g.rows {
             for i in 0..g.cols {

@@ -222,18 +222,20 @@ fn stream_weights(first: &LayeredFrame) -> Vec<f32> {
 
 /// Under a budget, the share of a segment's bits its side stream may take before mesh layers
 /// give up their grids.
-const GEOMETRY_SHARE: f64 = 0.1;
+const GEOMETRY_SHARE: f64 = 0.2;
 
-/// Encodes `side`, first replacing mesh layers' grids by planes (`flat`, per frame and layer:
-/// [`cpsl_core::Layer::flattened`], made for mesh layers) while the stream is above
-/// `max_bits`: the stream whose grids cost the most first. Geometry competes with colour for
-/// the budget; a grid that would starve the layers' pictures goes.
+/// Encodes `side`, first making mesh layers' geometry cheaper while the stream is above
+/// `max_bits`: the stream whose grids cost the most steps down its ladder (`ladders`, per frame
+/// and layer: [`cpsl_core::Layer::geometry_ladder`], coarser grids and then a plane), one rung
+/// at a time. Geometry competes with colour for the budget; a grid that would starve the
+/// layers' pictures gets coarser, and goes when even the coarsest would.
 fn geometry_within(
     side: &mut SideStream,
-    flat: &[Vec<Option<Geometry>>],
+    ladders: &[Vec<Vec<Geometry>>],
     max_bits: f64,
 ) -> Vec<u8> {
     let mut bytes = side.encode();
+    let mut rung = std::collections::BTreeMap::<u8, usize>::new();
     while bytes.len() as f64 * 8.0 > max_bits {
         let mut cost = std::collections::BTreeMap::<u8, usize>::new();
         for l in side.frames.iter().flat_map(|f| &f.layers) {
@@ -244,13 +246,15 @@ fn geometry_within(
         let Some((&worst, _)) = cost.iter().max_by_key(|(_, &c)| c) else {
             break;
         };
-        for (sf, f) in side.frames.iter_mut().zip(flat) {
-            for (l, plane) in sf.layers.iter_mut().zip(f) {
-                if let (true, Some(p)) = (l.stream == worst, plane) {
-                    l.geometry = p.clone();
+        let r = rung.entry(worst).or_default();
+        for (sf, f) in side.frames.iter_mut().zip(ladders) {
+            for (l, ladder) in sf.layers.iter_mut().zip(f) {
+                if l.stream == worst && !ladder.is_empty() {
+                    l.geometry = ladder[(*r).min(ladder.len() - 1)].clone();
                 }
             }
         }
+        *r += 1;
         bytes = side.encode();
     }
     bytes
@@ -530,8 +534,8 @@ pub(crate) struct SegmentEncoder {
     /// The threads trial and spilled encodes run on: at most `parallel`.
     pool: rayon::ThreadPool,
     side: Vec<SideFrame>,
-    /// Per frame and layer, under a budget: the plane a mesh layer falls back to.
-    flat: Vec<Vec<Option<Geometry>>>,
+    /// Per frame and layer, under a budget: the cheaper surfaces of a mesh layer.
+    ladders: Vec<Vec<Vec<Geometry>>>,
     frames: usize,
     encodes: usize,
     blank: PremulImage,
@@ -609,7 +613,7 @@ impl SegmentEncoder {
             parallel,
             pool: pool(parallel)?,
             side: Vec::new(),
-            flat: Vec::new(),
+            ladders: Vec::new(),
             frames: 0,
             encodes: 0,
             blank: PremulImage::new(cam.width, cam.height),
@@ -629,12 +633,8 @@ impl SegmentEncoder {
         self.side.push(side_frame(&frame, &map, self.frames == 0));
         if self.budget.is_some() {
             let cam = frame.set.camera();
-            let flat = frame
-                .set
-                .layers()
-                .iter()
-                .map(|l| matches!(l.geometry, Geometry::Mesh(_)).then(|| l.flattened(cam)));
-            self.flat.push(flat.collect());
+            let ladders = frame.set.layers().iter().map(|l| l.geometry_ladder(cam));
+            self.ladders.push(ladders.collect());
         }
         self.frames += 1;
         if self.coding.is_some() {
@@ -1086,7 +1086,7 @@ impl SegmentEncoder {
         let mut side = self.side_stream(side_frames);
         let budget_bits = self.budget.map(|p| p.bits(fps, frames));
         let side_bytes = match budget_bits {
-            Some(bits) => geometry_within(&mut side, &self.flat, GEOMETRY_SHARE * bits),
+            Some(bits) => geometry_within(&mut side, &self.ladders, GEOMETRY_SHARE * bits),
             None => side.encode(),
         };
         let side_rel = format!("{}/side.bin", self.dir_name);
@@ -1189,6 +1189,74 @@ impl SegmentEncoder {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn over_its_share_a_grid_gets_coarser_before_it_goes() {
+        use cpsl_core::{Camera, DepthGrid, Edc, Layer, PremulImage};
+        use cpsl_package::{SideFrame, SideLayer};
+        // One 64x48 mesh layer, fully covered, with a bumpy surface (costly to code).
+        let cam = Camera::from_fov(64, 48, 60.0);
+        let (cols, rows) = DepthGrid::dims(64, 48, 4);
+        let grid = DepthGrid {
+            step: 4,
+            cols,
+            rows,
+            inverse_depth: (0..cols * rows)
+                .map(|k| 0.5 + 0.01 * ((k * 7919) % 31) as f32)
+                .collect(),
+        };
+        let mut image = PremulImage::new(64, 48);
+        image.as_bytes_mut().fill(255);
+        let mut layer = Layer::new(image, 2.0);
+        layer.geometry = Geometry::Mesh(std::sync::Arc::new(grid));
+        let ladder = layer.geometry_ladder(&cam);
+        let steps: Vec<Option<u32>> = ladder
+            .iter()
+            .map(|g| match g {
+                Geometry::Mesh(g) => Some(g.step),
+                _ => None,
+            })
+            .collect();
+        assert_eq!(
+            steps,
+            [Some(8), Some(16), None],
+            "coarser grids, then a plane"
+        );
+        let side = |g: &Geometry| SideStream {
+            segment: 0,
+            start: 0,
+            streams: 1,
+            width: 64,
+            height: 48,
+            frames: vec![SideFrame {
+                index: 0,
+                intra: true,
+                refresh: None,
+                layers: vec![SideLayer {
+                    stream: 0,
+                    depth: 2.0,
+                    geometry: g.clone(),
+                    confidence: 1.0,
+                    track: None,
+                }],
+                edc: Edc::empty(64, 48, 1, 1.0),
+            }],
+        };
+        let ladders = vec![vec![ladder.clone()]];
+        let bytes = |g: &Geometry| side(g).encode().len() as f64 * 8.0;
+        // Room for the twice-coarser grid: that is what it keeps.
+        let mut s = side(&layer.geometry);
+        geometry_within(&mut s, &ladders, bytes(&ladder[0]) + 1.0);
+        assert_eq!(s.frames[0].layers[0].geometry, ladder[0]);
+        // No room for any grid: the plane.
+        let mut s = side(&layer.geometry);
+        geometry_within(&mut s, &ladders, bytes(&ladder[2]) + 1.0);
+        assert_eq!(s.frames[0].layers[0].geometry, ladder[2]);
+        // Room for all: unchanged.
+        let mut s = side(&layer.geometry);
+        geometry_within(&mut s, &ladders, f64::MAX);
+        assert_eq!(s.frames[0].layers[0].geometry, layer.geometry);
+    }
 
     #[test]
     fn a_correction_keeps_retries_towards_the_budget_and_interpolates_past_it() {

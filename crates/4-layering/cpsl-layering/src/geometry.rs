@@ -29,10 +29,11 @@ pub enum GeometryMode {
 impl GeometryMode {
     /// The default for video (`layer-video`, `encode`, `demo`'s clip, `eval-video`,
     /// `eval-rd`): the paper's planes. Measured on the 1080p `cpsl eval-rd` clip (exact
-    /// depth, 0.5 to 6 Mbit/s), slanted planes match them uncompressed (24.52 against 24.51 dB)
-    /// and trail by 0.02 to 0.43 dB coded, meshes trail by 0.08 dB uncompressed and 0.15 to
-    /// 1.4 dB coded (their grids take bits from the pictures; EVALUATION.md). Single images
-    /// default to meshes ([`GeometryMode::default`]), which gain 5.3 dB on Middlebury.
+    /// depth, views filled, 0.5 to 6 Mbit/s), meshes lead uncompressed (28.90 against 28.48 dB)
+    /// and at 6 Mbit/s but trail by 0.2 to 1.8 dB from 0.5 to 3 Mbit/s, where their grids,
+    /// even coarsened, take bits from the pictures (EVALUATION.md); on the fox (depth from the
+    /// video) meshes lead at every rate, so the best choice depends on the footage. Single
+    /// images default to meshes ([`GeometryMode::default`]).
     pub const VIDEO_DEFAULT: Self = Self::Plane;
 
     /// The mode's name as the command line writes it.

@@ -3,7 +3,7 @@
 //! * [`pipeline`]: content-promoted layering (paper §3.2): [`cues`] (depth confidence,
 //!   saliency, instances) -> [`fuse`] (energy of eq. 3 by alpha-expansion over
 //!   [`maxflow`]) -> [`promote`] (instance promotion, background merging to `K`) ->
-//!   [`matte`] (soft alpha, extension behind nearer layers with [`fill`], each layer's
+//!   [`matte`] (soft alpha, extension behind nearer layers with [`cpsl_core::fill`], each layer's
 //!   surface from [`geometry`], Edge-Depth Cache).
 //! * [`slice`](mod@slice): depth slicing, clustering inverse depth into `K` slices (a baseline).
 

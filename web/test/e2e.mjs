@@ -69,13 +69,13 @@ try {
   });
   for (const c of cases) {
     const ref = join(work, `ref_${c.frame}_${c.dps}.png`);
-    run(["render", pkg, "--frame", String(c.frame), "--pose", c.pose, "-o", ref, ...(c.dps ? [] : ["--no-dps"])]);
+    run(["render", pkg, "--frame", String(c.frame), "--pose", c.pose, "-o", ref, "--background", "0,0,0", ...(c.dps ? [] : ["--no-dps"])]);
     const want = readPng(readFileSync(ref));
     // Pixels the strip changed in the CPU reference, and how far the player is from them.
     let strip = "";
     if (c.strip) {
       const plain = join(work, "plain.png");
-      run(["render", pkg, "--frame", String(c.frame), "--pose", c.pose, "-o", plain, "--no-dps"]);
+      run(["render", pkg, "--frame", String(c.frame), "--pose", c.pose, "-o", plain, "--background", "0,0,0", "--no-dps"]);
       const p = readPng(readFileSync(plain)).rgba;
       c.mask = [];
       for (let i = 0; i < p.length; i += 4)
@@ -104,7 +104,7 @@ try {
   for (const codec of ["vp9", "av1", "mesh", "mp4"]) {
     const ref = join(work, `ref_${codec}.png`);
     const pose = "0.1,0,0,0,2,0";
-    run(["render", join(work, `${codec}.cpsl`), "--frame", "5", "--pose", pose, "-o", ref]);
+    run(["render", join(work, `${codec}.cpsl`), "--frame", "5", "--pose", pose, "-o", ref, "--background", "0,0,0"]);
     const q = new URLSearchParams({ src: `/files/${codec}.cpsl/`, frame: "5", pose, paused: "1" });
     await page.goto(`${server.url}/?${q}`);
     await playerReady(page);
@@ -120,7 +120,7 @@ try {
     for (const [v, name] of ["60k.cpsl", "300k.cpsl"].entries()) {
       const ref = join(work, `ref_variant${v}.png`);
       const pose = "0.1,0,0,0,2,0";
-      run(["render", join(work, "set", name), "--frame", "10", "--pose", pose, "-o", ref]);
+      run(["render", join(work, "set", name), "--frame", "10", "--pose", pose, "-o", ref, "--background", "0,0,0"]);
       // The cheap variant's budget sends streams down the resolution ladder: the player
       // upsamples them as the CPU decoder does.
       const m = JSON.parse(readFileSync(join(work, "set", name, "manifest.json"), "utf8"));

@@ -214,12 +214,12 @@ impl DepthGrid {
     /// this grid's surface at its position. Vertices that only the coarser cells use (those
     /// of `used`, [`DepthGrid::used_vertices`], are this grid's) are filled from their
     /// neighbours by push-pull in inverse depth, so the coarser cells stay on the layer's
-    /// surface. `None` when the step would pass [`DepthGrid::MAX_STEP`] or the grid would
-    /// have fewer than 2x2 cells.
+    /// surface. `None` for a factor below 2, when the step would pass [`DepthGrid::MAX_STEP`]
+    /// or the grid would have fewer than 2x2 cells.
     pub fn coarsened(&self, width: u32, height: u32, factor: u32, used: &[bool]) -> Option<Self> {
         let step = self.step.checked_mul(factor)?;
         let (cols, rows) = Self::dims(width, height, step);
-        if step > Self::MAX_STEP || cols < 3 || rows < 3 {
+        if factor < 2 || step > Self::MAX_STEP || cols < 3 || rows < 3 {
             return None;
         }
         // A coarse vertex at an exact position of this grid's vertex takes it when used.
@@ -239,15 +239,13 @@ impl DepthGrid {
             rows,
             inverse_depth: inv,
         };
-        if factor < 2
-            || !crate::fill::push_pull(
-                &mut grid.inverse_depth,
-                &known,
-                cols as usize,
-                rows as usize,
-                1,
-            )
-        {
+        if !crate::fill::push_pull(
+            &mut grid.inverse_depth,
+            &known,
+            cols as usize,
+            rows as usize,
+            1,
+        ) {
             return None;
         }
         grid.check(width, height).ok().map(|()| grid)

@@ -1,7 +1,9 @@
 #!/usr/bin/env python3
 """Container overhead of a cpsl package's layer streams: for every stream of every segment,
 the file's bytes minus its coded pictures' (the sample sizes of its MP4 `stsz` or its
-fragment's `trun`), and the init segments' bytes (fetched once per package).
+fragment's `trun`; from version 6, where a segment's streams share one fragment, that
+fragment's bytes beyond its pictures divided by its streams), and the init segments' bytes
+(fetched once per package).
 
     python3 scripts/container-overhead.py clip.cpsl
 """
@@ -40,7 +42,7 @@ def sample_bytes(b):
         traf = find(b, *moof, ["traf"])
         for kind, body, stop in boxes(b, *traf):
             if kind != "trun":
-                continue
+                continue  # every run: a version 6 fragment has one per stream
             flags = struct.unpack(">I", b[body : body + 4])[0] & 0xFFFFFF
             count = struct.unpack(">I", b[body + 4 : body + 8])[0]
             at = body + 8 + 4 * bool(flags & 1) + 4 * bool(flags & 4)
@@ -68,6 +70,12 @@ def main(pkg):
     m = json.loads((root / "manifest.json").read_text())
     over = []
     for s in m["segments"]:
+        if "fragment" in s:
+            b = (root / s["fragment"]["path"]).read_bytes()
+            n = len(s["streams"])
+            share = (len(b) - sample_bytes(b)) / n
+            over.extend([(round(share), s["frames"])] * n)
+            continue
         for t in s["streams"]:
             b = (root / t["file"]["path"]).read_bytes()
             over.append((len(b) - sample_bytes(b), s["frames"]))

@@ -15,10 +15,11 @@ class StreamDecoder {
     ready = new Map();
     error = null;
     wake = null;
-    /** `data`: a progressive MP4, or a movie fragment whose init segment is `init`. */
-    constructor(data, init) {
+    /** `data`: a progressive MP4, or a movie fragment whose init segment is `init` (the stream
+     * is its track run `run`). */
+    constructor(data, init, run = 0) {
         this.data = data;
-        this.track = init ? demuxFragment(init, data) : demux(data);
+        this.track = init ? demuxFragment(init, data, run) : demux(data);
         const byCts = this.track.samples.map((s, i) => ({ i, cts: s.cts })).sort((a, b) => a.cts - b.cts);
         const rank = new Map();
         byCts.forEach((s, r) => rank.set(s.i, r));
@@ -123,10 +124,10 @@ export class SegmentDecoder {
     constructor(streams) {
         this.streams = streams;
     }
-    /** Demuxes and configures a decoder per stream (`data[k]` is stream k's MP4 or fragment,
-     * `inits[k]` the fragment's init segment). */
-    static async open(data, frames, inits = []) {
-        const streams = data.map((d, k) => new StreamDecoder(d, inits[k]));
+    /** Demuxes and configures a decoder per stream: `data[k]` is stream k's MP4 or fragment,
+     * `inits[k]` the fragment's init segment, `runs[k]` its track run there (0 if absent). */
+    static async open(data, frames, inits = [], runs = []) {
+        const streams = data.map((d, k) => new StreamDecoder(d, inits[k], runs[k] ?? 0));
         for (const [k, s] of streams.entries())
             if (s.frames !== frames)
                 throw new Error(`layer stream ${k} has ${s.frames} frames, the segment ${frames}`);

@@ -5,7 +5,7 @@
 // package `cpsl serve` lists), `frame`, `pose` (`tx,ty,tz,rx,ry,rz` as `cpsl render --pose`),
 // `paused=1`, `dps=0`, `variant` (index: fixed, no adaptation).
 import { SegmentDecoder } from "./decode.js";
-import { checkManifest, packageBitrate, parseSide } from "./package.js";
+import { checkManifest, packageBitrate, parseSide, segmentFiles } from "./package.js";
 import { parsePose, poseFromEuler } from "./pose.js";
 import { Renderer } from "./render.js";
 const $ = (id) => document.getElementById(id);
@@ -146,7 +146,7 @@ class Player {
     async load(i, v) {
         const variant = this.variants[v];
         const seg = variant.manifest.segments[i];
-        const files = [...seg.streams.map((s) => s.file), seg.side];
+        const files = segmentFiles(seg);
         // Each file's body time runs from its headers to its last byte: the link's rate, without the
         // round trips before the first byte (which dominate small segments on any link). The
         // browser's Resource Timing says when the bytes arrived; where it does not (a cross-origin
@@ -174,7 +174,10 @@ class Player {
         if (side.length !== seg.frames)
             throw new Error(`segment ${i}: side stream has ${side.length} frames, the manifest ${seg.frames}`);
         const inits = await Promise.all(seg.streams.map((s) => this.initOf(variant, s.init)));
-        const decoder = await SegmentDecoder.open(bufs.slice(0, -1), seg.frames, inits);
+        // Version 6: the streams are the track runs of the segment's one fragment.
+        const data = seg.fragment ? seg.streams.map(() => bufs[0]) : bufs.slice(0, -1);
+        const runs = seg.fragment ? seg.streams.map((_, k) => k) : [];
+        const decoder = await SegmentDecoder.open(data, seg.frames, inits, runs);
         return { index: i, variant: v, decoder, side, scales: seg.streams.map((s) => s.scale ?? 1) };
     }
     /** The init segment `path` of `variant` (none for self-contained streams). */

@@ -1,3 +1,8 @@
+/** A segment's files: its layer streams' (their own or the shared fragment), then its side stream. */
+export function segmentFiles(s) {
+    const streams = s.fragment ? [s.fragment] : s.streams.map((t) => t.file);
+    return [...streams, s.side];
+}
 /** The downscale factors a stream may have in a package of `version` (as cpsl-package's
  * `scales_of`). */
 function scalesOf(version) {
@@ -7,33 +12,39 @@ function scalesOf(version) {
 export function checkManifest(m) {
     if (m.format !== "cpsl-package")
         throw new Error(`not a cpsl package (format '${m.format}')`);
-    if (!(m.version >= 1 && m.version <= 5))
-        throw new Error(`package version ${m.version}: this player reads versions 1 to 5`);
+    if (!(m.version >= 1 && m.version <= 6))
+        throw new Error(`package version ${m.version}: this player reads versions 1 to 6`);
     if (m.layout?.kind !== "colour-over-alpha")
         throw new Error(`layout '${m.layout?.kind}' is not supported`);
     if (!m.segments?.length)
         throw new Error("the package has no segments");
     const inits = new Set((m.inits ?? []).map((f) => f.path));
-    for (const s of m.segments)
-        for (const t of s.streams) {
+    for (const [i, s] of m.segments.entries()) {
+        if ((m.version >= 6) !== Boolean(s.fragment))
+            throw new Error(`segment ${i}: version ${m.version} segments ${m.version >= 6 ? "hold their streams in one fragment" : "have no shared fragment"}`);
+        for (const [k, t] of s.streams.entries()) {
+            const name = `segment ${i} stream ${k}`;
+            if ((m.version >= 6) === Boolean(t.file))
+                throw new Error(`${name}: ${t.file ? "a version 6 stream has no file of its own" : "no file"}`);
             if (!scalesOf(m.version).includes(t.scale ?? 1))
-                throw new Error(`stream ${t.file.path}: scale ${t.scale} is not one of ${scalesOf(m.version).join(", ")} (version ${m.version} packages)`);
+                throw new Error(`${name}: scale ${t.scale} is not one of ${scalesOf(m.version).join(", ")} (version ${m.version} packages)`);
             if (m.version >= 4 && !(t.init && inits.has(t.init)))
-                throw new Error(`stream ${t.file.path}: no init segment listed for it`);
+                throw new Error(`${name}: no init segment listed for it`);
         }
+    }
     return m;
 }
 /** Bits per second of a segment's files. */
 export function segmentBitrate(m, i) {
     const s = m.segments[i];
-    const bytes = s.side.bytes + s.streams.reduce((a, t) => a + t.file.bytes, 0);
+    const bytes = segmentFiles(s).reduce((a, f) => a + f.bytes, 0);
     return (bytes * 8 * m.frame_rate) / s.frames;
 }
 /** Mean bits per second of a package. */
 export function packageBitrate(m) {
     let bytes = 0;
     for (const s of m.segments)
-        bytes += s.side.bytes + s.streams.reduce((a, t) => a + t.file.bytes, 0);
+        bytes += segmentFiles(s).reduce((a, f) => a + f.bytes, 0);
     return (bytes * 8 * m.frame_rate) / m.frames;
 }
 /** Steps per unit of log inverse depth in a mesh grid (side.rs `GRID_STEP` = 1 / 1024). */

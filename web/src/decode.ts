@@ -19,10 +19,11 @@ class StreamDecoder {
   private error: Error | null = null;
   private wake: (() => void) | null = null;
 
-  /** `data`: a progressive MP4, or a movie fragment whose init segment is `init`. */
-  constructor(data: ArrayBuffer, init?: ArrayBuffer) {
+  /** `data`: a progressive MP4, or a movie fragment whose init segment is `init` (the stream
+   * is its track run `run`). */
+  constructor(data: ArrayBuffer, init?: ArrayBuffer, run = 0) {
     this.data = data;
-    this.track = init ? demuxFragment(init, data) : demux(data);
+    this.track = init ? demuxFragment(init, data, run) : demux(data);
     const byCts = this.track.samples.map((s, i) => ({ i, cts: s.cts })).sort((a, b) => a.cts - b.cts);
     const rank = new Map<number, number>();
     byCts.forEach((s, r) => rank.set(s.i, r));
@@ -133,10 +134,10 @@ export class SegmentDecoder {
     this.streams = streams;
   }
 
-  /** Demuxes and configures a decoder per stream (`data[k]` is stream k's MP4 or fragment,
-   * `inits[k]` the fragment's init segment). */
-  static async open(data: ArrayBuffer[], frames: number, inits: (ArrayBuffer | undefined)[] = []): Promise<SegmentDecoder> {
-    const streams = data.map((d, k) => new StreamDecoder(d, inits[k]));
+  /** Demuxes and configures a decoder per stream: `data[k]` is stream k's MP4 or fragment,
+   * `inits[k]` the fragment's init segment, `runs[k]` its track run there (0 if absent). */
+  static async open(data: ArrayBuffer[], frames: number, inits: (ArrayBuffer | undefined)[] = [], runs: number[] = []): Promise<SegmentDecoder> {
+    const streams = data.map((d, k) => new StreamDecoder(d, inits[k], runs[k] ?? 0));
     for (const [k, s] of streams.entries())
       if (s.frames !== frames) throw new Error(`layer stream ${k} has ${s.frames} frames, the segment ${frames}`);
     await Promise.all(streams.map((s) => s.configure()));

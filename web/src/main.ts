@@ -6,7 +6,7 @@
 // `paused=1`, `dps=0`, `variant` (index: fixed, no adaptation).
 
 import { SegmentDecoder } from "./decode.js";
-import { checkManifest, type Manifest, packageBitrate, parseSide, type SideFrame } from "./package.js";
+import { checkManifest, type Manifest, packageBitrate, parseSide, segmentFiles, type SideFrame } from "./package.js";
 import { type Pose, parsePose, poseFromEuler } from "./pose.js";
 import { Renderer } from "./render.js";
 
@@ -167,7 +167,7 @@ class Player {
   private async load(i: number, v: number): Promise<LoadedSegment> {
     const variant = this.variants[v];
     const seg = variant.manifest.segments[i];
-    const files = [...seg.streams.map((s) => s.file), seg.side];
+    const files = segmentFiles(seg);
     // Each file's body time runs from its headers to its last byte: the link's rate, without the
     // round trips before the first byte (which dominate small segments on any link). The
     // browser's Resource Timing says when the bytes arrived; where it does not (a cross-origin
@@ -195,7 +195,10 @@ class Player {
     const side = await parseSide(bufs[bufs.length - 1]);
     if (side.length !== seg.frames) throw new Error(`segment ${i}: side stream has ${side.length} frames, the manifest ${seg.frames}`);
     const inits = await Promise.all(seg.streams.map((s) => this.initOf(variant, s.init)));
-    const decoder = await SegmentDecoder.open(bufs.slice(0, -1), seg.frames, inits);
+    // Version 6: the streams are the track runs of the segment's one fragment.
+    const data = seg.fragment ? seg.streams.map(() => bufs[0]) : bufs.slice(0, -1);
+    const runs = seg.fragment ? seg.streams.map((_, k) => k) : [];
+    const decoder = await SegmentDecoder.open(data, seg.frames, inits, runs);
     return { index: i, variant: v, decoder, side, scales: seg.streams.map((s) => s.scale ?? 1) };
   }
 

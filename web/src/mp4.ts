@@ -1,6 +1,6 @@
 // A small MP4 demuxer for the layer streams cpsl writes (one video track; a progressive MP4
-// file, or a movie fragment after its init segment): the decoder configuration and every
-// sample's place, size, key flag and timestamps.
+// file, or a run of a movie fragment after its init segment): the decoder configuration and
+// every sample's place, size, key flag and timestamps.
 
 export interface Sample {
   offset: number;
@@ -172,12 +172,14 @@ export function demux(buf: ArrayBuffer): Track {
 }
 
 /**
- * Parses a movie fragment (`moof` + `mdat`, as cpsl package version 4 writes each layer
- * stream) with the init segment (`ftyp` + `moov`) that goes before it. Sample offsets are in
- * `frag`. H.264 and H.265 fragments carry their parameter sets in band (`avc3`, `hev1`), so
- * `annexB` is set: the samples are to be decoded with start codes and no description.
+ * Parses track run `run` of a movie fragment (`moof` + `mdat`: cpsl package version 6 holds a
+ * segment's layer streams in one, stream k in run k; versions 4 and 5 wrote one fragment of one
+ * run per stream) with the init segment (`ftyp` + `moov`) that goes before it. Sample offsets
+ * are in `frag`; decoding times start at 0 with the run. H.264 and H.265 fragments carry their
+ * parameter sets in band (`avc3`, `hev1`), so `annexB` is set: the samples are to be decoded
+ * with start codes and no description.
  */
-export function demuxFragment(init: ArrayBuffer, frag: ArrayBuffer): Track {
+export function demuxFragment(init: ArrayBuffer, frag: ArrayBuffer, run = 0): Track {
   const iv = new DataView(init);
   const { timescale, codec, description, width, height } = videoTrack(iv, init);
   const top = { type: "", start: 0, end: init.byteLength, body: 0 };
@@ -205,9 +207,10 @@ export function demuxFragment(init: ArrayBuffer, frag: ArrayBuffer): Track {
   const flagsDefault = tfFlags & 0x20 ? v.getUint32(at) : defaultFlags;
   const samples: Sample[] = [];
   let next = base;
-  let dts = 0;
-  for (const trun of boxes(v, traf.body, traf.end)) {
-    if (trun.type !== "trun") continue;
+  const runs = [...boxes(v, traf.body, traf.end)].filter((b) => b.type === "trun");
+  if (run >= runs.length) throw new Error(`mp4: stream ${run} asked for, the fragment holds ${runs.length}`);
+  for (const [r, trun] of runs.entries()) {
+    let dts = 0;
     const head = v.getUint32(trun.body);
     const [version, flags] = [head >>> 24, head & 0xffffff];
     const count = v.getUint32(trun.body + 4);
@@ -229,13 +232,13 @@ export function demuxFragment(init: ArrayBuffer, frag: ArrayBuffer): Track {
       const size = v.getUint32((p += 4) - 4);
       const f = flags & 0x400 ? v.getUint32((p += 4) - 4) : i === 0 && first !== null ? first : flagsDefault;
       const off = flags & 0x800 ? (version ? v.getInt32((p += 4) - 4) : v.getUint32((p += 4) - 4)) : 0;
-      if (next + size > frag.byteLength) throw new Error(`mp4: sample ${samples.length} lies past the end of the fragment`);
-      samples.push({ offset: next, size, key: (f & 0x10000) === 0, cts: dts + off, dts });
+      if (next + size > frag.byteLength) throw new Error(`mp4: sample ${i} of run ${r} lies past the end of the fragment`);
+      if (r === run) samples.push({ offset: next, size, key: (f & 0x10000) === 0, cts: dts + off, dts });
       next += size;
       dts += d;
     }
   }
-  if (!samples.length) throw new Error("mp4: the fragment has no samples");
+  if (!samples.length) throw new Error(`mp4: run ${run} of the fragment has no samples`);
   const annexB = codec.startsWith("avc") || codec.startsWith("hev") || codec.startsWith("hvc");
   return { codec, description: annexB ? undefined : description, width, height, timescale, samples, annexB };
 }

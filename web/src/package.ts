@@ -10,7 +10,8 @@ export interface FileEntry {
 }
 
 export interface StreamEntry {
-  file: FileEntry;
+  /** Its own file (versions 1 to 5); from version 6 the stream is a run of its segment's `fragment`. */
+  file?: FileEntry;
   track?: number;
   bitrate: number;
   /** Downscale factor the stream was coded at (1, 2, 4 or 8; 8 from version 3; absent: 1). */
@@ -23,7 +24,15 @@ export interface Segment {
   start: number;
   frames: number;
   streams: StreamEntry[];
+  /** The movie fragment holding the layer streams, stream k in track run k (version 6). */
+  fragment?: FileEntry;
   side: FileEntry;
+}
+
+/** A segment's files: its layer streams' (their own or the shared fragment), then its side stream. */
+export function segmentFiles(s: Segment): FileEntry[] {
+  const streams = s.fragment ? [s.fragment] : s.streams.map((t) => t.file!);
+  return [...streams, s.side];
 }
 
 export interface Manifest {
@@ -50,29 +59,33 @@ function scalesOf(version: number): number[] {
 /** Checks what the player relies on; throws a readable error otherwise. */
 export function checkManifest(m: Manifest): Manifest {
   if (m.format !== "cpsl-package") throw new Error(`not a cpsl package (format '${m.format}')`);
-  if (!(m.version >= 1 && m.version <= 5)) throw new Error(`package version ${m.version}: this player reads versions 1 to 5`);
+  if (!(m.version >= 1 && m.version <= 6)) throw new Error(`package version ${m.version}: this player reads versions 1 to 6`);
   if (m.layout?.kind !== "colour-over-alpha") throw new Error(`layout '${m.layout?.kind}' is not supported`);
   if (!m.segments?.length) throw new Error("the package has no segments");
   const inits = new Set((m.inits ?? []).map((f) => f.path));
-  for (const s of m.segments)
-    for (const t of s.streams) {
-      if (!scalesOf(m.version).includes(t.scale ?? 1)) throw new Error(`stream ${t.file.path}: scale ${t.scale} is not one of ${scalesOf(m.version).join(", ")} (version ${m.version} packages)`);
-      if (m.version >= 4 && !(t.init && inits.has(t.init))) throw new Error(`stream ${t.file.path}: no init segment listed for it`);
+  for (const [i, s] of m.segments.entries()) {
+    if ((m.version >= 6) !== Boolean(s.fragment)) throw new Error(`segment ${i}: version ${m.version} segments ${m.version >= 6 ? "hold their streams in one fragment" : "have no shared fragment"}`);
+    for (const [k, t] of s.streams.entries()) {
+      const name = `segment ${i} stream ${k}`;
+      if ((m.version >= 6) === Boolean(t.file)) throw new Error(`${name}: ${t.file ? "a version 6 stream has no file of its own" : "no file"}`);
+      if (!scalesOf(m.version).includes(t.scale ?? 1)) throw new Error(`${name}: scale ${t.scale} is not one of ${scalesOf(m.version).join(", ")} (version ${m.version} packages)`);
+      if (m.version >= 4 && !(t.init && inits.has(t.init))) throw new Error(`${name}: no init segment listed for it`);
     }
+  }
   return m;
 }
 
 /** Bits per second of a segment's files. */
 export function segmentBitrate(m: Manifest, i: number): number {
   const s = m.segments[i];
-  const bytes = s.side.bytes + s.streams.reduce((a, t) => a + t.file.bytes, 0);
+  const bytes = segmentFiles(s).reduce((a, f) => a + f.bytes, 0);
   return (bytes * 8 * m.frame_rate) / s.frames;
 }
 
 /** Mean bits per second of a package. */
 export function packageBitrate(m: Manifest): number {
   let bytes = 0;
-  for (const s of m.segments) bytes += s.side.bytes + s.streams.reduce((a, t) => a + t.file.bytes, 0);
+  for (const s of m.segments) bytes += segmentFiles(s).reduce((a, f) => a + f.bytes, 0);
   return (bytes * 8 * m.frame_rate) / m.frames;
 }
 

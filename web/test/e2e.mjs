@@ -58,9 +58,11 @@ try {
          "--fps", "30", "--codec", codec, "--quality", "30", "-o", join(work, `${codec}.cpsl`)]);
   run(["encode", join(clip, "frames"), "--depth-frames", join(clip, "depth"), "--camera", join(clip, "camera.json"),
        "--fps", "30", "--geometry", "mesh", "--quality", "30", "-o", join(work, "mesh.cpsl")]);
-  // Self-contained MP4 streams (package version 2/3, what earlier builds wrote) still play.
-  run(["encode", join(clip, "frames"), "--depth-frames", join(clip, "depth"), "--camera", join(clip, "camera.json"),
-       "--fps", "30", "--container", "mp4", "--quality", "30", "-o", join(work, "mp4.cpsl")]);
+  // Self-contained MP4 streams (package version 2/3) and a fragment per stream (version 4/5),
+  // what earlier builds wrote, still play.
+  for (const [container, name] of [["mp4", "mp4"], ["stream-fragments", "streams"]])
+    run(["encode", join(clip, "frames"), "--depth-frames", join(clip, "depth"), "--camera", join(clip, "camera.json"),
+         "--fps", "30", "--container", container, "--quality", "30", "-o", join(work, `${name}.cpsl`)]);
   server = await startServer(bin, work);
   browser = await launchChromium();
   const page = await browser.newPage({ viewport: { width: 800, height: 600 }, deviceScaleFactor: 1 });
@@ -101,7 +103,7 @@ try {
         `screenshot ${s.psnr.toFixed(2)} dB (max diff ${s.max}); need ${MIN_PSNR} / ${MIN_SCREENSHOT_PSNR} dB${strip}`,
     );
   }
-  for (const codec of ["vp9", "av1", "mesh", "mp4"]) {
+  for (const codec of ["vp9", "av1", "mesh", "mp4", "streams"]) {
     const ref = join(work, `ref_${codec}.png`);
     const pose = "0.1,0,0,0,2,0";
     run(["render", join(work, `${codec}.cpsl`), "--frame", "5", "--pose", pose, "-o", ref, "--background", "0,0,0"]);
@@ -182,4 +184,4 @@ if (failures) {
   console.error(`${failures} of ${cases.length} player renders differ from the CPU reference`);
   process.exit(1);
 }
-console.log(`browser player matches the CPU reference on ${cases.length + 6} renders (H.264, VP9, AV1; fragments and MP4 files; downscaled streams; mesh layers) and adapts between variants; controls work`);
+console.log(`browser player matches the CPU reference on ${cases.length + 7} renders (H.264, VP9, AV1; shared fragments, a fragment per stream and MP4 files; downscaled streams; mesh layers) and adapts between variants; controls work`);

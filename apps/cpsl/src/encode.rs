@@ -40,9 +40,13 @@ impl From<CodecArg> for Codec {
 /// How the layer streams are stored.
 #[derive(ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
 pub enum ContainerArg {
-    /// Movie fragments with in-band parameter sets and one init segment per picture size
-    /// (package version 4): about 80 bytes per stream and segment plus 4 or 8 per picture.
+    /// Movie fragments with in-band parameter sets and one init segment per picture size, a
+    /// segment's layer streams in one file, one track run each (package version 6): 56 bytes
+    /// per segment plus, per stream, 24 and 4 or 8 per picture.
     Fragment,
+    /// A movie fragment per layer stream and segment (package versions 4 and 5, for players
+    /// that read only those): 80 bytes per stream and segment plus 4 or 8 per picture.
+    StreamFragments,
     /// Self-contained MP4 files (package versions 2 and 3, for players that read only those):
     /// about 1.1 kB per stream and segment.
     Mp4,
@@ -52,6 +56,7 @@ impl From<ContainerArg> for Container {
     fn from(c: ContainerArg) -> Self {
         match c {
             ContainerArg::Fragment => Container::Fragment,
+            ContainerArg::StreamFragments => Container::StreamFragments,
             ContainerArg::Mp4 => Container::Mp4,
         }
     }

@@ -1,20 +1,23 @@
-//! Fragmented MP4 layer streams (package version 4): each stream of a segment is one movie
-//! fragment (`moof` + `mdat`, ISO/IEC 14496-12) whose key picture carries its parameter sets
-//! in band (sample entries `avc3`, `hev1`, `av01`, `vp09`), and a package holds one
-//! initialisation segment (`ftyp` + `moov`) per picture size. An init segment followed by a
-//! fragment is an ordinary fragmented MP4 file that FFmpeg's demuxer reads (tested). It is
-//! not a CMAF segment: CMAF asks for a `tfdt`, which a fragment decoded on its own does not
-//! need (below).
+//! Fragmented MP4 layer streams. A segment's layer streams are one movie fragment
+//! (`moof` + `mdat`, ISO/IEC 14496-12) of one track, one track run per stream, the streams
+//! one after the other (package version 6; versions 4 and 5 wrote one fragment of one run per
+//! stream, which read the same way). Each run's key picture carries its parameter sets in
+//! band (sample entries `avc3`, `hev1`, `av01`, `vp09`), so a run decodes on its own; a
+//! package holds one initialisation segment (`ftyp` + `moov`) per picture size. An init
+//! segment followed by a segment's fragment is an ordinary fragmented MP4 file that FFmpeg's
+//! demuxer reads (tested): the layers play one after the other. It is not a CMAF segment:
+//! CMAF asks for a `tfdt`, which a fragment decoded on its own does not need (below).
 //!
 //! The fragment is as small as the standard allows: `moof` with `mfhd`, a `traf` of `tfhd`
-//! (track 1, data offsets from the `moof`) and one `trun` with each sample's size, the first
-//! sample's flags (a sync sample) and, when the stream reorders pictures (B-frames), each
-//! sample's composition offset (signed, version 1, so that decoding times are the picture
-//! indices and presentation starts at 0 without an edit list); sample durations and the
-//! other samples' flags (non-sync) are the defaults of the init segment's `trex`. That is
-//! 80 bytes plus 4 per picture, 8 with reordering, against about 1,100 bytes of `ftyp` +
-//! `moov` in every stream of every segment in a self-contained MP4. There is no `tfdt`: a
-//! stream fragment is decoded on its own (from time 0), never appended to another.
+//! (track 1, data offsets from the `moof`) and per stream one `trun` with its data offset,
+//! each sample's size, the first sample's flags (a sync sample) and, when the stream reorders
+//! pictures (B-frames), each sample's composition offset (signed, version 1, so that
+//! decoding times are the picture indices and presentation starts at 0 without an edit
+//! list); sample durations and the other samples' flags (non-sync) are the defaults of the
+//! init segment's `trex`. That is 56 bytes per segment plus, per stream, 24 and 4 per
+//! picture, 8 with reordering ([`overhead`]), against about 1,100 bytes of `ftyp` + `moov`
+//! in every stream of every segment in a self-contained MP4. There is no `tfdt`: a fragment
+//! is decoded on its own (from time 0), never appended to another.
 
 use cpsl_package::Codec;
 
@@ -42,9 +45,14 @@ const FIRST_FLAGS: u32 = 0x4;
 const SIZES: u32 = 0x200;
 const OFFSETS: u32 = 0x800;
 
-/// Bytes a fragment of `n` pictures spends beyond its samples.
-pub(crate) fn overhead(n: usize, reordered: bool) -> usize {
-    80 + n * if reordered { 8 } else { 4 }
+/// Bytes a fragment spends beyond its samples: 56 for the fragment (`moof` with `mfhd`,
+/// `traf` with `tfhd`, and the `mdat` header) and for each run of `n` pictures 24 plus 4 per
+/// picture, 8 with reordering.
+pub(crate) fn overhead(runs: &[(usize, bool)]) -> usize {
+    56 + runs
+        .iter()
+        .map(|&(n, reordered)| 24 + n * if reordered { 8 } else { 4 })
+        .sum::<usize>()
 }
 
 fn put_box(out: &mut Vec<u8>, kind: &[u8; 4], body: impl FnOnce(&mut Vec<u8>)) {
@@ -62,54 +70,97 @@ fn u32s(out: &mut Vec<u8>, values: &[u32]) {
     }
 }
 
-/// The fragment (`moof` + `mdat`) of `samples`, the first a key picture.
-pub(crate) fn fragment(samples: &[Coded]) -> Vec<u8> {
-    let offsets: Vec<i64> = samples
+/// Each sample's composition offset (presentation index minus decoding index) in a run.
+fn composition_offsets(samples: &[Coded]) -> Vec<i64> {
+    samples
         .iter()
         .enumerate()
         .map(|(i, s)| s.pts - i as i64)
+        .collect()
+}
+
+/// The fragment (`moof` + `mdat`) of one track holding `runs` one after the other, each a
+/// stream whose first sample is a key picture: one track run per stream, its samples
+/// together in the `mdat`. Composition offsets count within each run, so a run decodes on
+/// its own, and as the track it is part of (decoding times continuing from run to run).
+pub(crate) fn fragment(runs: &[&[Coded]]) -> Vec<u8> {
+    let offsets: Vec<Vec<i64>> = runs.iter().map(|r| composition_offsets(r)).collect();
+    let shape: Vec<(usize, bool)> = runs
+        .iter()
+        .zip(&offsets)
+        .map(|(r, o)| (r.len(), o.iter().any(|&o| o != 0)))
         .collect();
-    let reordered = offsets.iter().any(|&o| o != 0);
-    let version: u32 = if offsets.iter().any(|&o| o < 0) { 1 } else { 0 };
-    let payload: usize = samples.iter().map(|s| s.data.len()).sum();
-    let mut out = Vec::with_capacity(overhead(samples.len(), reordered) + payload);
-    let moof_size = overhead(samples.len(), reordered) - 8;
+    let payload: usize = runs
+        .iter()
+        .flat_map(|r| r.iter())
+        .map(|s| s.data.len())
+        .sum();
+    let moof_size = overhead(&shape) - 8;
+    let mut out = Vec::with_capacity(moof_size + 8 + payload);
     put_box(&mut out, b"moof", |o| {
         put_box(o, b"mfhd", |o| u32s(o, &[0, 1]));
         put_box(o, b"traf", |o| {
             put_box(o, b"tfhd", |o| u32s(o, &[BASE_IS_MOOF, 1]));
-            put_box(o, b"trun", |o| {
-                let flags = DATA_OFFSET | FIRST_FLAGS | SIZES | if reordered { OFFSETS } else { 0 };
-                let first = if samples.first().is_some_and(|s| s.key) {
-                    SYNC
-                } else {
-                    NON_SYNC
-                };
-                u32s(
-                    o,
-                    &[
-                        version << 24 | flags,
-                        samples.len() as u32,
-                        (moof_size + 8) as u32,
-                        first,
-                    ],
-                );
-                for (s, &off) in samples.iter().zip(&offsets) {
-                    u32s(o, &[s.data.len() as u32]);
-                    if reordered {
-                        u32s(o, &[off as i32 as u32]);
+            let mut data_at = moof_size + 8;
+            for ((samples, offsets), &(_, reordered)) in runs.iter().zip(&offsets).zip(&shape) {
+                put_box(o, b"trun", |o| {
+                    let version: u32 = if offsets.iter().any(|&o| o < 0) { 1 } else { 0 };
+                    let flags =
+                        DATA_OFFSET | FIRST_FLAGS | SIZES | if reordered { OFFSETS } else { 0 };
+                    let first = if samples.first().is_some_and(|s| s.key) {
+                        SYNC
+                    } else {
+                        NON_SYNC
+                    };
+                    u32s(
+                        o,
+                        &[
+                            version << 24 | flags,
+                            samples.len() as u32,
+                            data_at as u32,
+                            first,
+                        ],
+                    );
+                    for (s, &off) in samples.iter().zip(offsets) {
+                        u32s(o, &[s.data.len() as u32]);
+                        if reordered {
+                            u32s(o, &[off as i32 as u32]);
+                        }
                     }
-                }
-            });
+                });
+                data_at += samples.iter().map(|s| s.data.len()).sum::<usize>();
+            }
         });
     });
     debug_assert_eq!(out.len(), moof_size);
     out.extend_from_slice(&((payload + 8) as u32).to_be_bytes());
     out.extend_from_slice(b"mdat");
-    for s in samples {
+    for s in runs.iter().flat_map(|r| r.iter()) {
         out.extend_from_slice(&s.data);
     }
     out
+}
+
+/// The runs of the fragments `parts` (each a file [`fragment`] wrote) as one fragment, in
+/// order: how a segment's layer streams, coded one file each, become its one file.
+pub(crate) fn join(parts: &[Vec<u8>]) -> Result<Vec<u8>, String> {
+    let mut runs = Vec::new();
+    for part in parts {
+        for run in parse_fragment(part)? {
+            runs.push(
+                run.iter()
+                    .enumerate()
+                    .map(|(i, s)| Coded {
+                        data: part[s.range.clone()].to_vec(),
+                        pts: i as i64 + s.offset,
+                        key: s.key,
+                    })
+                    .collect::<Vec<_>>(),
+            );
+        }
+    }
+    let views: Vec<&[Coded]> = runs.iter().map(Vec::as_slice).collect();
+    Ok(fragment(&views))
 }
 
 /// One sample of a parsed fragment.
@@ -165,8 +216,8 @@ fn be32(data: &[u8], at: usize, end: usize) -> Result<u32, String> {
 }
 
 /// The samples of a file holding one movie fragment of one track (an init segment before it
-/// is skipped), in decoding order, checked to lie inside the file.
-pub(crate) fn parse_fragment(data: &[u8]) -> Result<Vec<Sample>, String> {
+/// is skipped), run by run, each in decoding order, checked to lie inside the file.
+pub(crate) fn parse_fragment(data: &[u8]) -> Result<Vec<Vec<Sample>>, String> {
     let top = boxes(data, 0, data.len())?;
     let (_, moof, moof_end) = *top
         .iter()
@@ -206,9 +257,10 @@ pub(crate) fn parse_fragment(data: &[u8]) -> Result<Vec<Sample>, String> {
         0 => NON_SYNC,
         _ => be32(data, at, tfhd_end)?,
     };
-    let mut samples = Vec::new();
+    let mut runs = Vec::new();
     let mut next = base;
     for &(_, trun, trun_end) in inner.iter().filter(|b| &b.0 == b"trun") {
+        let mut samples = Vec::new();
         let head = be32(data, trun, trun_end)?;
         let (version, flags) = (head >> 24, head & 0xff_ffff);
         let count = be32(data, trun + 4, trun_end)? as usize;
@@ -252,7 +304,13 @@ pub(crate) fn parse_fragment(data: &[u8]) -> Result<Vec<Sample>, String> {
             let end = next
                 .checked_add(size)
                 .filter(|&e| e <= data.len())
-                .ok_or_else(|| format!("sample {} lies past the end of the file", samples.len()))?;
+                .ok_or_else(|| {
+                    format!(
+                        "sample {} of run {} lies past the end of the file",
+                        samples.len(),
+                        runs.len()
+                    )
+                })?;
             samples.push(Sample {
                 range: next..end,
                 key: sample_flags & 0x1_0000 == 0,
@@ -260,11 +318,15 @@ pub(crate) fn parse_fragment(data: &[u8]) -> Result<Vec<Sample>, String> {
             });
             next = end;
         }
+        if samples.is_empty() {
+            return Err(format!("run {} has no samples", runs.len()));
+        }
+        runs.push(samples);
     }
-    if samples.is_empty() {
+    if runs.is_empty() {
         return Err("no samples".into());
     }
-    Ok(samples)
+    Ok(runs)
 }
 
 /// Patches the `trex` of an init segment so that fragments inherit a sample duration of
@@ -468,25 +530,27 @@ mod tests {
             coded(&[3; 7], 1, false),
             coded(&[4; 1], 2, false),
         ];
-        let f = fragment(&s);
-        assert_eq!(f.len(), overhead(4, true) + 23);
+        let f = fragment(&[&s]);
+        assert_eq!(f.len(), overhead(&[(4, true)]) + 23);
+        assert_eq!(overhead(&[(4, true)]), 80 + 4 * 8);
         let back = parse_fragment(&f).unwrap();
-        let offsets: Vec<i64> = back.iter().map(|b| b.offset).collect();
+        assert_eq!(back.len(), 1);
+        let offsets: Vec<i64> = back[0].iter().map(|b| b.offset).collect();
         assert_eq!(offsets, [0, 2, -1, -1]);
         assert_eq!(
-            back.iter().map(|b| b.key).collect::<Vec<_>>(),
+            back[0].iter().map(|b| b.key).collect::<Vec<_>>(),
             [true, false, false, false]
         );
-        for (b, c) in back.iter().zip(&s) {
+        for (b, c) in back[0].iter().zip(&s) {
             assert_eq!(&f[b.range.clone()], &c.data[..]);
         }
         // Without reordering: sizes only.
         let plain = [coded(&[1; 3], 0, true), coded(&[2; 4], 1, false)];
-        let f = fragment(&plain);
-        assert_eq!(f.len(), overhead(2, false) + 7);
+        let f = fragment(&[&plain]);
+        assert_eq!(f.len(), overhead(&[(2, false)]) + 7);
         let back = parse_fragment(&f).unwrap();
-        assert_eq!(back[1].range, f.len() - 4..f.len());
-        assert_eq!(back[1].offset, 0);
+        assert_eq!(back[0][1].range, f.len() - 4..f.len());
+        assert_eq!(back[0][1].offset, 0);
         // Cut or damaged: errors, never panics.
         for n in [0, 8, 40, f.len() - 1] {
             assert!(parse_fragment(&f[..n]).is_err(), "cut at {n}");
@@ -495,6 +559,38 @@ mod tests {
         let count_at = 8 + 16 + 8 + 16 + 12;
         big[count_at..count_at + 4].copy_from_slice(&1000u32.to_be_bytes());
         assert!(parse_fragment(&big).is_err());
+    }
+
+    #[test]
+    fn streams_joined_into_one_fragment_come_back_run_by_run() {
+        let a = [
+            coded(&[1; 10], 0, true),
+            coded(&[2; 5], 2, false),
+            coded(&[3; 7], 1, false),
+        ];
+        let b = [coded(&[4; 3], 0, true), coded(&[5; 4], 1, false)];
+        let c = [coded(&[6; 9], 0, true)];
+        let parts = [fragment(&[&a]), fragment(&[&b]), fragment(&[&c])];
+        let joined = join(&parts).unwrap();
+        // The fragment's 56 bytes are paid once, not three times.
+        let shape = [(3, true), (2, false), (1, false)];
+        assert_eq!(joined.len(), overhead(&shape) + 38);
+        assert_eq!(
+            parts.iter().map(Vec::len).sum::<usize>() - joined.len(),
+            2 * 56
+        );
+        let runs = parse_fragment(&joined).unwrap();
+        assert_eq!(runs.len(), 3);
+        for (run, src) in runs.iter().zip([&a[..], &b, &c]) {
+            assert_eq!(run.len(), src.len());
+            for (i, (s, c)) in run.iter().zip(src).enumerate() {
+                assert_eq!(&joined[s.range.clone()], &c.data[..]);
+                assert_eq!((s.key, i as i64 + s.offset), (c.key, c.pts));
+            }
+        }
+        // Joining what is joined changes nothing; a damaged part is an error.
+        assert_eq!(join(&[joined.clone()]).unwrap(), joined);
+        assert!(join(&[parts[0].clone(), parts[1][..20].to_vec()]).is_err());
     }
 
     #[test]

@@ -1,12 +1,13 @@
 //! Decoding a segment frame by frame: every layer stream advanced one picture at a time, in
 //! lock step, back to layer sets with their Edge-Depth Cache summary.
 
-use crate::stream::{Container, PictureReader};
+use crate::stream::PictureReader;
 use crate::{scale, yuv, CodecError};
 use cpsl_core::{Camera, Layer, LayerSet, Limits, PremulImage};
 use cpsl_package::{Package, SideFrame};
 use rayon::prelude::*;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 /// One decoded frame of a package.
 #[derive(Debug, Clone)]
@@ -58,22 +59,44 @@ impl SegmentReader {
         })?;
         let side = pkg.side_stream(i)?;
         let camera = m.camera;
+        // The segment's one fragment (version 6), read and checked once for all its streams.
+        let shared = match &seg.fragment {
+            Some(f) => Some((Arc::<[u8]>::from(pkg.read(f)?), pkg.display_path(f))),
+            None => None,
+        };
         let streams = seg
             .streams
             .par_iter()
-            .map(|s| {
-                pkg.read(&s.file)?;
+            .enumerate()
+            .map(|(k, s)| {
                 let size = scale::scaled_size(camera.width, camera.height, s.scale);
-                let shown = pkg.display_path(&s.file);
-                // A fragment decodes on its own (its parameter sets are in band); its init
-                // segment is for standard MP4 readers.
-                let container = match s.init {
-                    Some(_) => Container::Fragment,
-                    None => Container::Mp4,
+                let (w, h) = size;
+                let reader = match (&shared, &s.file) {
+                    (Some((data, shown)), _) => {
+                        let shown = PathBuf::from(format!("{} (stream {k})", shown.display()));
+                        PictureReader::open_run(&shown, data.clone(), k, m.codec, w, h)
+                            .map(|r| (r, shown))
+                    }
+                    (None, Some(file)) => {
+                        let data = pkg.read(file)?;
+                        let shown = pkg.display_path(file);
+                        // A fragment decodes on its own (its parameter sets are in band);
+                        // its init segment is for standard MP4 readers.
+                        match s.init {
+                            Some(_) => {
+                                PictureReader::open_run(&shown, data.into(), 0, m.codec, w, h)
+                            }
+                            None => PictureReader::open(&pkg.path_of(file), w, h)
+                                .map_err(|e| shown_as(e, &shown)),
+                        }
+                        .map(|r| (r, shown))
+                    }
+                    (None, None) => Err(CodecError::Stream {
+                        path: pkg.display_path(&seg.side),
+                        reason: format!("stream {k} has no file"),
+                    }),
                 };
-                let path = pkg.path_of(&s.file);
-                let reader = PictureReader::open_as(&path, container, m.codec, size.0, size.1)
-                    .map_err(|e| shown_as(e, &shown))?;
+                let (reader, shown) = reader?;
                 Ok(StreamCursor {
                     reader,
                     size,

@@ -18,7 +18,8 @@ use crate::stream::{quality_range, write_init, Container, PictureReader, StreamE
 use crate::{scale, yuv, CodecError, CodingOptions, RateControl};
 use cpsl_core::{Geometry, LayeredFrame, PremulImage, RefreshReason};
 use cpsl_package::{
-    file_entry, segment_dir, Codec, Segment, SideFrame, SideLayer, SideStream, StreamEntry,
+    file_entry, segment_dir, Codec, FileEntry, Segment, SideFrame, SideLayer, SideStream,
+    StreamEntry,
 };
 use rayon::prelude::*;
 use std::collections::HashMap;
@@ -824,9 +825,35 @@ impl SegmentEncoder {
         Ok(rel)
     }
 
+    /// Joins the segment's `n` stream fragments into its one fragment (stream `k` in run
+    /// `k`), removing theirs.
+    fn join_streams(&self, n: usize) -> Result<FileEntry, CodecError> {
+        let paths: Vec<PathBuf> = (0..n).map(|k| self.root.join(self.stream_rel(k))).collect();
+        let parts = paths
+            .iter()
+            .map(|p| {
+                std::fs::read(p).map_err(|source| CodecError::Io {
+                    path: p.clone(),
+                    source,
+                })
+            })
+            .collect::<Result<Vec<_>, _>>()?;
+        let joined = crate::fmp4::join(&parts).map_err(|reason| CodecError::Stream {
+            path: paths[0].clone(),
+            reason,
+        })?;
+        let rel = format!("{}/layers.m4s", self.dir_name);
+        let path = self.root.join(&rel);
+        std::fs::write(&path, joined).map_err(|source| CodecError::Io { path, source })?;
+        for p in &paths {
+            let _ = std::fs::remove_file(p);
+        }
+        Ok(file_entry(&self.root, &rel)?)
+    }
+
     fn stream_rel(&self, k: usize) -> String {
         let ext = match self.opts.container {
-            Container::Fragment => "m4s",
+            Container::Fragment | Container::StreamFragments => "m4s",
             Container::Mp4 => "mp4",
         };
         format!("{}/layer_{k:02}.{ext}", self.dir_name)
@@ -1097,28 +1124,42 @@ impl SegmentEncoder {
         })?;
         let seconds = frames as f64 / fps;
         let root = &self.root;
+        // A lone fragment's boxes, paid once in the segment's fragment.
+        let shared = crate::fmp4::overhead(&[]) as u64;
+        let n = written.len() as u64;
         let streams = written
             .iter()
             .enumerate()
             .map(|(k, wr)| {
                 let scale = self.rungs[coding.rung[k]];
-                let init = match container {
-                    Container::Fragment => Some(self.init_for(scale, wr)?),
-                    Container::Mp4 => None,
+                let init = match container.is_fragment() {
+                    true => Some(self.init_for(scale, wr)?),
+                    false => None,
+                };
+                let (file, bytes) = match container {
+                    Container::Fragment => (None, wr.bytes - shared + shared / n),
+                    _ => (Some(file_entry(root, &self.stream_rel(k))?), wr.bytes),
                 };
                 Ok(StreamEntry {
-                    file: file_entry(root, &self.stream_rel(k))?,
+                    file,
                     init,
                     track: self.tracks[k],
-                    bitrate: (wr.bytes as f64 * 8.0 / seconds).round() as u64,
+                    bitrate: (bytes as f64 * 8.0 / seconds).round() as u64,
                     quality: coding.quality[k],
                     scale,
                     weight: self.weights[k],
                 })
             })
             .collect::<Result<Vec<_>, CodecError>>()?;
-        let bits = written.iter().map(|wr| wr.bytes as f64 * 8.0).sum::<f64>()
-            + side_bytes.len() as f64 * 8.0;
+        let fragment = match container {
+            Container::Fragment => Some(self.join_streams(written.len())?),
+            Container::StreamFragments | Container::Mp4 => None,
+        };
+        let stream_bytes = match &fragment {
+            Some(f) => f.bytes,
+            None => written.iter().map(|wr| wr.bytes).sum(),
+        };
+        let bits = (stream_bytes + side_bytes.len() as u64) as f64 * 8.0;
         let mut carried = Carried {
             models: HashMap::new(),
             inter_scale: self.inter_scale,
@@ -1167,6 +1208,7 @@ impl SegmentEncoder {
                 start: self.start,
                 frames: frames as u32,
                 streams,
+                fragment,
                 side: file_entry(root, &side_rel)?,
             },
             report: SegmentReport {

@@ -8,6 +8,7 @@ use cpsl_package::Codec;
 use ffmpeg_next as ffmpeg;
 use std::marker::PhantomData;
 use std::path::{Path, PathBuf};
+use std::sync::Arc;
 
 /// The encoder's quality scale (CRF) for a codec: (lowest, highest, default). Lower is better.
 pub fn quality_range(codec: Codec) -> (f32, f32, f32) {
@@ -215,12 +216,23 @@ impl Written {
 /// How a layer stream is stored.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum Container {
-    /// A movie fragment with in-band parameter sets, read with the package's init segment
-    /// for its picture size (package version 4).
+    /// Movie fragments with in-band parameter sets, read with the package's init segment for
+    /// their picture size; a segment's streams are the track runs of its one fragment
+    /// (package version 6).
     #[default]
     Fragment,
+    /// A movie fragment per stream and segment (package versions 4 and 5, for players that
+    /// read only those).
+    StreamFragments,
     /// A self-contained MP4 file (package versions 1 to 3).
     Mp4,
+}
+
+impl Container {
+    /// Whether streams are movie fragments (read with an init segment).
+    pub fn is_fragment(self) -> bool {
+        self != Container::Mp4
+    }
 }
 
 /// Where an encoder's packets go.
@@ -284,7 +296,7 @@ impl<T: Sample> StreamEncoder<T> {
             Container::Mp4 => {
                 Some(ffmpeg::format::output(&path).map_err(ff("creating the output"))?)
             }
-            Container::Fragment => None,
+            Container::Fragment | Container::StreamFragments => None,
         };
         let mut enc = ffmpeg::codec::context::Context::new_with_codec(enc_codec)
             .encoder()
@@ -425,7 +437,7 @@ impl<T: Sample> StreamEncoder<T> {
                 Vec::new()
             }
             Out::Fragment(samples) => {
-                std::fs::write(&path, crate::fmp4::fragment(&samples)).map_err(io)?;
+                std::fs::write(&path, crate::fmp4::fragment(&[&samples])).map_err(io)?;
                 crate::fmp4::headers(codec, &samples[0].data)
             }
         };
@@ -623,7 +635,7 @@ enum Source {
     },
     /// A movie fragment's samples, in decoding order.
     Fragment {
-        data: Vec<u8>,
+        data: Arc<[u8]>,
         samples: Vec<crate::fmp4::Sample>,
         codec: Codec,
         next: usize,
@@ -690,7 +702,7 @@ impl<T: Sample> PictureReader<T> {
     }
 
     /// Opens the stream at `path` in `container` ([`PictureReader::open`] for an MP4 file;
-    /// a fragment of `codec` is checked by decoding its first picture).
+    /// a fragment's first run is read, as [`PictureReader::open_run`] reads it).
     pub fn open_as(
         path: &Path,
         container: Container,
@@ -701,16 +713,36 @@ impl<T: Sample> PictureReader<T> {
         if container == Container::Mp4 {
             return Self::open(path, width, height);
         }
+        let data = std::fs::read(path).map_err(|source| CodecError::Io {
+            path: path.to_path_buf(),
+            source,
+        })?;
+        Self::open_run(path, data.into(), 0, codec, width, height)
+    }
+
+    /// Opens run `run` of the movie fragment `data` (the file at `path`, which the streams of
+    /// a segment share): a stream of `codec` pictures, checked by decoding its first picture.
+    pub fn open_run(
+        path: &Path,
+        data: Arc<[u8]>,
+        run: usize,
+        codec: Codec,
+        width: u32,
+        height: u32,
+    ) -> Result<Self, CodecError> {
         init()?;
         let bad = |reason: String| CodecError::Stream {
             path: path.to_path_buf(),
             reason,
         };
-        let data = std::fs::read(path).map_err(|source| CodecError::Io {
-            path: path.to_path_buf(),
-            source,
-        })?;
-        let samples = crate::fmp4::parse_fragment(&data).map_err(bad)?;
+        let mut runs = crate::fmp4::parse_fragment(&data).map_err(bad)?;
+        if run >= runs.len() {
+            return Err(bad(format!(
+                "stream {run} asked for, the fragment holds {}",
+                runs.len()
+            )));
+        }
+        let samples = runs.swap_remove(run);
         if !samples[0].key {
             return Err(bad("the first picture is not a key picture".into()));
         }

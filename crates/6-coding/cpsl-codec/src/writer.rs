@@ -82,7 +82,6 @@ impl PackageWriter {
     }
 
     /// Where the frames' depth came from, by runs of frames, for the manifest (a package of
-    /// fragments with notes is version [`cpsl_package::DEPTH_VERSION`]; a package of
     /// self-contained MP4 streams, an older version, carries none).
     pub fn set_depth(&mut self, runs: Vec<cpsl_package::DepthRun>) {
         self.depth = runs;
@@ -225,8 +224,9 @@ impl PackageWriter {
         let m = cpsl_package::PackageManifest {
             format: cpsl_package::PACKAGE_FORMAT.into(),
             version: match self.opts.container {
-                Container::Fragment if !self.depth.is_empty() => cpsl_package::DEPTH_VERSION,
-                Container::Fragment => cpsl_package::FRAGMENT_VERSION,
+                Container::Fragment => cpsl_package::SEGMENT_FRAGMENT_VERSION,
+                Container::StreamFragments if !self.depth.is_empty() => cpsl_package::DEPTH_VERSION,
+                Container::StreamFragments => cpsl_package::FRAGMENT_VERSION,
                 Container::Mp4 => cpsl_package::version_for(
                     self.segments
                         .iter()
@@ -252,7 +252,7 @@ impl PackageWriter {
             },
             inits,
             depth: match self.opts.container {
-                Container::Fragment => std::mem::take(&mut self.depth),
+                Container::Fragment | Container::StreamFragments => std::mem::take(&mut self.depth),
                 Container::Mp4 => Vec::new(),
             },
             segments: std::mem::take(&mut self.segments),

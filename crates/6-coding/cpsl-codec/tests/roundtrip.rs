@@ -285,11 +285,12 @@ fn verify_detects_a_flipped_byte_in_every_part() {
     assert!(Package::open(&out).unwrap().verify().is_empty());
     // A truncated stream and a missing side stream are clear errors, not panics.
     let pkg = Package::open(&out).unwrap();
-    let stream = pkg.path_of(&pkg.manifest().segments[0].streams[0].file);
+    let fragment = pkg.manifest().segments[0].fragment.as_ref();
+    let stream = pkg.path_of(fragment.expect("version 6 segments share a fragment"));
     let bytes = std::fs::read(&stream).unwrap();
     std::fs::write(&stream, &bytes[..bytes.len() / 2]).unwrap();
     let e = decode_segment(&pkg, 0).unwrap_err().to_string();
-    assert!(e.contains("layer_00.m4s"), "{e}");
+    assert!(e.contains("layers.m4s"), "{e}");
     std::fs::remove_file(pkg.path_of(&pkg.manifest().segments[0].side)).unwrap();
     assert!(decode_segment(&pkg, 0).is_err());
     // Decoding a truncated stream directly fails or returns fewer pictures, without panic.
@@ -483,4 +484,76 @@ fn frames_out_of_order_are_refused() {
     w.push(frames[1].clone()).unwrap();
     w.push(frames[2].clone()).unwrap();
     assert_eq!(w.finish().unwrap().frames, 3);
+}
+
+#[test]
+fn a_segments_fragment_after_an_init_segment_plays_its_layers_one_after_another() {
+    // Version 6: one file per segment, one track run per layer stream. An ordinary MP4
+    // demuxer (FFmpeg's) reads init + fragment as one track: the streams' pictures in turn.
+    let segs = segments(GOP as usize);
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("clip.cpsl");
+    let opts = CodingOptions {
+        codec: Codec::H264,
+        rate: RateControl::Quality(30.0),
+        fps: FPS,
+        gop: GOP,
+        container: cpsl_codec::Container::Fragment,
+    };
+    write(&out, &segs, opts);
+    let pkg = Package::open(&out).unwrap();
+    let m = pkg.manifest();
+    assert_eq!(m.version, cpsl_package::SEGMENT_FRAGMENT_VERSION);
+    let seg = &m.segments[0];
+    assert!(seg.streams.len() >= 2 && seg.streams.iter().all(|t| t.file.is_none()));
+    let fragment = std::fs::read(pkg.path_of(seg.fragment.as_ref().unwrap())).unwrap();
+    let init = m.init_of(&seg.streams[0]).unwrap();
+    let mut bytes = std::fs::read(pkg.path_of(init)).unwrap();
+    bytes.extend(&fragment);
+    let joined = dir.path().join("joined.mp4");
+    std::fs::write(&joined, bytes).unwrap();
+    let standard = cpsl_codec::decode_pictures::<u8>(&joined, W, H).unwrap();
+    let n = seg.frames as usize;
+    assert_eq!(standard.len(), n * seg.streams.len());
+    // Each run decodes on its own to the same pictures.
+    let shared: std::sync::Arc<[u8]> = fragment.into();
+    for k in 0..seg.streams.len() {
+        let mut r = cpsl_codec::PictureReader::<u8>::open_run(
+            &joined,
+            shared.clone(),
+            k,
+            Codec::H264,
+            W,
+            H,
+        )
+        .unwrap();
+        let alone: Vec<_> = std::iter::from_fn(|| r.next_picture().unwrap()).collect();
+        assert_eq!(alone.len(), n);
+        assert!(alone[..] == standard[k * n..(k + 1) * n], "stream {k}");
+    }
+    // A fragment per stream (versions 4 and 5, for older players): the same pictures.
+    let older = dir.path().join("older.cpsl");
+    let opts = CodingOptions {
+        container: cpsl_codec::Container::StreamFragments,
+        ..opts
+    };
+    write(&older, &segs, opts);
+    let old = Package::open(&older).unwrap();
+    assert_eq!(old.manifest().version, cpsl_package::FRAGMENT_VERSION);
+    let old_seg = &old.manifest().segments[0];
+    assert!(old_seg.fragment.is_none() && old_seg.streams.iter().all(|t| t.file.is_some()));
+    let (a, b) = (
+        decode_segment(&pkg, 0).unwrap(),
+        decode_segment(&old, 0).unwrap(),
+    );
+    assert_eq!(a.len(), b.len());
+    for (x, y) in a.iter().zip(&b) {
+        assert!(psnr(&x.set, &y.set) > 99.0);
+    }
+    // The shared fragment saves each stream but one the fragment's boxes (56 bytes).
+    let bytes = |p: &Package| p.manifest().payload_bytes();
+    assert_eq!(
+        bytes(&old) - bytes(&pkg),
+        56 * (seg.streams.len() as u64 - 1)
+    );
 }

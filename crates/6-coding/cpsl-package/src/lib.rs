@@ -28,7 +28,7 @@ pub use archive::{is_archive, pack, unpack};
 pub use manifest::{
     scales_of, sha256_hex, unsafe_path, version_for, Codec, DepthRun, FileEntry, Layout,
     PackageManifest, PackageManifestError, Segment, StreamEntry, DEPTH_VERSION, FRAGMENT_VERSION,
-    MANIFEST_FILE, MAX_DEPTH_NOTE, PACKAGE_FORMAT, PACKAGE_VERSION,
+    MANIFEST_FILE, MAX_DEPTH_NOTE, PACKAGE_FORMAT, PACKAGE_VERSION, SEGMENT_FRAGMENT_VERSION,
 };
 pub use side::{
     geometry_bytes, summarise_edc, SideError, SideFrame, SideLayer, SideStream, GRID_STEP,
@@ -254,8 +254,13 @@ impl Package {
             }
         }
         for (i, seg) in self.manifest.segments.iter().enumerate() {
-            for s in &seg.streams {
-                if let Err(e) = self.read(&s.file) {
+            for f in seg
+                .streams
+                .iter()
+                .filter_map(|t| t.file.as_ref())
+                .chain(&seg.fragment)
+            {
+                if let Err(e) = self.read(f) {
                     problems.push(e);
                 }
             }

@@ -3,6 +3,10 @@
 //! allows scales 1, 2 and 4, version 3 adds 8; in versions 1 to 3 every layer stream is a
 //! self-contained MP4 file. Version 4 streams are movie fragments: each names the init
 //! segment (`ftyp` + `moov`, one per picture size, listed in `inits`) that goes before it.
+//! Version 5 adds the depth notes. From version 6 a segment's layer streams share one file,
+//! the segment's `fragment`: one movie fragment with a track run per stream, in the order of
+//! `streams` (one request per segment instead of one per stream, and the fragment's boxes
+//! paid once); its streams name no file of their own.
 //! A package of self-contained streams without an eighth-size one is still written as
 //! version 2 ([`version_for`]), so players that read version 2 read it.
 //!
@@ -19,12 +23,14 @@ use thiserror::Error;
 /// Format name written in every package manifest.
 pub const PACKAGE_FORMAT: &str = "cpsl-package";
 /// Newest package version this build reads and writes.
-pub const PACKAGE_VERSION: u32 = 5;
+pub const PACKAGE_VERSION: u32 = 6;
 /// The first version whose layer streams are movie fragments with init segments.
 pub const FRAGMENT_VERSION: u32 = 4;
-/// The first version that says where the frames' depth came from (`depth`); a package of
-/// fragments is written at this version when it has such notes, else at [`FRAGMENT_VERSION`].
+/// The first version that says where the frames' depth came from (`depth`).
 pub const DEPTH_VERSION: u32 = 5;
+/// The first version whose segments hold their layer streams in one fragment (`fragment`),
+/// what every package of fragments is written as.
+pub const SEGMENT_FRAGMENT_VERSION: u32 = 6;
 /// The longest note of a [`DepthRun`], in bytes.
 pub const MAX_DEPTH_NOTE: usize = 1000;
 
@@ -39,7 +45,7 @@ pub fn scales_of(version: u32) -> &'static [u32] {
 
 /// The version a package of self-contained MP4 streams whose downscale factors are `scales`
 /// is written with: the lowest that allows them, and at least 2 (what this format wrote
-/// before version 3). Packages of fragments are version [`FRAGMENT_VERSION`].
+/// before version 3). Packages of fragments are version [`SEGMENT_FRAGMENT_VERSION`].
 pub fn version_for(scales: impl IntoIterator<Item = u32>) -> u32 {
     scales.into_iter().fold(2, |v, s| {
         v.max(
@@ -129,8 +135,10 @@ pub struct FileEntry {
 #[serde(deny_unknown_fields)]
 pub struct StreamEntry {
     /// The coded stream: a self-contained MP4 file (versions 1 to 3) or a movie fragment
-    /// (version 4).
-    pub file: FileEntry,
+    /// (versions 4 and 5); none from version 6, where the stream is a track run of its
+    /// segment's `fragment`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub file: Option<FileEntry>,
     /// The path of the init segment that goes before the fragment (version 4; one of the
     /// manifest's `inits`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -168,8 +176,24 @@ pub struct Segment {
     pub frames: u32,
     /// Its layer streams (the side stream says which stream holds which layer per frame).
     pub streams: Vec<StreamEntry>,
+    /// The movie fragment holding its layer streams, stream `k` in track run `k` (version 6
+    /// on).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub fragment: Option<FileEntry>,
     /// Its side stream.
     pub side: FileEntry,
+}
+
+impl Segment {
+    /// Its files: the layer streams' (their own or the shared fragment), then the side
+    /// stream.
+    pub fn files(&self) -> impl Iterator<Item = &FileEntry> {
+        self.streams
+            .iter()
+            .filter_map(|t| t.file.as_ref())
+            .chain(&self.fragment)
+            .chain([&self.side])
+    }
 }
 
 /// The parsed package manifest.
@@ -443,8 +467,35 @@ impl PackageManifest {
                     (None, false) => {}
                 }
             }
-            let files = s.streams.iter().map(|t| &t.file).chain([&s.side]);
-            for f in files {
+            let shared = self.version >= SEGMENT_FRAGMENT_VERSION;
+            match (&s.fragment, shared) {
+                (None, true) => {
+                    return Err(field(
+                        at("fragment"),
+                        format!(
+                            "missing (version {} segments hold their streams in one)",
+                            self.version
+                        ),
+                    ))
+                }
+                (Some(_), false) => {
+                    return Err(field(
+                        at("fragment"),
+                        format!("version {} segments have none", self.version),
+                    ))
+                }
+                _ => {}
+            }
+            for (k, t) in s.streams.iter().enumerate() {
+                if t.file.is_some() == shared {
+                    let why = match shared {
+                        true => "a version 6 stream is a run of its segment's `fragment`",
+                        false => "missing",
+                    };
+                    return Err(field(at(&format!("streams[{k}].file")), why));
+                }
+            }
+            for f in s.files() {
                 check_file(f, &format!("segments[{i}]"), &mut seen)?;
             }
         }
@@ -513,11 +564,9 @@ impl PackageManifest {
     /// Every file the manifest references, in order: the init segments, then each
     /// segment's layer streams and side stream.
     pub fn files(&self) -> impl Iterator<Item = &FileEntry> {
-        self.inits.iter().chain(
-            self.segments
-                .iter()
-                .flat_map(|s| s.streams.iter().map(|t| &t.file).chain([&s.side])),
-        )
+        self.inits
+            .iter()
+            .chain(self.segments.iter().flat_map(Segment::files))
     }
 
     /// The init segment that goes before `stream`'s fragment, if it has one.
@@ -531,7 +580,7 @@ impl PackageManifest {
     pub fn payload_bytes(&self) -> u64 {
         self.segments
             .iter()
-            .flat_map(|s| s.streams.iter().map(|t| &t.file).chain([&s.side]))
+            .flat_map(Segment::files)
             .map(|f| f.bytes)
             .sum()
     }

@@ -188,7 +188,7 @@ fn manifest() -> PackageManifest {
             start: 0,
             frames: 5,
             streams: vec![StreamEntry {
-                file: file("seg_000000/layer_00.m4s"),
+                file: None,
                 init: Some("init_64x96.mp4".into()),
                 track: Some(1),
                 bitrate: 1000,
@@ -196,21 +196,68 @@ fn manifest() -> PackageManifest {
                 scale: 2,
                 weight: 1.5,
             }],
+            fragment: Some(file("seg_000000/layers.m4s")),
             side: file("seg_000000/side.bin"),
         }],
         checksum: String::new(),
     }
 }
 
+/// [`manifest`] as a version 5 package (a fragment file per stream).
+fn manifest_v5() -> PackageManifest {
+    let mut m = manifest();
+    m.version = 5;
+    let mut f = m.segments[0].fragment.take().unwrap();
+    f.path = "seg_000000/layer_00.m4s".into();
+    m.segments[0].streams[0].file = Some(f);
+    m
+}
+
 /// [`manifest`] as a version 3 package (self-contained MP4 streams, no init segments).
 fn manifest_v3() -> PackageManifest {
-    let mut m = manifest();
+    let mut m = manifest_v5();
     m.version = 3;
     m.inits.clear();
     m.depth.clear();
     m.segments[0].streams[0].init = None;
-    m.segments[0].streams[0].file.path = "seg_000000/layer_00.mp4".into();
+    m.segments[0].streams[0].file.as_mut().unwrap().path = "seg_000000/layer_00.mp4".into();
     m
+}
+
+#[test]
+fn version_6_segments_share_one_fragment() {
+    let err = |m: PackageManifest| {
+        PackageManifest::parse(&m.to_json())
+            .unwrap_err()
+            .to_string()
+    };
+    assert!(PackageManifest::parse(&manifest_v5().to_json()).is_ok());
+    let files: Vec<String> = manifest().files().map(|f| f.path.clone()).collect();
+    assert_eq!(
+        files,
+        [
+            "init_64x96.mp4",
+            "seg_000000/layers.m4s",
+            "seg_000000/side.bin"
+        ]
+    );
+    let mut m = manifest();
+    m.segments[0].fragment = None;
+    assert!(err(m).contains("segments[0].fragment`: missing"));
+    let mut m = manifest();
+    m.segments[0].streams[0].file = manifest_v5().segments[0].streams[0].file.clone();
+    assert!(err(m).contains("segments[0].streams[0].file`: a version 6 stream"));
+    // Before version 6 every stream has its file and no segment a fragment.
+    let mut m = manifest_v5();
+    m.segments[0].fragment = manifest().segments[0].fragment.clone();
+    assert!(err(m).contains("version 5 segments have none"));
+    let mut m = manifest_v5();
+    m.segments[0].streams[0].file = None;
+    assert!(err(m).contains("segments[0].streams[0].file`: missing"));
+    // The fragment's path is checked like any file's.
+    let mut m = manifest();
+    m.segments[0].fragment.as_mut().unwrap().path = "../x.m4s".into();
+    assert!(err(m).contains("segments[0]"));
 }
 
 #[test]
@@ -238,9 +285,8 @@ fn version_4_streams_name_a_listed_init_segment() {
     let mut m = manifest_v3();
     m.segments[0].streams[0].init = Some("init_64x96.mp4".into());
     assert!(err(m).contains("version 3 streams have no init segment"));
-    let mut m = manifest();
-    m.version = 3;
-    m.segments[0].streams[0].init = None;
+    let mut m = manifest_v3();
+    m.inits = manifest().inits;
     assert!(err(m).contains("version 3 packages have no init segments"));
     // The init segments are files of the package.
     assert_eq!(manifest().files().next().unwrap().path, "init_64x96.mp4");
@@ -258,7 +304,7 @@ fn depth_notes_are_checked() {
     assert_eq!(back.depth, manifest().depth);
     assert!(!back.depth[0].is_fallback());
     // Version 5 brings them: a version 4 package with notes is refused, one without is read.
-    let mut m = manifest();
+    let mut m = manifest_v5();
     m.version = 4;
     assert!(err(m.clone()).contains("version 4 packages have no depth notes"));
     m.depth.clear();
@@ -311,7 +357,10 @@ fn manifest_round_trips_and_checks_itself() {
         "manifest.json",
     ] {
         let mut m = manifest();
-        m.segments[0].streams[0].file.path = path.into();
+        m.segments[0].fragment.as_mut().unwrap().path = path.into();
+        assert!(PackageManifest::parse(&m.to_json()).is_err(), "{path}");
+        let mut m = manifest_v5();
+        m.segments[0].streams[0].file.as_mut().unwrap().path = path.into();
         assert!(PackageManifest::parse(&m.to_json()).is_err(), "{path}");
     }
     let mut m2 = manifest();

@@ -108,12 +108,7 @@ pub fn package_urls(root: &Path, p: &PackageSummary) -> Vec<String> {
             .map(|f| format!("{}{}", p.url, f.path)),
     );
     for s in &pkg.manifest().segments {
-        out.extend(
-            s.streams
-                .iter()
-                .map(|t| format!("{}{}", p.url, t.file.path)),
-        );
-        out.push(format!("{}{}", p.url, s.side.path));
+        out.extend(s.files().map(|f| format!("{}{}", p.url, f.path)));
     }
     out
 }

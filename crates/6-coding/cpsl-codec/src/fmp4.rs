@@ -589,7 +589,7 @@ mod tests {
             }
         }
         // Joining what is joined changes nothing; a damaged part is an error.
-        assert_eq!(join(&[joined.clone()]).unwrap(), joined);
+        assert_eq!(join(std::slice::from_ref(&joined)).unwrap(), joined);
         assert!(join(&[parts[0].clone(), parts[1][..20].to_vec()]).is_err());
     }
 

@@ -303,10 +303,15 @@ pub fn info(a: PackageArgs) -> Result<()> {
             println!("    frames {:>5}-{:<5} {}", r.first, r.last, r.note);
         }
     }
+    let shared = m.segments.iter().any(|s| s.fragment.is_some());
     match m.inits.len() {
         0 => println!("  streams: self-contained MP4 files"),
         n => println!(
-            "  streams: movie fragments; {n} init segments ({:.1} kB, fetched once)",
+            "  streams: {}; {n} init segments ({:.1} kB, fetched once)",
+            match shared {
+                true => "one movie fragment per segment, a track run per stream",
+                false => "a movie fragment per stream and segment",
+            },
             m.inits.iter().map(|f| f.bytes).sum::<u64>() as f64 / 1e3
         ),
     }

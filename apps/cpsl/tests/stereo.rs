@@ -353,9 +353,9 @@ fn layers_the_fox_with_depth_from_its_own_video() {
         warned.contains("warning: depth of frames 0-2: fallback: the camera is static"),
         "{warned}"
     );
-    // The package keeps it (version 5), and `cpsl info` shows it.
+    // The package keeps it (version 5 on), and `cpsl info` shows it.
     let info = ok(&["info", s(&pkg)]);
-    assert!(info.contains(": cpsl-package v5"), "{info}");
+    assert!(info.contains(": cpsl-package v6"), "{info}");
     assert!(
         info.contains("frames     0-2     fallback: the camera is static"),
         "{info}"

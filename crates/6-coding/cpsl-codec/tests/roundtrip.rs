@@ -54,6 +54,17 @@ fn psnr(a: &LayerSet, b: &LayerSet) -> f64 {
     10.0 * (255.0f64 * 255.0 / mse.max(1e-12)).log10()
 }
 
+/// H.264 at `rate`, GOP 6, the default container.
+fn h264(rate: RateControl) -> CodingOptions {
+    CodingOptions {
+        codec: Codec::H264,
+        rate,
+        fps: FPS,
+        gop: GOP,
+        container: cpsl_codec::Container::Fragment,
+    }
+}
+
 fn write(
     out: &Path,
     segs: &[Vec<LayeredFrame>],
@@ -88,13 +99,7 @@ fn package_round_trip_meets_budget_and_quality() {
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("clip.cpsl");
     let budget = 800_000.0;
-    let opts = CodingOptions {
-        codec: Codec::H264,
-        rate: RateControl::Budget(budget),
-        fps: FPS,
-        gop: GOP,
-        container: cpsl_codec::Container::Fragment,
-    };
+    let opts = h264(RateControl::Budget(budget));
     let reports = write(&out, &segs, opts);
     eprintln!("{reports:?}");
     let pkg = Package::open(&out).unwrap();
@@ -196,20 +201,13 @@ fn a_budget_below_the_full_size_floor_codes_smaller_streams() {
     // Large enough for the pictures, not the MP4 headers, to set the floor.
     let segs = segments_at(640, 480, 6);
     let dir = tempfile::tempdir().unwrap();
-    let opts = |rate| CodingOptions {
-        codec: Codec::H264,
-        rate,
-        fps: FPS,
-        gop: GOP,
-        container: cpsl_codec::Container::Fragment,
-    };
     // The floor: every stream at full size and the lowest quality.
     let floor_pkg = dir.path().join("floor.cpsl");
-    write(&floor_pkg, &segs, opts(RateControl::Quality(51.0)));
+    write(&floor_pkg, &segs, h264(RateControl::Quality(51.0)));
     let floor = Package::open(&floor_pkg).unwrap().manifest().bitrate();
     let budget = 0.7 * floor;
     let out = dir.path().join("small.cpsl");
-    let reports = write(&out, &segs, opts(RateControl::Budget(budget)));
+    let reports = write(&out, &segs, h264(RateControl::Budget(budget)));
     eprintln!("floor {floor:.0} bit/s, budget {budget:.0}: {reports:?}");
     let pkg = Package::open(&out).unwrap();
     assert!(pkg.verify().is_empty());
@@ -252,13 +250,7 @@ fn verify_detects_a_flipped_byte_in_every_part() {
     let segs = segments(4);
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("clip.cpsl");
-    let opts = CodingOptions {
-        codec: Codec::H264,
-        rate: RateControl::Quality(30.0),
-        fps: FPS,
-        gop: GOP,
-        container: cpsl_codec::Container::Fragment,
-    };
+    let opts = h264(RateControl::Quality(30.0));
     write(&out, &segs, opts);
     let mut files = vec![out.join("manifest.json")];
     for f in Package::open(&out).unwrap().manifest().files() {
@@ -346,13 +338,7 @@ fn a_package_archive_reads_like_its_folder() {
     let segs = segments(4);
     let dir = tempfile::tempdir().unwrap();
     let folder = dir.path().join("clip.cpsl");
-    let opts = CodingOptions {
-        codec: Codec::H264,
-        rate: RateControl::Quality(30.0),
-        fps: FPS,
-        gop: GOP,
-        container: cpsl_codec::Container::Fragment,
-    };
+    let opts = h264(RateControl::Quality(30.0));
     write(&folder, &segs, opts);
     let archive = dir.path().join("clip.tar.cpsl");
     let size = cpsl_package::pack(&folder, &archive).unwrap();
@@ -468,13 +454,7 @@ fn frames_out_of_order_are_refused() {
     let segs = segments(3);
     let frames: Vec<LayeredFrame> = segs.into_iter().flatten().collect();
     let dir = tempfile::tempdir().unwrap();
-    let opts = CodingOptions {
-        codec: Codec::H264,
-        rate: RateControl::Quality(30.0),
-        fps: FPS,
-        gop: GOP,
-        container: cpsl_codec::Container::Fragment,
-    };
+    let opts = h264(RateControl::Quality(30.0));
     let out = dir.path().join("clip.cpsl");
     let mut w = PackageWriter::create(&out, *frames[0].set.camera(), 6, opts).unwrap();
     w.push(frames[0].clone()).unwrap();
@@ -493,13 +473,7 @@ fn a_segments_fragment_after_an_init_segment_plays_its_layers_one_after_another(
     let segs = segments(GOP as usize);
     let dir = tempfile::tempdir().unwrap();
     let out = dir.path().join("clip.cpsl");
-    let opts = CodingOptions {
-        codec: Codec::H264,
-        rate: RateControl::Quality(30.0),
-        fps: FPS,
-        gop: GOP,
-        container: cpsl_codec::Container::Fragment,
-    };
+    let opts = h264(RateControl::Quality(30.0));
     write(&out, &segs, opts);
     let pkg = Package::open(&out).unwrap();
     let m = pkg.manifest();

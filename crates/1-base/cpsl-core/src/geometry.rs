@@ -210,18 +210,28 @@ impl DepthGrid {
         used
     }
 
-    /// This grid at `factor` times its step over a `width x height` image: each vertex takes
-    /// this grid's surface at its position. Vertices that only the coarser cells use (those
-    /// of `used`, [`DepthGrid::used_vertices`], are this grid's) are filled from their
-    /// neighbours by push-pull in inverse depth, so the coarser cells stay on the layer's
-    /// surface. `None` for a factor below 2, when the step would pass [`DepthGrid::MAX_STEP`]
-    /// or the grid would have fewer than 2x2 cells.
-    pub fn coarsened(&self, width: u32, height: u32, factor: u32, used: &[bool]) -> Option<Self> {
+    /// This grid at `factor` times its step over a `width x height` image, for a layer whose
+    /// pixels occupy this grid's cells `occupied` ([`DepthGrid::occupied`]): each vertex takes
+    /// this grid's surface at its position; vertices that only the coarser cells use are
+    /// filled from their neighbours by push-pull in inverse depth, so the coarser cells stay
+    /// on the layer's surface. A coarse cell is occupied where a cell of this grid within it
+    /// is; the vertices no occupied coarse cell uses are set to `unused`
+    /// ([`DepthGrid::settle_unused`]). `None` for a factor below 2, when the step would pass
+    /// [`DepthGrid::MAX_STEP`] or the grid would have fewer than 2x2 cells.
+    pub fn coarsened(
+        &self,
+        width: u32,
+        height: u32,
+        factor: u32,
+        occupied: &[bool],
+        unused: f32,
+    ) -> Option<Self> {
         let step = self.step.checked_mul(factor)?;
         let (cols, rows) = Self::dims(width, height, step);
         if factor < 2 || step > Self::MAX_STEP || cols < 3 || rows < 3 {
             return None;
         }
+        let used = self.used_vertices(occupied);
         // A coarse vertex at an exact position of this grid's vertex takes it when used.
         let (mut inv, mut known) = (Vec::new(), Vec::new());
         for j in 0..rows {
@@ -248,6 +258,14 @@ impl DepthGrid {
         ) {
             return None;
         }
+        let (cw, fw) = (cols - 1, self.cols - 1);
+        let mut cells = vec![false; (cw * (rows - 1)) as usize];
+        for (k, _) in occupied.iter().enumerate().filter(|(_, &o)| o) {
+            let (fi, fj) = (k as u32 % fw, k as u32 / fw);
+            let (ci, cj) = ((fi / factor).min(cw - 1), (fj / factor).min(rows - 2));
+            cells[(cj * cw + ci) as usize] = true;
+        }
+        grid.settle_unused(&cells, unused);
         grid.check(width, height).ok().map(|()| grid)
     }
 
@@ -481,22 +499,23 @@ mod tests {
         let (cols, rows) = DepthGrid::dims(w, h, 10);
         let f = |u: f64, v: f64| (0.2 + 0.001 * u + 0.002 * v) as f32;
         let mut inv = Vec::new();
-        let mut used = Vec::new();
         for j in 0..rows {
             for i in 0..cols {
                 let (u, v) = ((i * 10).min(w) as f64 - 0.5, (j * 10).min(h) as f64 - 0.5);
-                let u_ok = i <= 7;
-                inv.push(if u_ok { f(u, v) } else { 9.0 });
-                used.push(u_ok);
+                inv.push(if i <= 7 { f(u, v) } else { 9.0 });
             }
         }
+        // The layer occupies the cells left of vertex column 7.
+        let occupied: Vec<bool> = (0..(cols - 1) * (rows - 1))
+            .map(|c| c % (cols - 1) <= 6)
+            .collect();
         let g = DepthGrid {
             step: 10,
             cols,
             rows,
             inverse_depth: inv,
         };
-        let c = g.coarsened(w, h, 2, &used).unwrap();
+        let c = g.coarsened(w, h, 2, &occupied, 0.3).unwrap();
         assert_eq!((c.step, c.cols, c.rows), (20, 6, 4));
         c.check(w, h).unwrap();
         for j in 0..c.rows {
@@ -505,15 +524,19 @@ mod tests {
                 let got = c.at(i, j) as f32;
                 if i <= 3 {
                     assert!((got - f(u, v)).abs() < 1e-6, "({i}, {j}) {got}");
+                } else if i == 4 {
+                    // Used only by the coarse cells: filled from the used vertices, never the
+                    // garbage.
+                    assert!(got > 0.1 && got < 0.6 && got != 0.3, "({i}, {j}) {got}");
                 } else {
-                    // Filled from the used vertices, never the garbage.
-                    assert!(got > 0.1 && got < 0.6, "({i}, {j}) {got}");
+                    // No occupied coarse cell uses it.
+                    assert_eq!(got, 0.3, "({i}, {j})");
                 }
             }
         }
-        assert!(g.coarsened(w, h, 1, &used).is_none());
+        assert!(g.coarsened(w, h, 1, &occupied, 0.3).is_none());
         assert!(
-            g.coarsened(w, h, 8, &used).is_none(),
+            g.coarsened(w, h, 8, &occupied, 0.3).is_none(),
             "fewer than 2x2 cells"
         );
     }

@@ -111,22 +111,8 @@ impl Layer {
         let used = g.used_vertices(&occupied);
         let mut ladder: Vec<Geometry> = [2, 4]
             .into_iter()
-            .filter_map(|factor| {
-                let mut coarse = g.coarsened(w, h, factor, &used)?;
-                // A coarse cell is occupied where a fine cell within it is.
-                let (cw, fw) = (coarse.cols - 1, g.cols - 1);
-                let mut cells = vec![false; (cw * (coarse.rows - 1)) as usize];
-                for (k, _) in occupied.iter().enumerate().filter(|(_, &o)| o) {
-                    let (fi, fj) = (k as u32 % fw, k as u32 / fw);
-                    let (ci, cj) = (
-                        (fi / factor).min(cw - 1),
-                        (fj / factor).min(coarse.rows - 2),
-                    );
-                    cells[(cj * cw + ci) as usize] = true;
-                }
-                coarse.settle_unused(&cells, (1.0 / self.depth) as f32);
-                Some(Geometry::Mesh(std::sync::Arc::new(coarse)))
-            })
+            .filter_map(|factor| g.coarsened(w, h, factor, &occupied, (1.0 / self.depth) as f32))
+            .map(|coarse| Geometry::Mesh(std::sync::Arc::new(coarse)))
             .collect();
         ladder.push(self.flattened(cam, g, &used));
         ladder

@@ -45,14 +45,19 @@ const FIRST_FLAGS: u32 = 0x4;
 const SIZES: u32 = 0x200;
 const OFFSETS: u32 = 0x800;
 
-/// Bytes a fragment spends beyond its samples: 56 for the fragment (`moof` with `mfhd`,
+/// Bytes of a fragment's own boxes, whatever its runs: `moof` and `mfhd`, `traf` and `tfhd`,
+/// and the `mdat` header.
+pub(crate) const FRAGMENT_BYTES: usize = 56;
+
+/// Bytes a fragment spends beyond its samples: [`FRAGMENT_BYTES`] for the fragment (`moof` with `mfhd`,
 /// `traf` with `tfhd`, and the `mdat` header) and for each run of `n` pictures 24 plus 4 per
 /// picture, 8 with reordering.
 pub(crate) fn overhead(runs: &[(usize, bool)]) -> usize {
-    56 + runs
-        .iter()
-        .map(|&(n, reordered)| 24 + n * if reordered { 8 } else { 4 })
-        .sum::<usize>()
+    FRAGMENT_BYTES
+        + runs
+            .iter()
+            .map(|&(n, reordered)| 24 + n * if reordered { 8 } else { 4 })
+            .sum::<usize>()
 }
 
 fn put_box(out: &mut Vec<u8>, kind: &[u8; 4], body: impl FnOnce(&mut Vec<u8>)) {

@@ -1125,7 +1125,7 @@ impl SegmentEncoder {
         let seconds = frames as f64 / fps;
         let root = &self.root;
         // A lone fragment's boxes, paid once in the segment's fragment.
-        let shared = crate::fmp4::overhead(&[]) as u64;
+        let shared = crate::fmp4::FRAGMENT_BYTES as u64;
         let n = written.len() as u64;
         let streams = written
             .iter()

@@ -5,7 +5,10 @@
 //! by the Edge-Depth Cache. The shaders are `common.wgsl` followed by `composite.wgsl` or by
 //! `dps.wgsl`, next to this file (validated by naga in a test). Each pass runs as a compute
 //! shader where the adapter has them and as a full-screen fragment pass where not
-//! ([`Passes`]); mesh layers' source maps are rasterised (`mesh.wgsl`).
+//! ([`Passes`]); mesh layers' source maps are rasterised (`mesh.wgsl`). A player shows a view
+//! through [`Fill`] (`fill.wgsl`): what the layers leave uncovered, beyond the frame's edge
+//! where the viewpoint looks past it, filled by push-pull as the CPU reference fills it
+//! ([`PremulImage::over_fill`]), then [`Blit`] onto its window.
 //!
 //! Runs on any adapter wgpu finds (Vulkan, Metal, GL; on a machine without a GPU, Mesa's
 //! lavapipe). [`GpuRenderer::new`] fails with [`GpuError::NoAdapter`] where there is none, so
@@ -14,8 +17,10 @@
 pub use wgpu;
 
 mod blit;
+mod fill;
 mod mesh;
 pub use blit::Blit;
+pub use fill::{Fill, FILLED_FORMAT};
 
 use cpsl_core::{Camera, Edc, Geometry, LayerSet, Pose, PremulImage};
 use cpsl_render::{strip_width, DpsConfig, EdgeOffsets};
@@ -32,6 +37,8 @@ pub const DPS_WGSL: &str = include_str!("dps.wgsl");
 pub const MESH_WGSL: &str = include_str!("mesh.wgsl");
 /// The blit onto a window's surface.
 pub const BLIT_WGSL: &str = include_str!("blit.wgsl");
+/// The push-pull fill of what a view leaves uncovered.
+pub const FILL_WGSL: &str = include_str!("fill.wgsl");
 /// Most layers per frame.
 pub const MAX_LAYERS: usize = 16;
 const PARAMS_BYTES: usize = 16 + MAX_LAYERS * 48 + 64 + 128 * 16 + MAX_LAYERS * 4;
@@ -631,6 +638,41 @@ impl GpuRenderer {
         target: &Camera,
         dps: Option<&DpsConfig>,
     ) -> Result<PremulImage, GpuError> {
+        let (encoder, out) = self.record(layers, pose, target, dps);
+        self.read(encoder, &out)
+    }
+
+    /// [`Self::render`] with what the view leaves uncovered filled by `fill`, as an
+    /// interactive player shows it: RGB bytes, as [`PremulImage::over_fill`] gives them.
+    pub fn render_filled(
+        &self,
+        fill: &mut Fill,
+        layers: &GpuLayers,
+        pose: &Pose,
+        target: &Camera,
+        dps: Option<&DpsConfig>,
+    ) -> Result<Vec<u8>, GpuError> {
+        let (mut encoder, out) = self.record(layers, pose, target, dps);
+        let view = out.create_view(&Default::default());
+        let filled = fill.draw(
+            &self.device,
+            &mut encoder,
+            &view,
+            target.width,
+            target.height,
+        );
+        let img = self.read(encoder, filled)?;
+        Ok(img.over_background([0, 0, 0]))
+    }
+
+    /// The commands of one view and the texture they leave it in.
+    fn record(
+        &self,
+        layers: &GpuLayers,
+        pose: &Pose,
+        target: &Camera,
+        dps: Option<&DpsConfig>,
+    ) -> (wgpu::CommandEncoder, wgpu::Texture) {
         let usage = wgpu::TextureUsages::RENDER_ATTACHMENT
             | wgpu::TextureUsages::TEXTURE_BINDING
             | wgpu::TextureUsages::COPY_SRC;
@@ -643,7 +685,16 @@ impl GpuRenderer {
                 label: Some("cpsl"),
             });
         self.draw(&mut encoder, layers, pose, target, dps, &first, &out);
-        let (w, h) = (target.width as usize, target.height as usize);
+        (encoder, out)
+    }
+
+    /// Submits `encoder` with a copy of `texture` (RGBA8, premultiplied) and reads it back.
+    fn read(
+        &self,
+        mut encoder: wgpu::CommandEncoder,
+        texture: &wgpu::Texture,
+    ) -> Result<PremulImage, GpuError> {
+        let (w, h) = (texture.width() as usize, texture.height() as usize);
         let row = (4 * w).next_multiple_of(wgpu::COPY_BYTES_PER_ROW_ALIGNMENT as usize);
         let buffer = self.device.create_buffer(&wgpu::BufferDescriptor {
             label: Some("cpsl readback"),
@@ -652,7 +703,7 @@ impl GpuRenderer {
             mapped_at_creation: false,
         });
         encoder.copy_texture_to_buffer(
-            out.as_image_copy(),
+            texture.as_image_copy(),
             wgpu::TexelCopyBufferInfo {
                 buffer: &buffer,
                 layout: wgpu::TexelCopyBufferLayout {
@@ -661,11 +712,7 @@ impl GpuRenderer {
                     rows_per_image: Some(h as u32),
                 },
             },
-            wgpu::Extent3d {
-                width: w as u32,
-                height: h as u32,
-                depth_or_array_layers: 1,
-            },
+            texture.size(),
         );
         self.queue.submit([encoder.finish()]);
         let slice = buffer.slice(..);
@@ -686,7 +733,7 @@ impl GpuRenderer {
         }
         drop(data);
         buffer.unmap();
-        PremulImage::from_premul(target.width, target.height, px)
+        PremulImage::from_premul(w as u32, h as u32, px)
             .map_err(|e| GpuError::Readback(e.to_string()))
     }
 
@@ -821,6 +868,18 @@ pub(crate) fn fullscreen_pipeline(
     source: &str,
     target: wgpu::ColorTargetState,
 ) -> wgpu::RenderPipeline {
+    fullscreen_pipeline_with(device, name, layout, source, "fs", target)
+}
+
+/// A full-screen triangle (vertex entry `vs`) with the fragment entry `fragment` of `source`.
+pub(crate) fn fullscreen_pipeline_with(
+    device: &wgpu::Device,
+    name: &str,
+    layout: &wgpu::PipelineLayout,
+    source: &str,
+    fragment: &str,
+    target: wgpu::ColorTargetState,
+) -> wgpu::RenderPipeline {
     let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
         label: Some(name),
         source: wgpu::ShaderSource::Wgsl(source.into()),
@@ -836,7 +895,7 @@ pub(crate) fn fullscreen_pipeline(
         },
         fragment: Some(wgpu::FragmentState {
             module: &module,
-            entry_point: Some("fs"),
+            entry_point: Some(fragment),
             compilation_options: Default::default(),
             targets: &[Some(target)],
         }),

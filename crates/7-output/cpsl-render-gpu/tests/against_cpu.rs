@@ -5,7 +5,9 @@
 
 use cpsl_core::{Camera, Layer, LayerSet, Limits, Pose, PremulImage, Vec3};
 use cpsl_render::{CpuRenderer, DpsConfig, FrameLayers, PreparedLayers, Renderer};
-use cpsl_render_gpu::{GpuRenderer, BLIT_WGSL, COMMON_WGSL, COMPOSITE_WGSL, DPS_WGSL, MESH_WGSL};
+use cpsl_render_gpu::{
+    Fill, GpuRenderer, BLIT_WGSL, COMMON_WGSL, COMPOSITE_WGSL, DPS_WGSL, FILL_WGSL, MESH_WGSL,
+};
 use cpsl_synth::layers::{meshed, slanted, synthetic_layer_set, Coverage};
 
 const MIN_PSNR: f64 = 45.0;
@@ -139,6 +141,65 @@ fn gpu_matches_the_cpu_reference() {
     );
 }
 
+/// RGB PSNR of two RGB buffers and the largest difference.
+fn compare_rgb(a: &[u8], b: &[u8]) -> (f64, u8) {
+    let to_rgba = |v: &[u8]| {
+        let px = v.chunks_exact(3).flat_map(|p| [p[0], p[1], p[2], 255]);
+        PremulImage::from_premul(v.len() as u32 / 3, 1, px.collect()).unwrap()
+    };
+    compare(&to_rgba(a), &to_rgba(b))
+}
+
+#[test]
+fn the_fill_beyond_the_frame_matches_the_cpu_reference() {
+    let Some(gpu) = gpu() else { return };
+    let mut fill = Fill::new(gpu.device());
+    // Odd sizes (levels of odd size round up), views that look past the frame's edge, an
+    // uncovered view, one fully covered, and a single pixel.
+    let scenes = [
+        synthetic_layer_set(321, 239, 5, Coverage::Typical, 7),
+        meshed(synthetic_layer_set(160, 96, 4, Coverage::Dense, 2), 16),
+        synthetic_layer_set(1, 1, 1, Coverage::Dense, 1),
+    ];
+    let poses = [
+        Pose::IDENTITY,
+        Pose::from_euler_deg(Vec3::new(0.3, -0.1, 0.2), 4.0, -9.0, 3.0),
+        Pose::from_euler_deg(Vec3::ZERO, 0.0, 180.0, 0.0),
+    ];
+    let mut filled_pixels = 0;
+    for set in &scenes {
+        let cam = *set.camera();
+        let cpu = PreparedLayers::new(set);
+        let layers = gpu.prepare(set, None).unwrap();
+        for pose in &poses {
+            let dps = DpsConfig::default();
+            // Each fill from its own renderer's view, as a player shows it.
+            let mut view = PremulImage::new(cam.width, cam.height);
+            cpu.render_dps_into(pose, &cam, &mut view, &dps);
+            let want = view.over_fill();
+            filled_pixels += view.covered(255).iter().filter(|c| !**c).count();
+            let got = gpu
+                .render_filled(&mut fill, &layers, pose, &cam, Some(&dps))
+                .unwrap();
+            let (psnr, max) = compare_rgb(&got, &want);
+            eprintln!(
+                "{}x{}, pose {:?} {:?}: {psnr:.2} dB, max {max}",
+                cam.width,
+                cam.height,
+                pose.translation,
+                pose.euler_deg()
+            );
+            assert!(
+                psnr >= MIN_PSNR,
+                "{}x{} pose {pose:?}: {psnr:.2} dB < {MIN_PSNR} (max difference {max})",
+                cam.width,
+                cam.height
+            );
+        }
+    }
+    assert!(filled_pixels > 1000, "the views must leave pixels to fill");
+}
+
 #[test]
 fn refuses_more_layers_than_it_takes() {
     let Some(gpu) = gpu() else { return };
@@ -173,6 +234,7 @@ fn shaders_validate() {
         ("dps", format!("{COMMON_WGSL}\n{DPS_WGSL}")),
         ("blit", BLIT_WGSL.to_string()),
         ("mesh", MESH_WGSL.to_string()),
+        ("fill", FILL_WGSL.to_string()),
     ] {
         let module = naga::front::wgsl::parse_str(&src)
             .unwrap_or_else(|e| panic!("{name}: {}", e.emit_to_string(&src)));

@@ -2,7 +2,8 @@
 //! from a viewpoint the mouse and keyboard move.
 //!
 //! Packages are decoded on a background thread (a [`Player`]) into a bounded queue; the window
-//! takes frames from it at the package's frame rate and renders them with `cpsl-render-gpu`.
+//! takes frames from it at the package's frame rate and renders them with `cpsl-render-gpu`,
+//! what the layers leave uncovered filled as the CPU reference fills it (`Fill`).
 //! Controls: left drag orbits, right (or shift) drag pans, the wheel dollies, R resets, space
 //! plays/pauses, Left/Right step a frame, PageUp/PageDown jump a second, Home goes to the
 //! start, S toggles side-by-side stereo, `[` and `]` change the eye separation, D toggles the
@@ -11,7 +12,7 @@
 use cpsl_core::{Camera, Pose, Vec3};
 use cpsl_player::{Player, PlayerError, Source};
 use cpsl_render::{DpsConfig, FrameLayers};
-use cpsl_render_gpu::{wgpu, Blit, GpuError, GpuLayers, GpuRenderer};
+use cpsl_render_gpu::{wgpu, Blit, Fill, GpuError, GpuLayers, GpuRenderer};
 use std::path::PathBuf;
 use std::sync::mpsc::{sync_channel, Receiver, Sender, TryRecvError};
 use std::sync::Arc;
@@ -215,6 +216,8 @@ struct Gfx {
     config: wgpu::SurfaceConfiguration,
     gpu: GpuRenderer,
     blit: Blit,
+    /// What a view leaves uncovered filled from what it covers, as the CPU reference writes.
+    fill: Fill,
     first: wgpu::Texture,
     out: wgpu::Texture,
 }
@@ -350,6 +353,16 @@ impl Viewer {
                 &gfx.first,
                 &gfx.out,
             );
+            let filled = gfx
+                .fill
+                .draw(
+                    dev,
+                    &mut encoder,
+                    &out_view,
+                    self.camera.width,
+                    self.camera.height,
+                )
+                .create_view(&Default::default());
             let (w, h) = (cw * scale, ch * scale);
             let x = i as f32 * slot + ((slot - w) / 2.0).floor();
             let y = ((wh - h) / 2.0).floor();
@@ -357,7 +370,7 @@ impl Viewer {
                 dev,
                 gfx.gpu.queue(),
                 &mut encoder,
-                &out_view,
+                &filled,
                 &target,
                 [x, y, w, h],
                 i == 0,
@@ -496,6 +509,7 @@ impl Viewer {
         };
         surface.configure(gpu.device(), &config);
         let blit = Blit::new(gpu.device(), format);
+        let fill = Fill::new(gpu.device());
         let (first, out) = (
             gpu.target_texture(&self.camera),
             gpu.target_texture(&self.camera),
@@ -510,6 +524,7 @@ impl Viewer {
             config,
             gpu,
             blit,
+            fill,
             first,
             out,
         });

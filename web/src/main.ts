@@ -3,7 +3,8 @@
 // lets the viewer move (mouse / touch drag, wheel, keys, device orientation), play, pause
 // and seek. URL parameters: `src` (package folder or variants.json URL; default: the first
 // package `cpsl serve` lists), `frame`, `pose` (`tx,ty,tz,rx,ry,rz` as `cpsl render --pose`),
-// `paused=1`, `dps=0`, `variant` (index: fixed, no adaptation).
+// `paused=1`, `dps=0`, `fill=0` (black where the layers leave the view uncovered instead of
+// the push-pull fill), `variant` (index: fixed, no adaptation).
 
 import { SegmentDecoder } from "./decode.js";
 import { checkManifest, type Manifest, packageBitrate, parseSide, segmentFiles, type SideFrame } from "./package.js";
@@ -302,6 +303,10 @@ class Player {
     this.renderer.dpsEnabled = on;
   }
 
+  set fill(on: boolean) {
+    this.renderer.fillEnabled = on;
+  }
+
   /** Median time of the last 60 draws (render and present), milliseconds. */
   medianDrawMs(): number {
     return median(this.frameTimes);
@@ -478,6 +483,7 @@ async function main() {
   const player = new Player(canvas, variants, fixed);
   if (q.has("pose")) player.explicitPose = parsePose(q.get("pose")!);
   if (q.get("dps") === "0") player.dps = false;
+  if (q.get("fill") === "0") player.fill = false;
   player.playing = q.get("paused") !== "1";
   const start = Math.min(Math.max(Number(q.get("frame") ?? 0), 0), player.manifest.frames - 1);
   await player.show(start);

@@ -236,6 +236,54 @@ void main() {
   outColor = vec4(texelFetch(uImage, clamp(p, ivec2(0), size - 1), 0).rgb, 1.0);
 }`;
 
+// What a view leaves uncovered (beyond the frame's edge where the viewpoint looks past it)
+// filled from what it covers by push-pull, as the CPU reference's PremulImage::over_fill and
+// cpsl-render-gpu's fill.wgsl: pyramid levels hold colour weighted by alpha (rgb) and the
+// weight (a). PUSH makes level l from level l - 1 (each pixel sums its 2x2 block, the weight
+// clamped to 1); PULL fills level l from its pushed values and the filled level l + 1 (the
+// pushed top, normalised, where uTop), sampled bilinearly at the pixel's centre.
+const PUSH = `#version 300 es
+precision highp float;
+uniform highp sampler2D uFine;
+out vec4 outColor;
+void main() {
+  ivec2 size = textureSize(uFine, 0);
+  ivec2 p = ivec2(gl_FragCoord.xy) * 2;
+  vec4 sum = vec4(0.0);
+  for (int dy = 0; dy < 2; dy++)
+    for (int dx = 0; dx < 2; dx++) {
+      ivec2 q = p + ivec2(dx, dy);
+      if (q.x < size.x && q.y < size.y) sum += texelFetch(uFine, q, 0);
+    }
+  outColor = sum.a > 1.0 ? sum / sum.a : sum;
+}`;
+const PULL = `#version 300 es
+precision highp float;
+uniform highp sampler2D uFine;
+uniform highp sampler2D uCoarse;
+uniform bool uTop;
+out vec4 outColor;
+vec3 filled(ivec2 q) {
+  vec4 c = texelFetch(uCoarse, q, 0);
+  if (uTop) return c.a > 0.0 ? c.rgb / c.a : vec3(0.0);
+  return c.rgb;
+}
+vec3 taps(int i, int n) {
+  float s = clamp((float(i) + 0.5) / 2.0 - 0.5, 0.0, float(n - 1));
+  float i0 = floor(s);
+  return vec3(i0, min(i0 + 1.0, float(n - 1)), s - i0);
+}
+void main() {
+  ivec2 p = ivec2(gl_FragCoord.xy);
+  ivec2 n = textureSize(uCoarse, 0);
+  vec3 tx = taps(p.x, n.x), ty = taps(p.y, n.y);
+  int x0 = int(tx.x), x1 = int(tx.y), y0 = int(ty.x), y1 = int(ty.y);
+  vec3 up = mix(mix(filled(ivec2(x0, y0)), filled(ivec2(x1, y0)), tx.z),
+                mix(filled(ivec2(x0, y1)), filled(ivec2(x1, y1)), tx.z), ty.z);
+  vec4 own = texelFetch(uFine, p, 0);
+  outColor = vec4(own.rgb + (1.0 - own.a) * up, 1.0);
+}`;
+
 // Mesh layers: each pixel's nearest triangle into a map; the composite applies that
 // triangle's homography, exactly as for a plane.
 const MESH_VERT = `#version 300 es
@@ -273,6 +321,20 @@ function compile(gl: WebGL2RenderingContext, frag: string, vert = VERT): WebGLPr
 interface Target {
   tex: WebGLTexture;
   fb: WebGLFramebuffer;
+  width: number;
+  height: number;
+}
+
+function target(gl: WebGL2RenderingContext, format: number, width: number, height: number): Target {
+  const tex = gl.createTexture()!;
+  gl.bindTexture(gl.TEXTURE_2D, tex);
+  gl.texStorage2D(gl.TEXTURE_2D, 1, format, width, height);
+  for (const p of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER]) gl.texParameteri(gl.TEXTURE_2D, p, gl.NEAREST);
+  const fb = gl.createFramebuffer()!;
+  gl.bindFramebuffer(gl.FRAMEBUFFER, fb);
+  gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, tex, 0);
+  gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+  return { tex, fb, width, height };
 }
 
 export class Renderer {
@@ -290,6 +352,12 @@ export class Renderer {
   private streams = 0;
   private offsets: WebGLTexture;
   private targets: Target[];
+  private push: WebGLProgram | null = null;
+  private pull: WebGLProgram | null = null;
+  /** Fill pyramid levels 1..n pushed, 1..n-1 pulled, and the filled view. */
+  private pushed: Target[] = [];
+  private pulled: Target[] = [];
+  private filled: Target | null = null;
   private scratch = new Uint8Array(0);
   private frame: SideFrame | null = null;
   private scales: number[] = [];
@@ -297,6 +365,8 @@ export class Renderer {
   stripWidth = 0;
   /** Whether the Dynamic Pixel Strip runs. */
   dpsEnabled = true;
+  /** Whether what the layers leave uncovered is filled (else shown black). */
+  fillEnabled = true;
 
   constructor(canvas: HTMLCanvasElement, camera: Camera, codedHeight: number) {
     const gl = canvas.getContext("webgl2", { antialias: false, alpha: false, preserveDrawingBuffer: true });
@@ -309,21 +379,55 @@ export class Renderer {
     this.present = compile(gl, PRESENT);
     this.mesh = compile(gl, MESH_FRAG, MESH_VERT);
     this.meshBuffer = gl.createBuffer()!;
-    gl.getExtension("EXT_color_buffer_float");
     this.offsets = gl.createTexture()!;
     gl.bindTexture(gl.TEXTURE_2D, this.offsets);
     gl.texStorage2D(gl.TEXTURE_2D, 1, gl.RG32F, MAX_LAYERS, MAX_LAYERS);
-    this.targets = [0, 1].map(() => {
-      const tex = gl.createTexture()!;
-      gl.bindTexture(gl.TEXTURE_2D, tex);
-      gl.texStorage2D(gl.TEXTURE_2D, 1, gl.RGBA8, camera.width, camera.height);
-      for (const p of [gl.TEXTURE_MIN_FILTER, gl.TEXTURE_MAG_FILTER]) gl.texParameteri(gl.TEXTURE_2D, p, gl.NEAREST);
-      const fb = gl.createFramebuffer()!;
-      gl.bindFramebuffer(gl.FRAMEBUFFER, fb);
-      gl.framebufferTexture2D(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0, gl.TEXTURE_2D, tex, 0);
-      return { tex, fb };
-    });
-    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+    this.targets = [0, 1].map(() => target(gl, gl.RGBA8, camera.width, camera.height));
+    // The fill renders into float levels (EXT_color_buffer_float); without it the player
+    // shows black where the layers leave the view uncovered.
+    if (gl.getExtension("EXT_color_buffer_float")) {
+      this.push = compile(gl, PUSH);
+      this.pull = compile(gl, PULL);
+      const levels: Target[] = [];
+      let [w, h] = [camera.width, camera.height];
+      // Halved (rounding up) until 1x1, at least once, as the CPU's pyramid.
+      while (w > 1 || h > 1 || !levels.length) {
+        [w, h] = [Math.ceil(w / 2), Math.ceil(h / 2)];
+        levels.push(target(gl, gl.RGBA32F, w, h));
+      }
+      this.pushed = levels;
+      this.pulled = levels.slice(0, -1).map((l) => target(gl, gl.RGBA32F, l.width, l.height));
+      this.filled = target(gl, gl.RGBA8, camera.width, camera.height);
+    }
+  }
+
+  /** Fills what `view` leaves uncovered into `this.filled`, level by level. */
+  private fill(view: Target) {
+    const gl = this.gl;
+    if (!this.filled || !this.fillEnabled) return;
+    const pass = (p: WebGLProgram, dst: Target, fine: Target, coarse: Target | null, top = false) => {
+      gl.bindFramebuffer(gl.FRAMEBUFFER, dst.fb);
+      gl.viewport(0, 0, dst.width, dst.height);
+      gl.useProgram(p);
+      gl.activeTexture(gl.TEXTURE3);
+      gl.bindTexture(gl.TEXTURE_2D, fine.tex);
+      gl.uniform1i(gl.getUniformLocation(p, "uFine"), 3);
+      if (coarse) {
+        gl.activeTexture(gl.TEXTURE4);
+        gl.bindTexture(gl.TEXTURE_2D, coarse.tex);
+        gl.uniform1i(gl.getUniformLocation(p, "uCoarse"), 4);
+        gl.uniform1i(gl.getUniformLocation(p, "uTop"), top ? 1 : 0);
+      }
+      gl.drawArrays(gl.TRIANGLES, 0, 3);
+    };
+    const n = this.pushed.length;
+    const pushed = (l: number) => (l === 0 ? view : this.pushed[l - 1]);
+    for (let l = 1; l <= n; l++) pass(this.push!, this.pushed[l - 1], pushed(l - 1), null);
+    for (let l = n - 1; l >= 0; l--) {
+      const coarse = l + 1 === n ? this.pushed[n - 1] : this.pulled[l];
+      pass(this.pull!, l === 0 ? this.filled : this.pulled[l - 1], pushed(l), coarse, l + 1 === n);
+    }
+    gl.viewport(0, 0, this.camera.width, this.camera.height);
   }
 
   private ensurePlanes(streams: number, w: number, h: number) {
@@ -532,7 +636,7 @@ export class Renderer {
     this.bindLayers(this.composite, pose);
     gl.drawArrays(gl.TRIANGLES, 0, 3);
     this.result = this.targets[0];
-    if (!this.dpsEnabled) return;
+    if (!this.dpsEnabled) return this.fill(this.result);
     const depths = this.frame.layers.map((l) => l.depth);
     this.stripWidth = stripWidth(cam, pose, depths);
     gl.bindFramebuffer(gl.FRAMEBUFFER, this.targets[1].fb);
@@ -550,11 +654,13 @@ export class Renderer {
     gl.uniform1i(u("uReach"), 2 * this.stripWidth);
     gl.drawArrays(gl.TRIANGLES, 0, 3);
     this.result = this.targets[1];
+    this.fill(this.result);
   }
 
   private result: Target | null = null;
 
-  /** Draws the last render into the canvas rectangle `x, y, w, h` (GL coordinates). */
+  /** Draws the last render, what it leaves uncovered filled, into the canvas rectangle
+   * `x, y, w, h` (GL coordinates). */
   show(x: number, y: number, w: number, h: number) {
     if (!this.result) return;
     const gl = this.gl;
@@ -562,7 +668,7 @@ export class Renderer {
     gl.viewport(x, y, w, h);
     gl.useProgram(this.present);
     gl.activeTexture(gl.TEXTURE3);
-    gl.bindTexture(gl.TEXTURE_2D, this.result.tex);
+    gl.bindTexture(gl.TEXTURE_2D, ((this.fillEnabled && this.filled) || this.result).tex);
     gl.uniform1i(gl.getUniformLocation(this.present, "uImage"), 3);
     gl.uniform2i(gl.getUniformLocation(this.present, "uView"), x, y);
     gl.uniform2i(gl.getUniformLocation(this.present, "uViewSize"), w, h);

@@ -3,7 +3,8 @@
 // shown per second (decode + upload + render, against the package's frame rate) and the
 // median draw time.
 //
-//   node test/bench.mjs DIR [SECONDS]      (CPSL_BIN: the cpsl binary)
+//   node test/bench.mjs DIR [SECONDS]      (CPSL_BIN: the cpsl binary; QUERY: player URL
+//                                          parameters, e.g. QUERY=fill=0)
 //
 // Headless Chromium without a GPU renders WebGL2 with SwiftShader on the CPU: numbers from
 // such a machine measure the correctness path, not what a GPU browser does.
@@ -23,7 +24,7 @@ const { child, url } = await startServer(bin, dir);
 const browser = await launchChromium();
 try {
   const page = await browser.newPage({ viewport: { width: 1400, height: 900 } });
-  await page.goto(`${url}/`);
+  await page.goto(`${url}/${process.env.QUERY ? `?${process.env.QUERY}` : ""}`);
   await playerReady(page);
   await page.waitForTimeout(2000); // warm up
   const a = await page.evaluate(() => ({ n: window.cpsl.player.shown, t: performance.now() }));

@@ -400,7 +400,12 @@ pub fn resize_depth(z: &[f32], from: (u32, u32), to: (u32, u32)) -> Result<Vec<f
 /// 1. the prior's inverse depth is fitted to the views' (robust affine fit over pixels with
 ///    confidence of at least `min_conf`: weighted least squares re-weighted with Cauchy
 ///    weights);
-/// 2. confident pixels keep the views' depth;
+/// 2. confident pixels keep the views' depth, unless the prior is trusted (below) and they
+///    depart from it by more than [`OUTLIER_SCALES`] robust residual scales of the fit, divided
+///    by the share the prior is trusted, and by more than [`OUTLIER_SHARE`] of its inverse
+///    depth: then they are the views' errors (the flow fattened
+///    across an occluding edge, a repeated texture matched a period off) and count as not
+///    confident;
 /// 3. every other pixel takes what an edge-aware filter (OpenCV's fast global smoother,
 ///    confidence weighted: the filtered values over the filtered confidence) spreads from the
 ///    confident pixels around it, within regions of similar colour: where the fitted prior
@@ -468,6 +473,12 @@ pub fn fuse(
         })
         .collect();
     let (n, floor) = (prior.len(), floor as f32);
+    // Where the prior is trusted, a confident pixel far off it is the views' error (flow
+    // fattened across an occluding edge, a repeated texture matched a period off): dropped.
+    let limit = (OUTLIER_SCALES * spread_scale / (1.0 - own as f64).max(1e-3)) as f32;
+    let confident = |z: f32, c: f32, f: f32| {
+        confident(z, c) && !(f.is_finite() && (1.0 / z - f).abs() > limit.max(OUTLIER_SHARE * f))
+    };
     // Over the confident pixels, weighted by confidence: the views' departure from the fitted
     // prior (0 where it has none), their inverse depth, and the weights, filtered together.
     let weighted: Vec<Vec3f> = views
@@ -476,7 +487,7 @@ pub fn fuse(
         .zip(&views.confidence)
         .zip(&fitted)
         .map(|((&z, &c), &f)| {
-            if !confident(z, c) {
+            if !confident(z, c, f) {
                 return Vec3f::from([0.0, 0.0, 0.0]);
             }
             let departure = if f.is_finite() { 1.0 / z - f } else { 0.0 };
@@ -492,7 +503,7 @@ pub fn fuse(
         .zip(&views.confidence)
         .zip(fitted.iter().zip(&spread))
     {
-        let (z, c) = if confident(z, c) {
+        let (z, c) = if confident(z, c, f) {
             from_views += 1;
             (z, c)
         } else if s[2] > SPREAD_MIN_WEIGHT {
@@ -527,6 +538,17 @@ pub fn fuse(
         },
     )))
 }
+
+/// How many robust residual scales of the prior's fit, over the share the prior is trusted,
+/// a confident pixel may depart from the fitted prior. Measured with exact priors on the
+/// built-in scene (tests/paths.rs): the orbit's fused AbsRel 12.8 % without the check, 0.67 %
+/// with it; on the fox, whose FastDepth is never trusted, nothing changes.
+pub const OUTLIER_SCALES: f64 = 6.0;
+
+/// What a confident pixel may always depart from the fitted prior, as a share of its
+/// inverse depth: the views may put an object the prior misses up to this much nearer or
+/// farther (`the_views_bend_the_prior_up_to_colour_edges`: 14 to 25 %).
+pub const OUTLIER_SHARE: f32 = 0.3;
 
 /// Least filtered confidence for the views' spread depth to count.
 const SPREAD_MIN_WEIGHT: f32 = 1e-4;

@@ -265,23 +265,14 @@ fn multi_view_depth_matches_the_scene() {
 
     // Fused with a prior: the exact depth in other units, and one as a monocular network
     // gives it (inverse depth to the power 0.6, blurred over 8 pixels, other units).
-    // Measured: AbsRel over every pixel 1.56 % and 2.83 %, over the 90 % most confident
-    // 1.27 % and 1.41 % (issue 29: at most 2 % over at least 90 %).
+    // Measured: AbsRel over every pixel 0.97 % and 2.83 %, over the 90 % most confident
+    // 0.92 % and 1.41 % (issue 29: at most 2 % over at least 90 %; 1.56 % and 1.27 % with the
+    // exact prior before the fusion dropped the views' outliers against a trusted prior).
     let exact: Vec<f32> = truth.iter().map(|z| 3.0 * z).collect();
-    let blurred = {
-        let inv: Vec<f32> = truth.iter().map(|z| (1.0 / z).powf(0.6)).collect();
-        let m = Mat::new_rows_cols_with_data(h as i32, w as i32, &inv).unwrap();
-        let mut o = Mat::default();
-        imgproc::gaussian_blur_def(&m, &mut o, Size::new(0, 0), 8.0).unwrap();
-        o.data_typed::<f32>()
-            .unwrap()
-            .iter()
-            .map(|v| 0.2 / v)
-            .collect::<Vec<_>>()
-    };
+    let blurred = network_like(&truth, w, h);
     let guide = work_rgb(&frames[i], w, h, (w, h)).unwrap();
     for (name, prior, limits) in [
-        ("exact", exact, (0.02, 0.016)),
+        ("exact", exact, (0.012, 0.011)),
         ("blurred", blurred, (0.035, 0.018)),
     ] {
         let (f, _) = fuse(&d, &prior, &guide, 0.5).unwrap().unwrap();
@@ -520,4 +511,92 @@ fn frames_the_views_cannot_serve_take_a_neighbours_depth() {
         assert!(from >= 7 && from < i && share > 0.2, "{carried:?}");
         assert!((ratios[i] / ratios[from] - 1.0).abs() < 0.01, "{ratios:?}");
     }
+}
+
+#[test]
+fn multi_view_depth_on_the_orbit_and_forward_paths() {
+    // As `multi_view_depth_matches_the_scene` (frame 6 from frames 2, 4, 8 and 10, exact
+    // poses, 480x270) on the orbit of `sideways_and_orbit_are_solved` and a camera walking
+    // forward. Limits: (views alone over the confident pixels; fused with the exact prior over
+    // every pixel and over the 90 % most confident; the same with the blurred prior). Measured
+    // 2026-11-28: orbit 0.98 %; 0.67 %, 0.73 %; 14.2 %, 13.1 %. Forward 1.79 %; 2.96 %, 3.06 %;
+    // 8.4 %, 8.0 %. Before the fusion dropped the views' outliers against a trusted prior, the
+    // exact prior fused to 12.8 % on the orbit and 4.1 % forward: the orbit's brick wall is
+    // confident only where the flow fattened the objects over it or matched a brick off, and
+    // the spread carried those depths over the wall. The blurred prior is not trusted enough
+    // for that check (its misfit is 3.7 % on the orbit), and there the wall stays wrong.
+    let (w, h) = (480, 270);
+    let orbit: Vec<Pose> = (0..12)
+        .map(|i| {
+            let a = 1.5 * i as f64;
+            let (s, c) = a.to_radians().sin_cos();
+            let p = Pose::from_euler_deg(Vec3::ZERO, 0.0, -a, 0.0);
+            Pose {
+                rotation: p.rotation,
+                translation: Vec3::new(4.0 * s, 0.0, 4.0 * (1.0 - c)),
+            }
+        })
+        .collect();
+    let forward: Vec<Pose> = (0..12)
+        .map(|i| Pose::from_translation(Vec3::new(0.0, 0.0, 0.05 * i as f64)))
+        .collect();
+    for (name, path, limits) in [
+        ("orbit", orbit, [0.015, 0.01, 0.01, 0.16, 0.15]),
+        ("forward", forward, [0.025, 0.035, 0.035, 0.095, 0.09]),
+    ] {
+        let (scene, frames) = clip_sized(&path, w, h);
+        let cam = scene.camera;
+        let grey: Vec<_> = frames
+            .iter()
+            .map(|f| work_grey(f, w, h, (w, h)).unwrap())
+            .collect();
+        let i = 6;
+        let nb: Vec<_> = [2usize, 4, 8, 10]
+            .iter()
+            .map(|&j| (&grey[j], &path[j]))
+            .collect();
+        let d = depth_from_views(&cam, (&grey[i], &path[i]), &nb, &MvsConfig::default()).unwrap();
+        let truth = scene.render(&cam, &path[i], 0.0, 1).depth;
+        let (confident, abs_rel, _) = score(&d, &truth, 0.5);
+        eprintln!(
+            "{name}: views {:.0} % confident, AbsRel {abs_rel:.4}",
+            100.0 * confident
+        );
+        assert!(confident > 0.3, "{name}: confident share {confident}");
+        assert!(abs_rel < limits[0], "{name}: views' AbsRel {abs_rel}");
+        let guide = work_rgb(&frames[i], w, h, (w, h)).unwrap();
+        let priors = [
+            truth.iter().map(|z| 3.0 * z).collect(),
+            network_like(&truth, w, h),
+        ];
+        for (k, prior) in priors.iter().enumerate() {
+            let (f, _) = fuse(&d, prior, &guide, 0.5).unwrap().unwrap();
+            let (all, abs_all, _) = score(&f, &truth, -1.0);
+            let (_, abs_90, _) = score_best(&f, &truth, 0.9);
+            eprintln!(
+                "{name}, prior {k}: AbsRel {abs_all:.4} over {:.0} %, {abs_90:.4} over 90 %",
+                100.0 * all
+            );
+            assert!(all > 0.999, "{name}, prior {k}: {all}");
+            assert!(abs_all < limits[1 + 2 * k], "{name}, prior {k}: {abs_all}");
+            assert!(
+                abs_90 < limits[2 + 2 * k],
+                "{name}, prior {k}: {abs_90} over 90 %"
+            );
+        }
+    }
+}
+
+/// A prior as a monocular network gives it: inverse depth to the power 0.6, blurred over 8
+/// pixels, in other units.
+fn network_like(truth: &[f32], w: u32, h: u32) -> Vec<f32> {
+    let inv: Vec<f32> = truth.iter().map(|z| (1.0 / z).powf(0.6)).collect();
+    let m = Mat::new_rows_cols_with_data(h as i32, w as i32, &inv).unwrap();
+    let mut o = Mat::default();
+    imgproc::gaussian_blur_def(&m, &mut o, Size::new(0, 0), 8.0).unwrap();
+    o.data_typed::<f32>()
+        .unwrap()
+        .iter()
+        .map(|v| 0.2 / v)
+        .collect()
 }

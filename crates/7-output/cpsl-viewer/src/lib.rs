@@ -7,7 +7,8 @@
 //! Controls: left drag orbits, right (or shift) drag pans, the wheel dollies, R resets, space
 //! plays/pauses, Left/Right step a frame, PageUp/PageDown jump a second, Home goes to the
 //! start, S toggles side-by-side stereo, `[` and `]` change the eye separation, D toggles the
-//! Dynamic Pixel Strip, H the on-screen readout, Esc/Q quit.
+//! Dynamic Pixel Strip, F the fill beyond the layers (black without it), H the on-screen
+//! readout, Esc/Q quit.
 
 use cpsl_core::{Camera, Pose, Vec3};
 use cpsl_player::{Player, PlayerError, Source};
@@ -189,6 +190,8 @@ struct Viewer {
     playing: bool,
     stereo: bool,
     dps: bool,
+    /// Whether what the layers leave uncovered is filled (`Fill`) or shown black.
+    fill: bool,
     hud: bool,
     eye: f64,
     yaw: f64,
@@ -353,16 +356,19 @@ impl Viewer {
                 &gfx.first,
                 &gfx.out,
             );
-            let filled = gfx
-                .fill
-                .draw(
-                    dev,
-                    &mut encoder,
-                    &out_view,
-                    self.camera.width,
-                    self.camera.height,
-                )
-                .create_view(&Default::default());
+            let shown = if self.fill {
+                gfx.fill
+                    .draw(
+                        dev,
+                        &mut encoder,
+                        &out_view,
+                        self.camera.width,
+                        self.camera.height,
+                    )
+                    .create_view(&Default::default())
+            } else {
+                out_view.clone()
+            };
             let (w, h) = (cw * scale, ch * scale);
             let x = i as f32 * slot + ((slot - w) / 2.0).floor();
             let y = ((wh - h) / 2.0).floor();
@@ -370,7 +376,7 @@ impl Viewer {
                 dev,
                 gfx.gpu.queue(),
                 &mut encoder,
-                &filled,
+                &shown,
                 &target,
                 [x, y, w, h],
                 i == 0,
@@ -460,6 +466,7 @@ impl Viewer {
                 "r" => self.reset(),
                 "s" => self.stereo = !self.stereo,
                 "d" => self.dps = !self.dps,
+                "f" => self.fill = !self.fill,
                 "h" => self.hud = !self.hud,
                 "[" => self.eye = (self.eye - 0.005).max(0.0),
                 "]" => self.eye += 0.005,
@@ -654,6 +661,7 @@ pub fn run(a: ViewOptions, events: impl FnMut(ViewerEvent) + 'static) -> Result<
         playing: !a.paused,
         stereo: a.stereo,
         dps: a.dps,
+        fill: true,
         hud: a.hud,
         eye: a.eye_separation,
         yaw: 0.0,

@@ -6,7 +6,6 @@
 use crate::{fullscreen_pipeline_with, FILL_WGSL};
 use wgpu::util::DeviceExt;
 
-const LEVEL: wgpu::TextureFormat = wgpu::TextureFormat::Rgba32Float;
 /// The filled view's format.
 pub const FILLED_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8Unorm;
 
@@ -23,6 +22,8 @@ struct Pyramid {
 
 /// The push-pull passes and the pyramid of the last view size.
 pub struct Fill {
+    /// The pyramid levels' format: 32-bit float where the adapter renders into it, else 16.
+    level: wgpu::TextureFormat,
     push: wgpu::RenderPipeline,
     pull: wgpu::RenderPipeline,
     pull_out: wgpu::RenderPipeline,
@@ -34,8 +35,18 @@ pub struct Fill {
 }
 
 impl Fill {
-    /// The passes, for views in `FILLED_FORMAT`'s RGBA8 premultiplied form.
-    pub fn new(device: &wgpu::Device) -> Self {
+    /// The passes of `device` (opened on `adapter`), for views in RGBA8 premultiplied form.
+    pub fn new(device: &wgpu::Device, adapter: &wgpu::Adapter) -> Self {
+        let renders = |f| {
+            adapter
+                .get_texture_format_features(f)
+                .allowed_usages
+                .contains(wgpu::TextureUsages::RENDER_ATTACHMENT)
+        };
+        let level = match renders(wgpu::TextureFormat::Rgba32Float) {
+            true => wgpu::TextureFormat::Rgba32Float,
+            false => wgpu::TextureFormat::Rgba16Float,
+        };
         let texture = |binding| wgpu::BindGroupLayoutEntry {
             binding,
             visibility: wgpu::ShaderStages::FRAGMENT,
@@ -90,8 +101,9 @@ impl Fill {
             })
         };
         Self {
-            push: pipeline("push", LEVEL),
-            pull: pipeline("pull", LEVEL),
+            level,
+            push: pipeline("push", level),
+            pull: pipeline("pull", level),
             pull_out: pipeline("pull", FILLED_FORMAT),
             layout,
             inner: flags(0),
@@ -111,7 +123,7 @@ impl Fill {
         height: u32,
     ) -> &wgpu::Texture {
         if self.pyramid.as_ref().map(|p| p.size) != Some((width, height)) {
-            self.pyramid = Some(Pyramid::new(device, width, height));
+            self.pyramid = Some(Pyramid::new(device, self.level, width, height));
         }
         let p = self.pyramid.as_ref().expect("made above");
         let group = |fine: &wgpu::TextureView, coarse: &wgpu::TextureView, top: bool| {
@@ -180,7 +192,7 @@ impl Fill {
 }
 
 impl Pyramid {
-    fn new(device: &wgpu::Device, width: u32, height: u32) -> Self {
+    fn new(device: &wgpu::Device, level: wgpu::TextureFormat, width: u32, height: u32) -> Self {
         let texture = |w: u32, h: u32, format| {
             device.create_texture(&wgpu::TextureDescriptor {
                 label: Some("cpsl fill"),
@@ -210,11 +222,11 @@ impl Pyramid {
         let view = |t: wgpu::Texture| t.create_view(&Default::default());
         let pushed: Vec<_> = sizes
             .iter()
-            .map(|&(w, h)| view(texture(w, h, LEVEL)))
+            .map(|&(w, h)| view(texture(w, h, level)))
             .collect();
         let pulled = sizes[..sizes.len() - 1]
             .iter()
-            .map(|&(w, h)| view(texture(w, h, LEVEL)))
+            .map(|&(w, h)| view(texture(w, h, level)))
             .collect();
         let out = texture(width, height, FILLED_FORMAT);
         Self {

@@ -153,7 +153,7 @@ fn compare_rgb(a: &[u8], b: &[u8]) -> (f64, u8) {
 #[test]
 fn the_fill_beyond_the_frame_matches_the_cpu_reference() {
     let Some(gpu) = gpu() else { return };
-    let mut fill = Fill::new(gpu.device());
+    let mut fill = Fill::new(gpu.device(), gpu.adapter_handle());
     // Odd sizes (levels of odd size round up), views that look past the frame's edge, an
     // uncovered view, one fully covered, and a single pixel.
     let scenes = [

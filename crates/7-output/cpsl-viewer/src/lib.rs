@@ -516,7 +516,7 @@ impl Viewer {
         };
         surface.configure(gpu.device(), &config);
         let blit = Blit::new(gpu.device(), format);
-        let fill = Fill::new(gpu.device());
+        let fill = Fill::new(gpu.device(), gpu.adapter_handle());
         let (first, out) = (
             gpu.target_texture(&self.camera),
             gpu.target_texture(&self.camera),

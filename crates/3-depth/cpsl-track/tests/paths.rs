@@ -4,7 +4,8 @@
 //! black clip is untracked, without a panic; after a cut the clip is solved again as a new
 //! segment, also after a blank frame, and relocalisation does not tie another scene to the
 //! first. Multi-view depth on the sideways clip with exact poses matches the exact depth,
-//! alone and fused with a prior (exact, or bent and blurred as a network's); objects that
+//! alone and fused with a prior (exact, or bent and blurred as a network's), and is measured
+//! on the orbit and walking forward; objects that
 //! move on their own take the prior; and fused over a tracked clip it is in the prior's
 //! units.
 
@@ -97,11 +98,10 @@ fn sideways() -> Vec<Pose> {
         .collect()
 }
 
-#[test]
-fn sideways_and_orbit_are_solved() {
-    let orbit: Vec<Pose> = (0..12)
+/// Around a point 4 units ahead: turn left while moving right, 1.5 degrees a frame.
+fn orbit() -> Vec<Pose> {
+    (0..12)
         .map(|i| {
-            // Around a point 4 units ahead: turn left while moving right.
             let a = 1.5 * i as f64;
             let (s, c) = a.to_radians().sin_cos();
             let p = Pose::from_euler_deg(Vec3::ZERO, 0.0, -a, 0.0);
@@ -110,7 +110,32 @@ fn sideways_and_orbit_are_solved() {
                 translation: Vec3::new(4.0 * s, 0.0, 4.0 * (1.0 - c)),
             }
         })
+        .collect()
+}
+
+/// The clip along `path` at the size frames are tracked at (480x270), frame 6's depth from
+/// frames 2, 4, 8 and 10 with exact poses (the dense triangulation alone), its exact depth
+/// and the camera.
+fn views_of_frame_6(path: &[Pose]) -> (Vec<Vec<u8>>, ViewDepth, Vec<f32>, Camera) {
+    let (w, h) = (480, 270);
+    let (scene, frames) = clip_sized(path, w, h);
+    let cam = scene.camera;
+    let grey: Vec<_> = frames
+        .iter()
+        .map(|f| work_grey(f, w, h, (w, h)).unwrap())
         .collect();
+    let nb: Vec<_> = [2usize, 4, 8, 10]
+        .iter()
+        .map(|&j| (&grey[j], &path[j]))
+        .collect();
+    let d = depth_from_views(&cam, (&grey[6], &path[6]), &nb, &MvsConfig::default()).unwrap();
+    let truth = scene.render(&cam, &path[6], 0.0, 1).depth;
+    (frames, d, truth, cam)
+}
+
+#[test]
+fn sideways_and_orbit_are_solved() {
+    let orbit = orbit();
     // Limits: (rotation, translation direction) in degrees. With the bundle adjustment,
     // sideways measures 0.037 / 0.21 and the orbit 0.105 / 0.23 (before it: 0.02 / 0.24 and
     // 0.69 / 1.11; the orbit's scene is dominated by one wall, which leaves the first
@@ -232,23 +257,9 @@ fn static_rotation_and_black_are_detected() {
 
 #[test]
 fn multi_view_depth_matches_the_scene() {
-    // At the size frames are tracked at (480 on the long side).
-    let (w, h) = (480, 270);
-    let path = sideways();
-    let (scene, frames) = clip_sized(&path, w, h);
-    let cam = scene.camera;
-    let grey: Vec<_> = frames
-        .iter()
-        .map(|f| work_grey(f, w, h, (w, h)).unwrap())
-        .collect();
-    // Exact poses: this checks the dense triangulation alone.
-    let i = 6;
-    let nb: Vec<_> = [2usize, 4, 8, 10]
-        .iter()
-        .map(|&j| (&grey[j], &path[j]))
-        .collect();
-    let d = depth_from_views(&cam, (&grey[i], &path[i]), &nb, &MvsConfig::default()).unwrap();
-    let truth = scene.render(&cam, &path[i], 0.0, 1).depth;
+    // At the size frames are tracked at, exact poses: the dense triangulation alone.
+    let (frames, d, truth, cam) = views_of_frame_6(&sideways());
+    let (w, h, i) = (cam.width, cam.height, 6);
     let (confident, abs_rel, median) = score(&d, &truth, 0.5);
     eprintln!(
         "views: {:.0} % triangulated, {:.0} % confident, AbsRel {abs_rel:.4}, median {median:.4}",
@@ -524,38 +535,15 @@ fn multi_view_depth_on_the_orbit_and_forward_paths() {
     // the orbit fused to 12.8 % (exact prior) and 14.2 % (blurred), forward to 4.1 %: the
     // orbit's brick wall is confident only where the flow fattened the objects over it or
     // matched a brick off, and the spread carried those depths over the wall.
-    let (w, h) = (480, 270);
-    let orbit: Vec<Pose> = (0..12)
-        .map(|i| {
-            let a = 1.5 * i as f64;
-            let (s, c) = a.to_radians().sin_cos();
-            let p = Pose::from_euler_deg(Vec3::ZERO, 0.0, -a, 0.0);
-            Pose {
-                rotation: p.rotation,
-                translation: Vec3::new(4.0 * s, 0.0, 4.0 * (1.0 - c)),
-            }
-        })
-        .collect();
     let forward: Vec<Pose> = (0..12)
         .map(|i| Pose::from_translation(Vec3::new(0.0, 0.0, 0.05 * i as f64)))
         .collect();
     for (name, path, limits) in [
-        ("orbit", orbit, [0.015, 0.01, 0.01, 0.11, 0.095]),
+        ("orbit", orbit(), [0.015, 0.01, 0.01, 0.11, 0.095]),
         ("forward", forward, [0.025, 0.035, 0.035, 0.095, 0.09]),
     ] {
-        let (scene, frames) = clip_sized(&path, w, h);
-        let cam = scene.camera;
-        let grey: Vec<_> = frames
-            .iter()
-            .map(|f| work_grey(f, w, h, (w, h)).unwrap())
-            .collect();
-        let i = 6;
-        let nb: Vec<_> = [2usize, 4, 8, 10]
-            .iter()
-            .map(|&j| (&grey[j], &path[j]))
-            .collect();
-        let d = depth_from_views(&cam, (&grey[i], &path[i]), &nb, &MvsConfig::default()).unwrap();
-        let truth = scene.render(&cam, &path[i], 0.0, 1).depth;
+        let (frames, d, truth, cam) = views_of_frame_6(&path);
+        let (w, h) = (cam.width, cam.height);
         let (confident, abs_rel, _) = score(&d, &truth, 0.5);
         eprintln!(
             "{name}: views {:.0} % confident, AbsRel {abs_rel:.4}",
@@ -563,7 +551,7 @@ fn multi_view_depth_on_the_orbit_and_forward_paths() {
         );
         assert!(confident > 0.3, "{name}: confident share {confident}");
         assert!(abs_rel < limits[0], "{name}: views' AbsRel {abs_rel}");
-        let guide = work_rgb(&frames[i], w, h, (w, h)).unwrap();
+        let guide = work_rgb(&frames[6], w, h, (w, h)).unwrap();
         let priors = [
             truth.iter().map(|z| 3.0 * z).collect(),
             network_like(&truth, w, h),

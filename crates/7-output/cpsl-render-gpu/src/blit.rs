@@ -1,6 +1,6 @@
 //! Showing a rendered view in a window: an RGBA8 image blitted onto a surface.
 
-use crate::{fullscreen_pipeline, BLIT_WGSL};
+use crate::{fragment_texture, fragment_uniform, fullscreen_pipeline, BLIT_WGSL};
 
 /// Copies an RGBA8 image onto a rectangle of a surface (or any target) of another format,
 /// nearest-neighbour, blending premultiplied colour over what is there.
@@ -14,28 +14,7 @@ impl Blit {
     pub fn new(device: &wgpu::Device, format: wgpu::TextureFormat) -> Self {
         let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("cpsl blit"),
-            entries: &[
-                wgpu::BindGroupLayoutEntry {
-                    binding: 0,
-                    visibility: wgpu::ShaderStages::FRAGMENT,
-                    ty: wgpu::BindingType::Texture {
-                        sample_type: wgpu::TextureSampleType::Float { filterable: false },
-                        view_dimension: wgpu::TextureViewDimension::D2,
-                        multisampled: false,
-                    },
-                    count: None,
-                },
-                wgpu::BindGroupLayoutEntry {
-                    binding: 1,
-                    visibility: wgpu::ShaderStages::FRAGMENT,
-                    ty: wgpu::BindingType::Buffer {
-                        ty: wgpu::BufferBindingType::Uniform,
-                        has_dynamic_offset: false,
-                        min_binding_size: None,
-                    },
-                    count: None,
-                },
-            ],
+            entries: &[fragment_texture(0), fragment_uniform(1)],
         });
         let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
             label: Some("cpsl blit"),

@@ -3,7 +3,7 @@
 //! [`cpsl_core::PremulImage::over_fill`], so that an interactive player shows what the CPU
 //! reference writes instead of black.
 
-use crate::{fullscreen_pipeline_with, FILL_WGSL};
+use crate::{fragment_texture, fragment_uniform, fullscreen_pipeline_with, FILL_WGSL};
 use wgpu::util::DeviceExt;
 
 /// The filled view's format.
@@ -47,31 +47,12 @@ impl Fill {
             true => wgpu::TextureFormat::Rgba32Float,
             false => wgpu::TextureFormat::Rgba16Float,
         };
-        let texture = |binding| wgpu::BindGroupLayoutEntry {
-            binding,
-            visibility: wgpu::ShaderStages::FRAGMENT,
-            ty: wgpu::BindingType::Texture {
-                sample_type: wgpu::TextureSampleType::Float { filterable: false },
-                view_dimension: wgpu::TextureViewDimension::D2,
-                multisampled: false,
-            },
-            count: None,
-        };
         let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
             label: Some("cpsl fill"),
             entries: &[
-                texture(0),
-                texture(1),
-                wgpu::BindGroupLayoutEntry {
-                    binding: 2,
-                    visibility: wgpu::ShaderStages::FRAGMENT,
-                    ty: wgpu::BindingType::Buffer {
-                        ty: wgpu::BufferBindingType::Uniform,
-                        has_dynamic_offset: false,
-                        min_binding_size: None,
-                    },
-                    count: None,
-                },
+                fragment_texture(0),
+                fragment_texture(1),
+                fragment_uniform(2),
             ],
         });
         let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {

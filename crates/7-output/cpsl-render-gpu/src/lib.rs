@@ -871,6 +871,34 @@ pub(crate) fn fullscreen_pipeline(
     fullscreen_pipeline_with(device, name, layout, source, "fs", target)
 }
 
+/// A fragment shader's 2D float texture (read with `textureLoad`) at `binding`.
+pub(crate) fn fragment_texture(binding: u32) -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::FRAGMENT,
+        ty: wgpu::BindingType::Texture {
+            sample_type: wgpu::TextureSampleType::Float { filterable: false },
+            view_dimension: wgpu::TextureViewDimension::D2,
+            multisampled: false,
+        },
+        count: None,
+    }
+}
+
+/// A fragment shader's uniform buffer at `binding`.
+pub(crate) fn fragment_uniform(binding: u32) -> wgpu::BindGroupLayoutEntry {
+    wgpu::BindGroupLayoutEntry {
+        binding,
+        visibility: wgpu::ShaderStages::FRAGMENT,
+        ty: wgpu::BindingType::Buffer {
+            ty: wgpu::BufferBindingType::Uniform,
+            has_dynamic_offset: false,
+            min_binding_size: None,
+        },
+        count: None,
+    }
+}
+
 /// A full-screen triangle (vertex entry `vs`) with the fragment entry `fragment` of `source`.
 pub(crate) fn fullscreen_pipeline_with(
     device: &wgpu::Device,

@@ -94,7 +94,8 @@ impl Fill {
     }
 
     /// Records the fill of `src` (a `width` x `height` premultiplied RGBA8 view) and returns
-    /// the filled, opaque view (valid until the next call).
+    /// the texture that will hold the filled, opaque view (`FILLED_FORMAT`; overwritten by
+    /// the next call's commands).
     pub fn draw(
         &mut self,
         device: &wgpu::Device,

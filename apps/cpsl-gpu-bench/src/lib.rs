@@ -11,7 +11,7 @@ use cpsl_core::run::{RunInfo, Timing};
 use cpsl_core::{LayerSet, Pose, PremulImage};
 use cpsl_layering::GeometryMode;
 use cpsl_render::{CpuRenderer, DpsConfig, FrameLayers, Renderer};
-use cpsl_render_gpu::{GpuRenderer, Passes};
+use cpsl_render_gpu::{Fill, GpuRenderer, Passes};
 use cpsl_synth::layers::{synthetic_layer_set, Coverage};
 use serde::Serialize;
 use std::time::Instant;
@@ -109,6 +109,9 @@ pub struct CaseReport {
     pub matches_cpu: bool,
     /// One CPU reference render of the same view, for scale.
     pub cpu_ms: f64,
+    /// Per view, the fill of what it leaves uncovered as the players show it
+    /// (`cpsl_render_gpu::Fill`), from submission to completion.
+    pub fill: Timing,
 }
 
 /// The report of [`bench()`] (`cpsl-gpu-bench --json`).
@@ -181,6 +184,7 @@ pub fn bench(
         all_match: true,
     };
     let ms = |v: Vec<f64>| Timing::of(v.into_iter().map(|s| s * 1e3).collect());
+    let mut fill = Fill::new(gpu.device(), gpu.adapter_handle());
     for &(w, h) in &a.sizes {
         for &k in &a.layers {
             for &g in &a.geometries {
@@ -214,6 +218,8 @@ pub fn bench(
                             gpu.throughput(&up, &a.pose, &cam, dps, 10)?;
                         }
                         let times = gpu.time_renders(&up, &a.pose, &cam, dps, a.frames.max(1))?;
+                        let fills =
+                            gpu.time_fills(&mut fill, &up, &a.pose, &cam, dps, a.frames.max(1))?;
                         let sustained =
                             gpu.throughput(&up, &a.pose, &cam, dps, a.throughput_frames.max(1))?;
                         let gpu_t = times.gpu.filter(|v| !v.is_empty()).map(ms);
@@ -234,6 +240,7 @@ pub fn bench(
                             psnr_vs_cpu_db: p,
                             matches_cpu: p >= a.min_psnr_db,
                             cpu_ms,
+                            fill: ms(fills),
                         };
                         report.all_match &= case.matches_cpu;
                         report.cases.push(case);

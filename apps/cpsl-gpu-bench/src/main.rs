@@ -97,7 +97,7 @@ fn main() -> Result<()> {
         min_psnr_db: a.min_psnr,
     };
     println!(
-        "{:>9} {:>2} {:>7} {:>7} {:>8} {:>3} | {:>8} {:>8} {:>8} | {:>8} {:>8} | {:>6} {:>8}",
+        "{:>9} {:>2} {:>7} {:>7} {:>8} {:>3} | {:>8} {:>8} {:>8} | {:>8} {:>8} | {:>6} {:>8} | {:>8}",
         "size",
         "K",
         "geom",
@@ -110,7 +110,8 @@ fn main() -> Result<()> {
         "fps",
         "sust fps",
         "dB",
-        "cpu ms"
+        "cpu ms",
+        "fill med"
     );
     let save = |report: &GpuReport| -> Result<()> {
         if let Some(p) = &a.json {
@@ -127,7 +128,7 @@ fn main() -> Result<()> {
             .as_ref()
             .map_or((f64::NAN, f64::NAN), |t| (t.median_ms, t.p99_ms));
         println!(
-            "{:>9} {:>2} {:>7} {:>7} {:>8} {:>3} | {:>8.3} {:>8.3} {:>8.3} | {:>8.0} {:>8.0} | {:>6.1} {:>8.1}{}",
+            "{:>9} {:>2} {:>7} {:>7} {:>8} {:>3} | {:>8.3} {:>8.3} {:>8.3} | {:>8.0} {:>8.0} | {:>6.1} {:>8.1} | {:>8.3}{}",
             format!("{}x{}", c.width, c.height),
             c.layers,
             c.geometry,
@@ -141,6 +142,7 @@ fn main() -> Result<()> {
             c.sustained_fps,
             c.psnr_vs_cpu_db,
             c.cpu_ms,
+            c.fill.median_ms,
             if c.matches_cpu { "" } else { "  MISMATCH" }
         );
         // Written after every case, so that a run cut short keeps what it measured.

@@ -747,6 +747,39 @@ impl GpuRenderer {
             .map_err(|e| GpuError::Readback(e.to_string()))
     }
 
+    /// Fills the view of `layers` from `pose` (rendered once) `frames` times with `fill`, each
+    /// submitted and waited for: per fill the wall-clock seconds from submission to completion.
+    pub fn time_fills(
+        &self,
+        fill: &mut Fill,
+        layers: &GpuLayers,
+        pose: &Pose,
+        target: &Camera,
+        dps: Option<&DpsConfig>,
+        frames: usize,
+    ) -> Result<Vec<f64>, GpuError> {
+        let (encoder, out) = self.record(layers, pose, target, dps);
+        self.queue.submit([encoder.finish()]);
+        self.wait()?;
+        let view = out.create_view(&Default::default());
+        (0..frames)
+            .map(|_| {
+                let mut encoder = self.device.create_command_encoder(&Default::default());
+                fill.draw(
+                    &self.device,
+                    &mut encoder,
+                    &view,
+                    target.width,
+                    target.height,
+                );
+                let t = std::time::Instant::now();
+                self.queue.submit([encoder.finish()]);
+                self.wait()?;
+                Ok(t.elapsed().as_secs_f64())
+            })
+            .collect()
+    }
+
     /// Renders `frames` views (no readback), each submitted and waited for: per view the
     /// wall-clock seconds from submission to completion and, where the adapter has timestamp
     /// queries, the seconds the GPU spent between the start of the first pass and the end of

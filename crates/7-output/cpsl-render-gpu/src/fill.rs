@@ -11,7 +11,6 @@ pub const FILLED_FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8Unorm;
 
 /// The pyramid of one view size.
 struct Pyramid {
-    size: (u32, u32),
     /// Levels 1..=n pushed (colour weighted, weight in alpha).
     pushed: Vec<wgpu::TextureView>,
     /// Levels 1..n filled (level n is the pushed top, read normalised).
@@ -93,20 +92,25 @@ impl Fill {
         }
     }
 
-    /// Records the fill of `src` (a `width` x `height` premultiplied RGBA8 view) and returns
-    /// the texture that will hold the filled, opaque view (`FILLED_FORMAT`; overwritten by
-    /// the next call's commands).
+    /// Records the fill of `src` (a premultiplied RGBA8 view) and returns the texture that
+    /// will hold the filled, opaque view (`FILLED_FORMAT`, `src`'s size; overwritten by the
+    /// next call's commands).
     pub fn draw(
         &mut self,
         device: &wgpu::Device,
         encoder: &mut wgpu::CommandEncoder,
-        src: &wgpu::TextureView,
-        width: u32,
-        height: u32,
+        src: &wgpu::Texture,
     ) -> &wgpu::Texture {
-        if self.pyramid.as_ref().map(|p| p.size) != Some((width, height)) {
-            self.pyramid = Some(Pyramid::new(device, self.level, width, height));
+        let size = (src.width(), src.height());
+        if self
+            .pyramid
+            .as_ref()
+            .map(|p| (p.out.width(), p.out.height()))
+            != Some(size)
+        {
+            self.pyramid = Some(Pyramid::new(device, self.level, size.0, size.1));
         }
+        let src = &src.create_view(&Default::default());
         let p = self.pyramid.as_ref().expect("made above");
         let group = |fine: &wgpu::TextureView, coarse: &wgpu::TextureView, top: bool| {
             device.create_bind_group(&wgpu::BindGroupDescriptor {
@@ -212,7 +216,6 @@ impl Pyramid {
             .collect();
         let out = texture(width, height, FILLED_FORMAT);
         Self {
-            size: (width, height),
             pushed,
             pulled,
             out_view: out.create_view(&Default::default()),

@@ -653,14 +653,7 @@ impl GpuRenderer {
         dps: Option<&DpsConfig>,
     ) -> Result<Vec<u8>, GpuError> {
         let (mut encoder, out) = self.record(layers, pose, target, dps);
-        let view = out.create_view(&Default::default());
-        let filled = fill.draw(
-            &self.device,
-            &mut encoder,
-            &view,
-            target.width,
-            target.height,
-        );
+        let filled = fill.draw(&self.device, &mut encoder, &out);
         let img = self.read(encoder, filled)?;
         Ok(img.over_background([0, 0, 0]))
     }
@@ -761,17 +754,10 @@ impl GpuRenderer {
         let (encoder, out) = self.record(layers, pose, target, dps);
         self.queue.submit([encoder.finish()]);
         self.wait()?;
-        let view = out.create_view(&Default::default());
         (0..frames)
             .map(|_| {
                 let mut encoder = self.device.create_command_encoder(&Default::default());
-                fill.draw(
-                    &self.device,
-                    &mut encoder,
-                    &view,
-                    target.width,
-                    target.height,
-                );
+                fill.draw(&self.device, &mut encoder, &out);
                 let t = std::time::Instant::now();
                 self.queue.submit([encoder.finish()]);
                 self.wait()?;

@@ -358,13 +358,7 @@ impl Viewer {
             );
             let shown = if self.fill {
                 gfx.fill
-                    .draw(
-                        dev,
-                        &mut encoder,
-                        &out_view,
-                        self.camera.width,
-                        self.camera.height,
-                    )
+                    .draw(dev, &mut encoder, &gfx.out)
                     .create_view(&Default::default())
             } else {
                 out_view.clone()

@@ -198,7 +198,7 @@ pub fn bench(
                     for dps in [None, Some(&DpsConfig::DEFAULT)] {
                         let mut cpu = PremulImage::new(w, h);
                         let t = Instant::now();
-                        CpuRenderer
+                        CpuRenderer::default()
                             .render(&frame, &a.pose, &cam, dps, &mut cpu)
                             .map_err(|e| cpsl_render_gpu::GpuError::Layers(e.to_string()))?;
                         let cpu_ms = t.elapsed().as_secs_f64() * 1e3;

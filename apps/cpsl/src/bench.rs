@@ -2,6 +2,7 @@
 //! (`cpsl_eval::bench`).
 
 use crate::progress::Bars;
+use crate::util::FilterArg;
 use anyhow::Result;
 use clap::{Args, Subcommand, ValueEnum};
 use cpsl_core::Pose;
@@ -100,6 +101,10 @@ pub struct BenchRenderArgs {
     /// grid at the layering's default step for the frame size).
     #[arg(long, default_value = "plane", conflicts_with = "layerset")]
     pub geometry: GeometryMode,
+    /// How the CPU renderer resamples the layers (`cubic` is CPU only: the GPU check then
+    /// compares against a bilinear CPU render).
+    #[arg(long, value_enum, default_value_t = FilterArg::Bilinear, conflicts_with = "gpu")]
+    pub filter: FilterArg,
     /// Print JSON instead of a table.
     #[arg(long)]
     pub json: bool,
@@ -204,6 +209,7 @@ fn render(a: BenchRenderArgs) -> Result<()> {
         opencv: a.opencv,
         gpu: a.gpu,
         geometry: a.geometry,
+        filter: a.filter.into(),
     };
     let report = bench_render(&opts, &Bars::default())?;
     if let Some(path) = &a.save {

@@ -158,7 +158,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
     let sweep = Sweep::parse("tx:-0.3:0.3:61").expect("valid sweep");
     render_sweep(
         &mut source,
-        &CpuRenderer,
+        &CpuRenderer::default(),
         true,
         &sweep.poses(),
         &sweep_dir,
@@ -181,7 +181,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
     let mut scores = Vec::new();
     for (entry, truth) in &synth.views {
         let mut img = cpsl_core::PremulImage::new(set.camera().width, set.camera().height);
-        CpuRenderer.render(
+        CpuRenderer::default().render(
             prepared,
             &entry.pose_matrix,
             set.camera(),
@@ -313,7 +313,7 @@ fn clip(a: &DemoArgs, scene: &Scene, bars: &Bars) -> Result<()> {
         .poses();
     render_sweep(
         &mut source,
-        &CpuRenderer,
+        &CpuRenderer::default(),
         true,
         &poses,
         &sweep_dir,
@@ -324,7 +324,7 @@ fn clip(a: &DemoArgs, scene: &Scene, bars: &Bars) -> Result<()> {
     let mut img = cpsl_core::PremulImage::new(cam.width, cam.height);
     let mut scores = Vec::new();
     for (i, t) in &truth {
-        CpuRenderer.render(
+        CpuRenderer::default().render(
             source.at(*i)?,
             &novel,
             &cam,

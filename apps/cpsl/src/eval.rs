@@ -4,6 +4,7 @@
 use crate::encode::CodecArg;
 use crate::layer::InstanceArg;
 use crate::progress::Bars;
+use crate::util::FilterArg;
 use anyhow::{Context as _, Result};
 use clap::{Args, ValueEnum};
 use cpsl_eval::views::{evaluate_views, Method, Row, ViewsOptions};
@@ -114,6 +115,10 @@ pub struct EvalArgs {
     /// go to a temporary folder).
     #[arg(long, requires = "codec")]
     pub keep_packages: Option<PathBuf>,
+    /// How the CPU renderer resamples the layered methods' layers: `bilinear` (what the GPU
+    /// and browser players draw) or `cubic` (Catmull-Rom, sharper; EVALUATION.md compares them).
+    #[arg(long, value_enum, default_value_t = FilterArg::Bilinear)]
+    pub filter: FilterArg,
 }
 
 /// Runs `cpsl eval`.
@@ -133,6 +138,7 @@ pub fn run(a: EvalArgs) -> Result<()> {
         codec: a.codec.map(Into::into),
         bitrate: a.bitrate,
         keep_packages: a.keep_packages,
+        filter: a.filter.into(),
     };
     println!(
         "{:<22} {:<16} {:>3} {:>8} {:>7} {:>7} {:>7} {:>7} {:>5}{}",

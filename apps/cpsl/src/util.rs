@@ -1,5 +1,23 @@
 //! Small helpers shared by the commands.
 
+/// How the CPU renderer resamples layers (`--filter`).
+#[derive(Clone, Copy, Debug, clap::ValueEnum)]
+pub enum FilterArg {
+    /// Bilinear, as the GPU and browser players draw.
+    Bilinear,
+    /// Catmull-Rom bicubic: sharper at sub-pixel shifts (CPU only).
+    Cubic,
+}
+
+impl From<FilterArg> for cpsl_render::Filter {
+    fn from(f: FilterArg) -> Self {
+        match f {
+            FilterArg::Bilinear => Self::Bilinear,
+            FilterArg::Cubic => Self::Cubic,
+        }
+    }
+}
+
 /// Parses `R,G,B` (0-255 each).
 pub fn parse_rgb(s: &str) -> Result<[u8; 3], String> {
     let v: Vec<u8> = s

@@ -81,6 +81,27 @@ fn synth_slice_render_pose_and_sweep() {
     ]);
     let img = cpsl_io::images::read_rgb8(&png, &Default::default()).unwrap();
     assert_eq!((img.width, img.height), (96, 72));
+    // The bicubic filter draws the same view, sharper: close to the bilinear one, not equal.
+    let cubic = d.path().join("view_cubic.png");
+    ok(&[
+        "render",
+        s(&layers),
+        "--pose",
+        "0.1,0,0,0,2,0",
+        "--filter",
+        "cubic",
+        "-o",
+        s(&cubic),
+    ]);
+    let sharp = cpsl_io::images::read_rgb8(&cubic, &Default::default()).unwrap();
+    let mse = img
+        .data
+        .iter()
+        .zip(&sharp.data)
+        .map(|(&a, &b)| (a as f64 - b as f64).powi(2))
+        .sum::<f64>()
+        / img.data.len() as f64;
+    assert!(mse > 0.0 && mse < 100.0, "bilinear vs cubic MSE {mse}");
     // The view looks past the frame's edge: filled by default, the given colour with
     // --background R,G,B.
     let black = d.path().join("view_black.png");
@@ -228,6 +249,21 @@ fn clear_errors_and_nothing_written() {
             "1M",
             "--bitrate",
             "1M",
+        ],
+        "cannot be used with",
+    );
+    // The GPU draws bilinear only.
+    fails(
+        &[
+            "render",
+            s(&missing),
+            "--pose",
+            "0,0,0,0,0,0",
+            "-o",
+            s(&taken),
+            "--gpu",
+            "--filter",
+            "cubic",
         ],
         "cannot be used with",
     );

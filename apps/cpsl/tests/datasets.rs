@@ -13,7 +13,7 @@ use std::path::PathBuf;
 
 /// The view of `frame` at `pose`: the image over black and the pixels it fully covers.
 fn render_covered(frame: &FrameLayers, pose: &Pose, cam: &Camera) -> (Vec<u8>, Vec<bool>) {
-    let view = CpuRenderer.view(frame, pose, cam, None);
+    let view = CpuRenderer::default().view(frame, pose, cam, None);
     (view.over_background([0, 0, 0]), view.covered(255))
 }
 

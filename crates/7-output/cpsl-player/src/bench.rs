@@ -103,7 +103,7 @@ pub fn bench_play(a: &PlayBench, gpu: Option<&GpuRenderer>) -> Result<PlayReport
                 frame.prepared();
                 prepare.push(ms(t));
                 let t = Instant::now();
-                CpuRenderer.render(&frame, &a.pose, &cam, dps, &mut img)?;
+                CpuRenderer::default().render(&frame, &a.pose, &cam, dps, &mut img)?;
                 render.push(ms(t));
             }
         }

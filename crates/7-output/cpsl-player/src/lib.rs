@@ -250,5 +250,5 @@ pub fn choose_renderer(gpu: bool, progress: &dyn Progress) -> Box<dyn Renderer> 
             }),
         }
     }
-    Box::new(CpuRenderer)
+    Box::new(CpuRenderer::default())
 }

@@ -257,7 +257,7 @@ fn both_renderers_agree_through_the_renderer_interface() {
     let cam = *frame.set.camera();
     let pose = Pose::from_euler_deg(Vec3::new(0.04, -0.02, 0.05), 1.0, 2.0, 0.0);
     let dps = DpsConfig::default();
-    let renderers: [&dyn Renderer; 2] = [&CpuRenderer, &gpu];
+    let renderers: [&dyn Renderer; 2] = [&CpuRenderer::default(), &gpu];
     let views: Vec<PremulImage> = renderers
         .iter()
         .map(|r| {

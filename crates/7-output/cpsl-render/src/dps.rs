@@ -21,7 +21,7 @@
 //!
 //! The strip fills the remaining transmittance: `I += (1 - A) C_dps`.
 
-use crate::prepared::PreparedLayers;
+use crate::prepared::{Filter, PreparedLayers};
 use crate::raster::Warp;
 use cpsl_core::{Camera, Edc, Pose, PremulImage};
 use rayon::prelude::*;
@@ -212,7 +212,20 @@ impl PreparedLayers {
         out: &mut PremulImage,
         cfg: &DpsConfig,
     ) -> DpsStats {
-        self.render_into(pose, target, out);
+        self.render_dps_into_with(pose, target, out, cfg, self.filter)
+    }
+
+    /// [`PreparedLayers::render_dps_into`] with `filter` instead of the prepared layers' own
+    /// (the strip itself samples the composite, not the layers).
+    pub fn render_dps_into_with(
+        &self,
+        pose: &Pose,
+        target: &Camera,
+        out: &mut PremulImage,
+        cfg: &DpsConfig,
+        filter: Filter,
+    ) -> DpsStats {
+        self.render_into_with(pose, target, out, filter);
         let (w, h) = (target.width as usize, target.height as usize);
         let depths: Vec<f64> = self.layers.iter().map(|l| l.depth).collect();
         let s = strip_width(&self.camera, &depths, pose, target, cfg);

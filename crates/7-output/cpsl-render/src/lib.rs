@@ -34,6 +34,6 @@ mod renderer;
 mod simd;
 
 pub use dps::{strip_width, DpsConfig, DpsStats, EdgeOffsets};
-pub use prepared::PreparedLayers;
+pub use prepared::{Filter, PreparedLayers};
 pub use raster::RenderStats;
 pub use renderer::{CpuRenderer, FrameLayers, RenderError, Renderer};

@@ -75,6 +75,18 @@ impl PreparedLayer {
     }
 }
 
+/// How a renderer resamples a layer's texels at a warped position.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash)]
+pub enum Filter {
+    /// Bilinear (2x2 taps): what the GPU and browser players draw in real time.
+    #[default]
+    Bilinear,
+    /// Catmull-Rom bicubic (4x4 taps), CPU only: sharper at sub-pixel shifts, where bilinear
+    /// blurs by up to a [1/4, 1/2, 1/4] kernel. Measured with ground-truth depth (`cpsl eval
+    /// all`): LPIPS lower on every scene (HCI 0.037 -> 0.022), PSNR within 0.2 dB.
+    Cubic,
+}
+
 /// A layer set converted into the renderer's working form. Build it once per layer set (or
 /// video frame) and render it from as many poses as needed.
 pub struct PreparedLayers {
@@ -82,6 +94,8 @@ pub struct PreparedLayers {
     pub(crate) layers: Vec<PreparedLayer>,
     /// Use the AVX2 kernel where the CPU has it.
     pub(crate) simd: bool,
+    /// How layers are resampled.
+    pub(crate) filter: Filter,
     /// Edge-Depth Cache offsets per layer pair, for the Dynamic Pixel Strip.
     pub(crate) edge_offsets: crate::dps::EdgeOffsets,
 }
@@ -169,6 +183,7 @@ impl PreparedLayers {
             camera: cam,
             layers,
             simd: simd_available(),
+            filter: Filter::default(),
             edge_offsets: Default::default(),
         }
     }
@@ -184,6 +199,17 @@ impl PreparedLayers {
     pub fn with_simd(mut self, on: bool) -> Self {
         self.simd = on && simd_available();
         self
+    }
+
+    /// Resamples the layers with `filter` (bilinear by default, as every player does).
+    pub fn with_filter(mut self, filter: Filter) -> Self {
+        self.filter = filter;
+        self
+    }
+
+    /// How the layers are resampled.
+    pub fn filter(&self) -> Filter {
+        self.filter
     }
 
     /// Whether renders use the SIMD kernel.

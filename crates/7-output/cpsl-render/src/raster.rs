@@ -1,7 +1,7 @@
 //! Tiled warp-and-composite kernel.
 
 use crate::mesh::MeshWarp;
-use crate::prepared::{PreparedLayer, PreparedLayers};
+use crate::prepared::{Filter, PreparedLayer, PreparedLayers};
 use cpsl_core::resample::bilerp;
 use cpsl_core::{Camera, Geometry, Pose, PremulImage};
 use rayon::prelude::*;
@@ -18,6 +18,26 @@ const ONE_MINUS: [f32; 256] = {
     let mut i = 0;
     while i < 256 {
         t[i] = 1.0 - i as f32 / 255.0;
+        i += 1;
+    }
+    t
+};
+
+/// Catmull-Rom weights of the four taps at `x0 - 1 ..= x0 + 2` for each fraction `f / 256`
+/// of a pixel past `x0` (they sum to 1; at `f = 0` they are `[0, 1, 0, 0]`, so an identity
+/// warp stays exact).
+const CUBIC: [[f32; 4]; 256] = {
+    let mut t = [[0.0f32; 4]; 256];
+    let mut i = 0;
+    while i < 256 {
+        let f = i as f32 / 256.0;
+        let (f2, f3) = (f * f, f * f * f);
+        t[i] = [
+            0.5 * (-f3 + 2.0 * f2 - f),
+            0.5 * (3.0 * f3 - 5.0 * f2 + 2.0),
+            0.5 * (-3.0 * f3 + 4.0 * f2 + f),
+            0.5 * (f3 - f2),
+        ];
         i += 1;
     }
     t
@@ -185,8 +205,10 @@ struct Tex<'a> {
     /// Unpadded width and height.
     sw: u64,
     sh: u64,
-    /// Use the AVX2 kernel for linear spans.
+    /// Use the AVX2 kernel for linear spans (bilinear only).
     simd: bool,
+    /// Sample with the Catmull-Rom kernel instead of the bilinear one.
+    cubic: bool,
 }
 
 /// One output row segment being composited: accumulators, transmittances and the count of
@@ -209,13 +231,58 @@ impl Tex<'_> {
             let i = (y0 + 1) as usize * pitch + (x0 + 1) as usize;
             if let Some(q) = self.texels.get(i..i + pitch + 2) {
                 let (p00, p01, p10, p11) = (q[0], q[1], q[pitch], q[pitch + 1]);
+                // The cubic kernel reads 4x4 texels, but only where one of the central
+                // four (the bilinear taps) is covered: the layer's extent and every skip
+                // test stay the bilinear ones.
                 if (p00 | p01 | p10 | p11) != 0 {
-                    let v = bilerp(p00, p01, p10, p11, (xi & 255) as u64, (yi & 255) as u64);
+                    let (fx, fy) = ((xi & 255) as u64, (yi & 255) as u64);
+                    let v = if self.cubic {
+                        self.cubic(i, fx as usize, fy as usize)
+                    } else {
+                        bilerp(p00, p01, p10, p11, fx, fy)
+                    };
                     let tv = *t;
                     composite(o, t, tv, v, opaqued);
                 }
             }
         }
+    }
+
+    /// Catmull-Rom sample around padded texel `i` (the first bilinear tap) at fraction
+    /// `(fx, fy)` / 256, as lanes R, B, G, A rounded to 0..255, colour at most alpha. Taps
+    /// beyond the padded texture read as transparent, as the padding does.
+    #[inline(always)]
+    fn cubic(&self, i: usize, fx: usize, fy: usize) -> u64 {
+        let pitch = self.pitch;
+        let (cx, cy) = (i % pitch, i / pitch);
+        let rows = self.texels.len() / pitch;
+        let (wx, wy) = (&CUBIC[fx], &CUBIC[fy]);
+        let mut acc = [0f32; 4];
+        for (j, &wyj) in wy.iter().enumerate() {
+            let Some(y) = (cy + j).checked_sub(1).filter(|&y| y < rows) else {
+                continue;
+            };
+            let mut row = [0f32; 4];
+            for (k, &wxk) in wx.iter().enumerate() {
+                let Some(x) = (cx + k).checked_sub(1).filter(|&x| x < pitch) else {
+                    continue;
+                };
+                let p = self.texels[y * pitch + x];
+                if p != 0 {
+                    // Lanes R, B, G, A as `bilerp` gives them.
+                    let c = [p & 255, (p >> 16) & 255, (p >> 8) & 255, p >> 24];
+                    for (r, c) in row.iter_mut().zip(c) {
+                        *r += wxk * c as f32;
+                    }
+                }
+            }
+            for (a, r) in acc.iter_mut().zip(row) {
+                *a += wyj * r;
+            }
+        }
+        let al = (acc[3] + 0.5).clamp(0.0, 255.0) as u64;
+        let lane = |v: f32| ((v + 0.5).max(0.0) as u64).min(al);
+        lane(acc[0]) | lane(acc[1]) << 16 | lane(acc[2]) << 32 | al << 48
     }
 
     /// Linear stepping: positions in 16.16 fixed point from `start` by `step` per pixel.
@@ -225,7 +292,7 @@ impl Tex<'_> {
         let (mut x, mut y) = (start[0] + 128, start[1] + 128);
         let mut done = 0;
         #[cfg(target_arch = "x86_64")]
-        if self.simd && span.trans.len() >= 8 {
+        if self.simd && !self.cubic && span.trans.len() >= 8 {
             let last = span.trans.len() as i64 - 1;
             let fits = |v: i64| v.abs() < (1 << 30);
             let ends = [x, y, x + step[0] * last, y + step[1] * last];
@@ -493,6 +560,7 @@ impl PreparedLayers {
         width: usize,
         y0: usize,
         th: usize,
+        filter: Filter,
         mut emit: impl FnMut(usize, usize, &[[f32; 4]]),
     ) -> RenderStats {
         let (sw, sh) = (self.camera.width as usize, self.camera.height as usize);
@@ -513,6 +581,7 @@ impl PreparedLayers {
                     sw: sw as u64,
                     sh: sh as u64,
                     simd: self.simd,
+                    cubic: filter == Filter::Cubic,
                 };
                 let opaque = match warp {
                     Warp::Plane(h) => {
@@ -521,7 +590,9 @@ impl PreparedLayers {
                                 stats.skipped += 1;
                                 continue;
                             }
-                            Class::Draw { check_w, opaque } => (check_w, opaque),
+                            // A cubic sample next to a translucent texel may dip below
+                            // opaque: only the bilinear kernel may stop the tile early.
+                            Class::Draw { check_w, opaque } => (check_w, opaque && !tex.cubic),
                         };
                         for (r, alive_r) in alive[..th].iter_mut().enumerate() {
                             if *alive_r == 0 {
@@ -593,6 +664,17 @@ impl PreparedLayers {
     /// Renders the view seen by a camera `target` at `pose` into `out` (premultiplied RGBA;
     /// uncovered pixels are transparent). `out` must have the target camera's size.
     pub fn render_into(&self, pose: &Pose, target: &Camera, out: &mut PremulImage) -> RenderStats {
+        self.render_into_with(pose, target, out, self.filter)
+    }
+
+    /// [`PreparedLayers::render_into`] with `filter` instead of the prepared layers' own.
+    pub fn render_into_with(
+        &self,
+        pose: &Pose,
+        target: &Camera,
+        out: &mut PremulImage,
+        filter: Filter,
+    ) -> RenderStats {
         assert_eq!(
             (out.width(), out.height()),
             (target.width, target.height),
@@ -605,7 +687,7 @@ impl PreparedLayers {
             .enumerate()
             .map(|(band, bytes)| {
                 let th = bytes.len() / (width * 4);
-                self.render_band(&warps, width, band * TILE_H, th, |x0, tw, acc| {
+                self.render_band(&warps, width, band * TILE_H, th, filter, |x0, tw, acc| {
                     for r in 0..th {
                         let dst = &mut bytes[(r * width + x0) * 4..(r * width + x0 + tw) * 4];
                         for (d, s) in dst
@@ -643,17 +725,24 @@ impl PreparedLayers {
             .enumerate()
             .for_each(|(band, px)| {
                 let th = px.len() / width;
-                self.render_band(&warps, width, band * TILE_H, th, |x0, tw, acc| {
-                    for r in 0..th {
-                        for (d, s) in px[r * width + x0..r * width + x0 + tw]
-                            .iter_mut()
-                            .zip(&acc[r * TILE_W..r * TILE_W + tw])
-                        {
-                            // Accumulator lanes are R, B, G, A.
-                            *d = [s[0], s[2], s[1], s[3]].map(|v| v / 255.0);
+                self.render_band(
+                    &warps,
+                    width,
+                    band * TILE_H,
+                    th,
+                    self.filter,
+                    |x0, tw, acc| {
+                        for r in 0..th {
+                            for (d, s) in px[r * width + x0..r * width + x0 + tw]
+                                .iter_mut()
+                                .zip(&acc[r * TILE_W..r * TILE_W + tw])
+                            {
+                                // Accumulator lanes are R, B, G, A.
+                                *d = [s[0], s[2], s[1], s[3]].map(|v| v / 255.0);
+                            }
                         }
-                    }
-                });
+                    },
+                );
             });
         out
     }

@@ -1,7 +1,7 @@
 //! One interface over every renderer: a frame's layers ([`FrameLayers`]) drawn at a pose by a
 //! [`Renderer`], the CPU reference ([`CpuRenderer`]) or another one tested against it.
 
-use crate::{DpsConfig, PreparedLayers};
+use crate::{DpsConfig, Filter, PreparedLayers};
 use cpsl_core::{Camera, Edc, LayerSet, Pose, PremulImage};
 use std::sync::OnceLock;
 use thiserror::Error;
@@ -69,7 +69,18 @@ pub trait Renderer {
 
 /// The CPU reference renderer behind the [`Renderer`] interface.
 #[derive(Debug, Clone, Copy, Default)]
-pub struct CpuRenderer;
+pub struct CpuRenderer {
+    /// How layers are resampled: bilinear by default, as the GPU and browser players draw;
+    /// [`Filter::Cubic`] for sharper offline renders.
+    pub filter: Filter,
+}
+
+impl CpuRenderer {
+    /// The CPU renderer with `filter`.
+    pub const fn new(filter: Filter) -> Self {
+        Self { filter }
+    }
+}
 
 impl CpuRenderer {
     /// Renders `frame` at `pose` for camera `target`, with the Dynamic Pixel Strip when `dps`
@@ -100,10 +111,10 @@ impl CpuRenderer {
         let prepared = frame.prepared();
         match dps {
             Some(cfg) => {
-                prepared.render_dps_into(pose, target, out, cfg);
+                prepared.render_dps_into_with(pose, target, out, cfg, self.filter);
             }
             None => {
-                prepared.render_into(pose, target, out);
+                prepared.render_into_with(pose, target, out, self.filter);
             }
         }
     }
@@ -111,7 +122,10 @@ impl CpuRenderer {
 
 impl Renderer for CpuRenderer {
     fn name(&self) -> String {
-        "CPU reference renderer".into()
+        match self.filter {
+            Filter::Bilinear => "CPU reference renderer".into(),
+            Filter::Cubic => "CPU reference renderer (bicubic)".into(),
+        }
     }
 
     fn render(

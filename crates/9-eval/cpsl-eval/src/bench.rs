@@ -211,8 +211,13 @@ pub struct RenderReport {
     pub cases: Vec<Case>,
 }
 
-fn time_cpsl(set: &LayerSet, pose: &Pose, frames: u32) -> (Timing, PremulImage) {
-    let prepared = PreparedLayers::new(set);
+fn time_cpsl(
+    set: &LayerSet,
+    pose: &Pose,
+    frames: u32,
+    filter: cpsl_render::Filter,
+) -> (Timing, PremulImage) {
+    let prepared = PreparedLayers::new(set).with_filter(filter);
     let cam = *set.camera();
     let mut out = PremulImage::new(cam.width, cam.height);
     for _ in 0..3 {
@@ -379,6 +384,8 @@ pub struct RenderBench {
     /// ([`cpsl_synth::layers::slanted`]) or meshes at the default step for the frame size
     /// ([`cpsl_synth::layers::meshed`]).
     pub geometry: GeometryMode,
+    /// How the CPU renderer resamples the layers.
+    pub filter: cpsl_render::Filter,
 }
 
 /// Times the CPU reference renderer (and, when asked, the GPU renderer and OpenCV) on
@@ -436,7 +443,7 @@ pub fn bench_render(a: &RenderBench, progress: &dyn Progress) -> Result<RenderRe
     for (name, set) in sets {
         let mean_cov =
             set.layers().iter().map(|l| l.image.coverage()).sum::<f64>() / set.len() as f64;
-        let (cpsl, img) = time_cpsl(&set, &a.pose, a.frames);
+        let (cpsl, img) = time_cpsl(&set, &a.pose, a.frames, a.filter);
         let opencv = match &a.opencv {
             Some(py) => Some(time_opencv(py, &set, &a.pose, a.frames, (&img, &cpsl))?),
             None => None,

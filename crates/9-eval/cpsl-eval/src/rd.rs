@@ -371,7 +371,7 @@ fn score(
 /// the same way).
 fn render_layers(frame: &FrameLayers, dps: bool, pose: &Pose) -> Vec<u8> {
     let cam = frame.set.camera();
-    let img = CpuRenderer.view(frame, pose, cam, dps.then_some(&DpsConfig::DEFAULT));
+    let img = CpuRenderer::default().view(frame, pose, cam, dps.then_some(&DpsConfig::DEFAULT));
     img.over_fill()
 }
 

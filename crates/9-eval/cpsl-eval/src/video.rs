@@ -569,7 +569,7 @@ pub fn evaluate_video(
                 .map(|((set, edc, _), (pose, cam))| {
                     let dps = edc.is_some().then_some(&DpsConfig::DEFAULT);
                     let frame = FrameLayers::new(set, edc);
-                    let img = CpuRenderer.view(&frame, pose, cam, dps);
+                    let img = CpuRenderer::default().view(&frame, pose, cam, dps);
                     (img.over_background([0, 0, 0]), img.covered(128))
                 })
                 .collect();

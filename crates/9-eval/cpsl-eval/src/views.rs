@@ -16,7 +16,7 @@ use cpsl_layering::GeometryMode;
 use cpsl_layering::{slice_by_depth, Bins, LayeringConfig, SliceConfig};
 use cpsl_package::Codec;
 use cpsl_pipeline::image::{layer_image, InstanceMode};
-use cpsl_render::{CpuRenderer, DpsConfig, FrameLayers};
+use cpsl_render::{CpuRenderer, DpsConfig, Filter, FrameLayers};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 
@@ -114,6 +114,8 @@ pub struct ViewsOptions {
     pub bitrate: Option<f64>,
     /// Keep the packages of `codec` in this folder (by default a temporary one).
     pub keep_packages: Option<PathBuf>,
+    /// How the layered methods' layers are resampled.
+    pub filter: Filter,
 }
 
 /// What a run reports as it goes.
@@ -403,8 +405,8 @@ fn farthest(ds: &Dataset) -> usize {
 }
 
 /// Renders a target view of a frame's layers, with or without the Dynamic Pixel Strip.
-fn render_layers(frame: &FrameLayers, t: &Target, dps: bool) -> Synth {
-    let img = CpuRenderer.view(
+fn render_layers(frame: &FrameLayers, t: &Target, dps: bool, filter: Filter) -> Synth {
+    let img = CpuRenderer::new(filter).view(
         frame,
         &t.pose,
         &t.camera,
@@ -557,7 +559,7 @@ pub fn evaluate_views(
                     let (prepared, bits) = prepare(run.layered.set, Some(run.layered.edc))?;
                     let dps = method != Method::CpslNoDps;
                     (
-                        scorer.score(|t| render_layers(&prepared, t, dps), progress)?,
+                        scorer.score(|t| render_layers(&prepared, t, dps, a.filter), progress)?,
                         layers,
                         bits,
                     )
@@ -571,7 +573,7 @@ pub fn evaluate_views(
                     };
                     let (prepared, n, bits) = sliced(k, bins)?;
                     (
-                        scorer.score(|t| render_layers(&prepared, t, false), progress)?,
+                        scorer.score(|t| render_layers(&prepared, t, false, a.filter), progress)?,
                         n,
                         bits,
                     )

@@ -7,7 +7,7 @@ use clap::Args;
 use cpsl_core::{Pose, PremulImage};
 use cpsl_player::sweep::{render_sweep, write_render, Output, Sweep};
 use cpsl_player::Source;
-use cpsl_render::{CpuRenderer, DpsConfig, Renderer};
+use cpsl_render::DpsConfig;
 use std::path::PathBuf;
 
 /// Arguments of `cpsl render`.
@@ -52,8 +52,8 @@ pub struct RenderArgs {
     pub gpu: bool,
     /// How the CPU renderer resamples the layers: `bilinear` (what the GPU and browser players
     /// draw, so that a render matches them) or `cubic` (Catmull-Rom: sharper where the view
-    /// shifts layers by fractions of a pixel, about 3x the render time; for offline renders).
-    #[arg(long, value_enum, default_value_t = FilterArg::Bilinear, conflicts_with = "gpu")]
+    /// shifts layers by fractions of a pixel; 4x the texel reads, about 3x the CPU's render time).
+    #[arg(long, value_enum, default_value_t = FilterArg::Bilinear)]
     pub filter: FilterArg,
 }
 
@@ -71,10 +71,7 @@ fn parse_background(s: &str) -> Result<Output, String> {
 pub fn run(a: RenderArgs) -> Result<()> {
     let mut source = Source::open(&a.layerset)?;
     let progress = Bars::default();
-    let renderer: Box<dyn Renderer> = match a.gpu {
-        true => cpsl_player::choose_renderer(true, &progress),
-        false => Box::new(CpuRenderer::new(a.filter.into())),
-    };
+    let renderer = cpsl_player::choose_renderer(a.gpu, a.filter.into(), &progress);
     if a.gpu {
         eprintln!("rendering on {}", renderer.name());
     }

@@ -5,7 +5,7 @@
 pub enum FilterArg {
     /// Bilinear, as the GPU and browser players draw.
     Bilinear,
-    /// Catmull-Rom bicubic: sharper at sub-pixel shifts (CPU only).
+    /// Catmull-Rom bicubic: sharper at sub-pixel shifts.
     Cubic,
 }
 

@@ -1,6 +1,7 @@
 //! `cpsl view`: the desktop viewer (`cpsl-viewer`, whose documentation lists the controls) on
 //! a package or a layer set.
 
+use crate::util::FilterArg;
 use anyhow::Result;
 use clap::Args;
 use cpsl_core::Pose;
@@ -34,6 +35,10 @@ pub struct ViewArgs {
     /// Without the on-screen readout.
     #[arg(long)]
     pub no_hud: bool,
+    /// How the layers are resampled at start: `bilinear` or `cubic` (Catmull-Rom: sharper,
+    /// 16 texel reads a layer and pixel instead of 4); key C toggles.
+    #[arg(long, value_enum, default_value_t = FilterArg::Bilinear)]
+    pub filter: FilterArg,
     /// Close after this many seconds (for demos and tests).
     #[arg(long)]
     pub exit_after: Option<f64>,
@@ -56,6 +61,7 @@ pub fn run(a: ViewArgs) -> Result<()> {
             eye_separation: a.eye_separation,
             dps: !a.no_dps,
             hud: !a.no_hud,
+            filter: a.filter.into(),
             exit_after: a.exit_after,
         },
         events,

@@ -219,5 +219,34 @@ fn viewer_screenshot_matches_the_cpu_render() {
             let psnr = cpsl_eval::metrics::psnr(&half, &want.data);
             assert!(psnr >= 45.0, "stereo eye {eye}: {psnr:.2} dB");
         }
+        // The bicubic filter, against the CPU's bicubic render (the two filters' renders are
+        // further apart than the check allows).
+        let cubic = d.path().join("reference_cubic.png");
+        ok(&[
+            "render",
+            s(source),
+            "--frame",
+            frame,
+            "--pose",
+            pose,
+            "--filter",
+            "cubic",
+            "-o",
+            s(&cubic),
+        ]);
+        let want_cubic = cpsl_io::images::read_rgb8(&cubic, &Default::default()).unwrap();
+        let apart = cpsl_eval::metrics::psnr(&want_cubic.data, &want.data);
+        let mut sharp = args.to_vec();
+        sharp.extend(["--filter", "cubic"]);
+        let got = screenshot(&x, &sharp, w, h, d.path()).expect("adapter found before");
+        let psnr = cpsl_eval::metrics::psnr(&got, &want_cubic.data);
+        eprintln!(
+            "{}: cubic screenshot {psnr:.2} dB from the CPU's (filters {apart:.2} dB apart)",
+            source.display()
+        );
+        assert!(
+            psnr >= 45.0 && apart < 45.0,
+            "cubic: {psnr:.2} dB, filters {apart:.2} dB apart"
+        );
     }
 }

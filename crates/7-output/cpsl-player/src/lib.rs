@@ -11,7 +11,7 @@ pub mod sweep;
 use cpsl_codec::{CodecError, SegmentReader};
 use cpsl_core::{Limits, Progress, ProgressEvent};
 use cpsl_package::{Package, PackageError};
-use cpsl_render::{CpuRenderer, FrameLayers, Renderer};
+use cpsl_render::{CpuRenderer, Filter, FrameLayers, Renderer};
 use std::path::{Path, PathBuf};
 use thiserror::Error;
 
@@ -239,16 +239,20 @@ impl Source {
     }
 }
 
-/// The renderer to draw with: the GPU (wgpu) when `gpu` asks for it and an adapter exists,
-/// else the CPU reference, with a warning saying why when the GPU was asked for.
-pub fn choose_renderer(gpu: bool, progress: &dyn Progress) -> Box<dyn Renderer> {
+/// The renderer to draw with, resampling with `filter`: the GPU (wgpu) when `gpu` asks for it
+/// and an adapter exists, else the CPU reference, with a warning saying why when the GPU was
+/// asked for.
+pub fn choose_renderer(gpu: bool, filter: Filter, progress: &dyn Progress) -> Box<dyn Renderer> {
     if gpu {
         match cpsl_render_gpu::GpuRenderer::new() {
-            Ok(g) => return Box::new(g),
+            Ok(mut g) => {
+                g.set_filter(filter);
+                return Box::new(g);
+            }
             Err(e) => progress.event(ProgressEvent::Warning {
                 message: format!("--gpu: {e}; rendering on the CPU instead"),
             }),
         }
     }
-    Box::new(CpuRenderer::default())
+    Box::new(CpuRenderer::new(filter))
 }

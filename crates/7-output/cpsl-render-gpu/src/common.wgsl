@@ -9,6 +9,7 @@ struct Params {
     log_depth: array<vec4<f32>, 4>,
     offsets: array<vec4<f32>, 128>, // EDC mean offsets of pair (f, b) at b * 16 + f: (front, back)
     mesh: array<vec4<i32>, 4>,    // per layer: its slice of the mesh source maps, -1 for a plane
+    cubic: i32,                   // 0 bilinear, 1 Catmull-Rom
 };
 
 @group(0) @binding(0) var layers: texture_2d_array<f32>;

@@ -23,7 +23,7 @@ pub use blit::Blit;
 pub use fill::{Fill, FILLED_FORMAT};
 
 use cpsl_core::{Camera, Edc, Geometry, LayerSet, Pose, PremulImage};
-use cpsl_render::{strip_width, DpsConfig, EdgeOffsets};
+use cpsl_render::{strip_width, DpsConfig, EdgeOffsets, Filter};
 use std::time::Duration;
 use thiserror::Error;
 
@@ -41,7 +41,7 @@ pub const BLIT_WGSL: &str = include_str!("blit.wgsl");
 pub const FILL_WGSL: &str = include_str!("fill.wgsl");
 /// Most layers per frame.
 pub const MAX_LAYERS: usize = 16;
-const PARAMS_BYTES: usize = 16 + MAX_LAYERS * 48 + 64 + 128 * 16 + MAX_LAYERS * 4;
+const PARAMS_BYTES: usize = 16 + MAX_LAYERS * 48 + 64 + 128 * 16 + MAX_LAYERS * 4 + 16;
 /// Where the per-layer mesh slices start in the parameters.
 const MESH_AT: usize = 16 + MAX_LAYERS * 48 + 64 + 128 * 16;
 const FORMAT: wgpu::TextureFormat = wgpu::TextureFormat::Rgba8Unorm;
@@ -90,6 +90,7 @@ pub struct GpuRenderer {
     dummy: wgpu::TextureView,
     adapter: String,
     handle: wgpu::Adapter,
+    filter: Filter,
 }
 
 /// The two passes of a view.
@@ -275,6 +276,7 @@ impl GpuRenderer {
             dummy,
             adapter: format!("{} ({:?}, {:?})", info.name, info.backend, info.device_type),
             handle: adapter,
+            filter: Filter::default(),
         })
     }
 
@@ -309,6 +311,18 @@ impl GpuRenderer {
         }
         self.passes = passes;
         Ok(())
+    }
+
+    /// Resamples layers with `filter` from now on (bilinear by default, as the browser player;
+    /// [`Filter::Cubic`] as the CPU renderer's Catmull-Rom, 16 texel reads a layer and pixel
+    /// instead of 4).
+    pub fn set_filter(&mut self, filter: Filter) {
+        self.filter = filter;
+    }
+
+    /// How layers are resampled.
+    pub fn filter(&self) -> Filter {
+        self.filter
     }
 
     /// The adapter's name, backend and type.
@@ -421,6 +435,8 @@ impl GpuRenderer {
             };
             put(&mut b, MESH_AT + k * 4, v.to_le_bytes());
         }
+        let filter = (self.filter == Filter::Cubic) as i32;
+        put(&mut b, MESH_AT + MAX_LAYERS * 4, filter.to_le_bytes());
         let n = layers.depths.len();
         for f in 0..n {
             for bk in 0..n {

@@ -4,7 +4,7 @@
 //! installs lavapipe) makes a missing adapter a failure.
 
 use cpsl_core::{Camera, Layer, LayerSet, Limits, Pose, PremulImage, Vec3};
-use cpsl_render::{CpuRenderer, DpsConfig, FrameLayers, PreparedLayers, Renderer};
+use cpsl_render::{CpuRenderer, DpsConfig, Filter, FrameLayers, PreparedLayers, Renderer};
 use cpsl_render_gpu::{
     Fill, GpuRenderer, BLIT_WGSL, COMMON_WGSL, COMPOSITE_WGSL, DPS_WGSL, FILL_WGSL, MESH_WGSL,
 };
@@ -77,7 +77,7 @@ fn gapped(gap: u32) -> LayerSet {
 
 #[test]
 fn gpu_matches_the_cpu_reference() {
-    let Some(gpu) = gpu() else { return };
+    let Some(mut gpu) = gpu() else { return };
     let scenes = [
         (
             "typical 320x240 K=6",
@@ -104,11 +104,27 @@ fn gpu_matches_the_cpu_reference() {
         Pose::from_translation(Vec3::new(0.0, 0.03, 0.0)),
     ];
     let mut strip_pixels = 0;
-    for (name, set) in &scenes {
+    // The lowest agreement between the CPU's two filters: the cubic check must be able to fail.
+    let mut filters_apart = f64::INFINITY;
+    for ((name, set), filter) in scenes
+        .iter()
+        .flat_map(|s| [(s, Filter::Bilinear), (s, Filter::Cubic)])
+    {
+        let name = format!("{name} {filter:?}");
+        gpu.set_filter(filter);
         let cam = *set.camera();
-        let cpu = PreparedLayers::new(set);
+        let cpu = PreparedLayers::new(set).with_filter(filter);
         let layers = gpu.prepare(set, None).unwrap();
         for pose in &poses {
+            if filter == Filter::Cubic {
+                let other = PreparedLayers::new(set).with_filter(Filter::Bilinear);
+                let (a, b) = (cpu.render_f32(pose, &cam), other.render_f32(pose, &cam));
+                let to8 = |v: &[[f32; 4]]| {
+                    let bytes = v.iter().flat_map(|p| p.map(|c| (c * 255.0).round() as u8));
+                    PremulImage::from_premul(cam.width, cam.height, bytes.collect()).unwrap()
+                };
+                filters_apart = filters_apart.min(compare(&to8(&a), &to8(&b)).0);
+            }
             for dps in [None, Some(DpsConfig::default())] {
                 let mut want = PremulImage::new(cam.width, cam.height);
                 match &dps {
@@ -138,6 +154,11 @@ fn gpu_matches_the_cpu_reference() {
     assert!(
         strip_pixels > 0,
         "the strip must run somewhere in these scenes"
+    );
+    // A GPU drawing bilinear where cubic is asked for fails the check above.
+    assert!(
+        filters_apart < MIN_PSNR,
+        "the filters differ by too little to be told apart: {filters_apart:.1} dB"
     );
 }
 

@@ -7,12 +7,12 @@
 //! Controls: left drag orbits, right (or shift) drag pans, the wheel dollies, R resets, space
 //! plays/pauses, Left/Right step a frame, PageUp/PageDown jump a second, Home goes to the
 //! start, S toggles side-by-side stereo, `[` and `]` change the eye separation, D toggles the
-//! Dynamic Pixel Strip, F the fill beyond the layers (black without it), H the on-screen
-//! readout, Esc/Q quit.
+//! Dynamic Pixel Strip, F the fill beyond the layers (black without it), C the bicubic
+//! (Catmull-Rom) filter against the bilinear one, H the on-screen readout, Esc/Q quit.
 
 use cpsl_core::{Camera, Pose, Vec3};
 use cpsl_player::{Player, PlayerError, Source};
-use cpsl_render::{DpsConfig, FrameLayers};
+use cpsl_render::{DpsConfig, Filter, FrameLayers};
 use cpsl_render_gpu::{wgpu, Blit, Fill, GpuError, GpuLayers, GpuRenderer};
 use std::path::PathBuf;
 use std::sync::mpsc::{sync_channel, Receiver, Sender, TryRecvError};
@@ -44,6 +44,8 @@ pub struct ViewOptions {
     pub dps: bool,
     /// Show the on-screen readout.
     pub hud: bool,
+    /// How the layers are resampled at start (C toggles).
+    pub filter: Filter,
     /// Close after this many seconds (for demos and tests).
     pub exit_after: Option<f64>,
 }
@@ -193,6 +195,8 @@ struct Viewer {
     /// Whether what the layers leave uncovered is filled (`Fill`) or shown black.
     fill: bool,
     hud: bool,
+    /// Resampling filter of the layers.
+    filter: Filter,
     eye: f64,
     yaw: f64,
     pitch: f64,
@@ -306,6 +310,9 @@ impl Viewer {
         if self.stereo {
             t.push_str(&format!("  stereo {:.3}", self.eye));
         }
+        if self.filter == Filter::Cubic {
+            t.push_str("  cubic");
+        }
         t
     }
 
@@ -326,6 +333,7 @@ impl Viewer {
         if self.uploaded.is_none() {
             self.uploaded = Some(gfx.gpu.prepare(&frame.set, frame.edc.as_ref())?);
         }
+        gfx.gpu.set_filter(self.filter);
         let layers = self.uploaded.as_ref().expect("uploaded");
         let texture = match gfx.surface.get_current_texture() {
             wgpu::CurrentSurfaceTexture::Success(t)
@@ -461,6 +469,12 @@ impl Viewer {
                 "s" => self.stereo = !self.stereo,
                 "d" => self.dps = !self.dps,
                 "f" => self.fill = !self.fill,
+                "c" => {
+                    self.filter = match self.filter {
+                        Filter::Bilinear => Filter::Cubic,
+                        Filter::Cubic => Filter::Bilinear,
+                    }
+                }
                 "h" => self.hud = !self.hud,
                 "[" => self.eye = (self.eye - 0.005).max(0.0),
                 "]" => self.eye += 0.005,
@@ -657,6 +671,7 @@ pub fn run(a: ViewOptions, events: impl FnMut(ViewerEvent) + 'static) -> Result<
         dps: a.dps,
         fill: true,
         hud: a.hud,
+        filter: a.filter,
         eye: a.eye_separation,
         yaw: 0.0,
         pitch: 0.0,

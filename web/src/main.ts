@@ -4,7 +4,8 @@
 // and seek. URL parameters: `src` (package folder or variants.json URL; default: the first
 // package `cpsl serve` lists), `frame`, `pose` (`tx,ty,tz,rx,ry,rz` as `cpsl render --pose`),
 // `paused=1`, `dps=0`, `fill=0` (black where the layers leave the view uncovered instead of
-// the push-pull fill), `variant` (index: fixed, no adaptation).
+// the push-pull fill), `filter=cubic` (Catmull-Rom resampling, sharper, 4x the texel reads;
+// bilinear by default), `variant` (index: fixed, no adaptation).
 
 import { SegmentDecoder } from "./decode.js";
 import { checkManifest, type Manifest, packageBitrate, parseSide, segmentFiles, type SideFrame } from "./package.js";
@@ -307,6 +308,10 @@ class Player {
     this.renderer.fillEnabled = on;
   }
 
+  set cubic(on: boolean) {
+    this.renderer.cubic = on;
+  }
+
   /** Median time of the last 60 draws (render and present), milliseconds. */
   medianDrawMs(): number {
     return median(this.frameTimes);
@@ -484,6 +489,7 @@ async function main() {
   if (q.has("pose")) player.explicitPose = parsePose(q.get("pose")!);
   if (q.get("dps") === "0") player.dps = false;
   if (q.get("fill") === "0") player.fill = false;
+  if (q.get("filter") === "cubic") player.cubic = true;
   player.playing = q.get("paused") !== "1";
   const start = Math.min(Math.max(Number(q.get("frame") ?? 0), 0), player.manifest.frames - 1);
   await player.show(start);

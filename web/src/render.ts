@@ -34,6 +34,7 @@ uniform mat3 uH[${MAX_LAYERS}];
 uniform int uStream[${MAX_LAYERS}];
 uniform int uScale[${MAX_LAYERS}];  // downscale factor of layer k's stream
 uniform int uLayers;
+uniform bool uCubic;      // Catmull-Rom instead of bilinear sampling
 uniform vec4 uPlane[${MAX_LAYERS}];  // inverse depth a x + b y + c of slanted layer k, clip margin
 uniform int uMesh[${MAX_LAYERS}];    // mesh layer k's slice of uMaps, -1 for a plane
 uniform highp sampler2DArray uMaps;  // per mesh layer and pixel: its triangle, coverage
@@ -102,6 +103,26 @@ bool warp(int k, vec2 px, out vec2 src) {
 const COMPOSITE = `#version 300 es
 ${TEXEL}
 out vec4 outColor;
+
+// Catmull-Rom weights of the taps at -1, 0, 1, 2 for fraction f.
+vec4 cubicWeights(float f) {
+  float f2 = f * f, f3 = f2 * f;
+  return 0.5 * vec4(-f3 + 2.0 * f2 - f, 3.0 * f3 - 5.0 * f2 + 2.0, -3.0 * f3 + 4.0 * f2 + f, f3 - f2);
+}
+
+// Catmull-Rom sample of layer k around texel i0 at fraction a, rounded to 0..255, colour at most
+// alpha (as the CPU renderer's and cpsl-render-gpu's).
+vec4 cubic(int k, ivec2 i0, vec2 a) {
+  vec4 wx = cubicWeights(a.x), wy = cubicWeights(a.y);
+  vec4 acc = vec4(0.0);
+  for (int j = 0; j < 4; j++) {
+    int y = i0.y + j - 1;
+    acc += wy[j] * (wx.x * texel(k, ivec2(i0.x - 1, y)) + wx.y * texel(k, ivec2(i0.x, y)) +
+                    wx.z * texel(k, ivec2(i0.x + 1, y)) + wx.w * texel(k, ivec2(i0.x + 2, y)));
+  }
+  float al = clamp(floor(acc.a + 0.5), 0.0, 255.0);
+  return vec4(min(max(floor(acc.rgb + 0.5), vec3(0.0)), vec3(al)), al);
+}
 void main() {
   vec2 px = floor(gl_FragCoord.xy);
   vec4 o = vec4(0.0);
@@ -115,9 +136,16 @@ void main() {
     vec2 w = (fi - f0 * 256.0) / 256.0;
     ivec2 i0 = ivec2(f0);
     if (i0.x < -1 || i0.y < -1 || i0.x >= uSize.x || i0.y >= uSize.y) continue;
-    vec4 v = mix(mix(texel(k, i0), texel(k, i0 + ivec2(1, 0)), w.x),
-                 mix(texel(k, i0 + ivec2(0, 1)), texel(k, i0 + ivec2(1, 1)), w.x), w.y);
-    v = floor(v + 0.5);
+    vec4 p00 = texel(k, i0), p01 = texel(k, i0 + ivec2(1, 0));
+    vec4 p10 = texel(k, i0 + ivec2(0, 1)), p11 = texel(k, i0 + ivec2(1, 1));
+    vec4 v;
+    if (uCubic) {
+      // As the CPU renderer: only where one of the central four texels is covered.
+      if (p00 + p01 + p10 + p11 == vec4(0.0)) continue;
+      v = cubic(k, i0, w);
+    } else {
+      v = floor(mix(mix(p00, p01, w.x), mix(p10, p11, w.x), w.y) + 0.5);
+    }
     if (v.a <= 0.0) continue;
     o += t * v;
     t *= 1.0 - v.a / 255.0;
@@ -367,6 +395,8 @@ export class Renderer {
   dpsEnabled = true;
   /** Whether what the layers leave uncovered is filled (else shown black). */
   fillEnabled = true;
+  /** Whether layers are resampled with the Catmull-Rom kernel (else bilinear). */
+  cubic = false;
 
   constructor(canvas: HTMLCanvasElement, camera: Camera, codedHeight: number) {
     const gl = canvas.getContext("webgl2", { antialias: false, alpha: false, preserveDrawingBuffer: true });
@@ -544,6 +574,7 @@ export class Renderer {
     gl.uniform1iv(u("uStream"), streams);
     gl.uniform1iv(u("uScale"), scales);
     gl.uniform1i(u("uLayers"), n);
+    gl.uniform1i(u("uCubic"), this.cubic ? 1 : 0);
     gl.uniform2i(u("uSize"), cam.width, cam.height);
     gl.uniform1i(u("uHalf"), this.half);
     this.planes.forEach((t, i) => {

@@ -2,6 +2,7 @@
 //! frame-wise depth slicing (the normalising baseline), frame-wise CPSL, I/P propagation,
 //! and I/P with refinement and adaptive refresh with hysteresis.
 
+use crate::util::FilterArg;
 use anyhow::Result;
 use clap::{Args, ValueEnum};
 use cpsl_eval::video::{evaluate_video, Clip, VideoOptions, VideoRow};
@@ -59,6 +60,10 @@ pub struct EvalVideoArgs {
     /// single images). Overrides the configuration file's.
     #[arg(long)]
     pub geometry: Option<GeometryMode>,
+    /// How the CPU renderer resamples the layers for the novel views: `bilinear` (as the
+    /// players draw) or `cubic` (Catmull-Rom, sharper).
+    #[arg(long, value_enum, default_value_t = FilterArg::Bilinear)]
+    pub filter: FilterArg,
     /// Skip the flicker score (it needs the LPIPS model of scripts/setup-models.sh).
     #[arg(long)]
     pub no_lpips: bool,
@@ -86,6 +91,7 @@ pub fn run(a: EvalVideoArgs) -> Result<()> {
         lpips: !a.no_lpips,
         true_motion: a.true_motion,
         video_depth: a.depth == "video",
+        filter: a.filter.into(),
     };
     println!(
         "{:<10} {:<36} {:>6} {:>9} {:>9} {:>8} {:>8} {:>8} {:>8} {:>8}",

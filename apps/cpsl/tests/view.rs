@@ -181,18 +181,24 @@ fn viewer_screenshot_matches_the_cpu_render() {
     // the CPU render does (`--background fill`, the default).
     let pose = "0.05,0.01,0,1,2,0";
     for (source, frame, (w, h)) in [(&layers, "0", (160, 120)), (&package, "7", (128, 96))] {
-        let reference = d.path().join("reference.png");
-        ok(&[
-            "render",
-            s(source),
-            "--frame",
-            frame,
-            "--pose",
-            pose,
-            "-o",
-            s(&reference),
-        ]);
-        let want = cpsl_io::images::read_rgb8(&reference, &Default::default()).unwrap();
+        // The CPU's render of the same view with `filter`.
+        let render = |filter: &str| {
+            let out = d.path().join(format!("reference_{filter}.png"));
+            ok(&[
+                "render",
+                s(source),
+                "--frame",
+                frame,
+                "--pose",
+                pose,
+                "--filter",
+                filter,
+                "-o",
+                s(&out),
+            ]);
+            cpsl_io::images::read_rgb8(&out, &Default::default()).unwrap()
+        };
+        let want = render("bilinear");
         let args = [s(source), "--frame", frame, "--pose", pose];
         let Some(got) = screenshot(&x, &args, w, h, d.path()) else {
             return;
@@ -221,20 +227,7 @@ fn viewer_screenshot_matches_the_cpu_render() {
         }
         // The bicubic filter, against the CPU's bicubic render (the two filters' renders are
         // further apart than the check allows).
-        let cubic = d.path().join("reference_cubic.png");
-        ok(&[
-            "render",
-            s(source),
-            "--frame",
-            frame,
-            "--pose",
-            pose,
-            "--filter",
-            "cubic",
-            "-o",
-            s(&cubic),
-        ]);
-        let want_cubic = cpsl_io::images::read_rgb8(&cubic, &Default::default()).unwrap();
+        let want_cubic = render("cubic");
         let apart = cpsl_eval::metrics::psnr(&want_cubic.data, &want.data);
         let mut sharp = args.to_vec();
         sharp.extend(["--filter", "cubic"]);

@@ -11,7 +11,7 @@ use cpsl_core::{Camera, DepthSource, Flow, LayerSet, Limits, Pose, Vec3};
 use cpsl_layering::GeometryMode;
 use cpsl_layering::{slice_by_depth, LayeringConfig, SliceConfig};
 use cpsl_pipeline::sources::open_depth_model;
-use cpsl_render::{CpuRenderer, DpsConfig, FrameLayers};
+use cpsl_render::{CpuRenderer, DpsConfig, Filter, FrameLayers};
 use cpsl_temporal::{GopConfig, VideoLayerer};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
@@ -56,6 +56,8 @@ pub struct VideoOptions {
     /// Depth of the fox from the video itself (tracking, multi-view depth fused with
     /// FastDepth; [`crate::tracking::video_depth`]) instead of FastDepth alone.
     pub video_depth: bool,
+    /// How the layers are resampled for the novel views.
+    pub filter: Filter,
 }
 
 /// What a run reports as it goes.
@@ -569,7 +571,7 @@ pub fn evaluate_video(
                 .map(|((set, edc, _), (pose, cam))| {
                     let dps = edc.is_some().then_some(&DpsConfig::DEFAULT);
                     let frame = FrameLayers::new(set, edc);
-                    let img = CpuRenderer::default().view(&frame, pose, cam, dps);
+                    let img = CpuRenderer::new(a.filter).view(&frame, pose, cam, dps);
                     (img.over_background([0, 0, 0]), img.covered(128))
                 })
                 .collect();

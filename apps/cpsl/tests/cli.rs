@@ -252,21 +252,6 @@ fn clear_errors_and_nothing_written() {
         ],
         "cannot be used with",
     );
-    // The GPU draws bilinear only.
-    fails(
-        &[
-            "render",
-            s(&missing),
-            "--pose",
-            "0,0,0,0,0,0",
-            "-o",
-            s(&taken),
-            "--gpu",
-            "--filter",
-            "cubic",
-        ],
-        "cannot be used with",
-    );
 
     // Depth of the wrong size: error naming both sizes, no layer set written.
     let scene = d.path().join("scene");

@@ -3,7 +3,7 @@
 #![allow(missing_docs)] // criterion_group! generates undocumented items
 
 use cpsl_core::{Pose, PremulImage, Vec3};
-use cpsl_render::PreparedLayers;
+use cpsl_render::{Filter, PreparedLayers};
 use cpsl_synth::layers::{synthetic_layer_set, Coverage};
 use criterion::{criterion_group, criterion_main, Criterion};
 
@@ -18,6 +18,14 @@ fn bench(c: &mut Criterion) {
             b.iter(|| prepared.render_into(&pose, &cam, &mut out))
         });
     }
+    // The Catmull-Rom filter on the typical layers.
+    let set = synthetic_layer_set(1280, 720, 6, Coverage::Typical, 7);
+    let prepared = PreparedLayers::new(&set).with_filter(Filter::Cubic);
+    let cam = *set.camera();
+    let mut out = PremulImage::new(cam.width, cam.height);
+    c.bench_function("render_720p_k6_typical_cubic", |b| {
+        b.iter(|| prepared.render_into(&pose, &cam, &mut out))
+    });
     let set = synthetic_layer_set(1280, 720, 6, Coverage::Typical, 7);
     c.bench_function("prepare_720p_k6", |b| b.iter(|| PreparedLayers::new(&set)));
     // The Dynamic Pixel Strip pass on top of the render (typical layers, the same pose).

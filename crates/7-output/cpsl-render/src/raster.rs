@@ -175,6 +175,14 @@ fn classify(
     }
 }
 
+/// A cubic sample's lanes (R, B, G, A) rounded to 0..255, colour at most alpha.
+#[inline(always)]
+fn pack_cubic(acc: [f32; 4]) -> u64 {
+    let al = (acc[3] + 0.5).clamp(0.0, 255.0) as u64;
+    let lane = |v: f32| ((v + 0.5).max(0.0) as u64).min(al);
+    lane(acc[0]) | lane(acc[1]) << 16 | lane(acc[2]) << 32 | al << 48
+}
+
 /// Adds a filtered sample `v` (lanes R, B, G, A) under transmittance `tv`. Accumulators
 /// keep the same lane order; the output stage reorders to RGBA.
 #[inline(always)]
@@ -254,10 +262,32 @@ impl Tex<'_> {
     #[inline(always)]
     fn cubic(&self, i: usize, fx: usize, fy: usize) -> u64 {
         let pitch = self.pitch;
-        let (cx, cy) = (i % pitch, i / pitch);
-        let rows = self.texels.len() / pitch;
         let (wx, wy) = (&CUBIC[fx], &CUBIC[fy]);
         let mut acc = [0f32; 4];
+        // Rows -1..=2 inside the padded texture: read them as they lie. A tap one column left
+        // of column 0 lands on the row above's right padding and one right of the right
+        // padding on the row below's left padding, both transparent as they should be.
+        let first = i.wrapping_sub(pitch + 1);
+        if let Some(taps) = self.texels.get(first..first.wrapping_add(3 * pitch + 4)) {
+            for (j, &wyj) in wy.iter().enumerate() {
+                let mut row = [0f32; 4];
+                for (&p, &wxk) in taps[j * pitch..j * pitch + 4].iter().zip(wx) {
+                    if p != 0 {
+                        // Lanes R, B, G, A as `bilerp` gives them.
+                        let c = [p & 255, (p >> 16) & 255, (p >> 8) & 255, p >> 24];
+                        for (r, c) in row.iter_mut().zip(c) {
+                            *r += wxk * c as f32;
+                        }
+                    }
+                }
+                for (a, r) in acc.iter_mut().zip(row) {
+                    *a += wyj * r;
+                }
+            }
+            return pack_cubic(acc);
+        }
+        let (cx, cy) = (i % pitch, i / pitch);
+        let rows = self.texels.len() / pitch;
         for (j, &wyj) in wy.iter().enumerate() {
             let Some(y) = (cy + j).checked_sub(1).filter(|&y| y < rows) else {
                 continue;
@@ -280,9 +310,7 @@ impl Tex<'_> {
                 *a += wyj * r;
             }
         }
-        let al = (acc[3] + 0.5).clamp(0.0, 255.0) as u64;
-        let lane = |v: f32| ((v + 0.5).max(0.0) as u64).min(al);
-        lane(acc[0]) | lane(acc[1]) << 16 | lane(acc[2]) << 32 | al << 48
+        pack_cubic(acc)
     }
 
     /// Linear stepping: positions in 16.16 fixed point from `start` by `step` per pixel.

@@ -175,6 +175,25 @@ fn classify(
     }
 }
 
+/// Adds texel `p` weighted by `w` to a cubic row sum (lanes R, B, G, A as `bilerp` gives them).
+#[inline(always)]
+fn add_tap(row: &mut [f32; 4], p: u32, w: f32) {
+    if p != 0 {
+        let c = [p & 255, (p >> 16) & 255, (p >> 8) & 255, p >> 24];
+        for (r, c) in row.iter_mut().zip(c) {
+            *r += w * c as f32;
+        }
+    }
+}
+
+/// Adds a cubic row sum weighted by `w` to the sample.
+#[inline(always)]
+fn add_row(acc: &mut [f32; 4], row: [f32; 4], w: f32) {
+    for (a, r) in acc.iter_mut().zip(row) {
+        *a += w * r;
+    }
+}
+
 /// A cubic sample's lanes (R, B, G, A) rounded to 0..255, colour at most alpha.
 #[inline(always)]
 fn pack_cubic(acc: [f32; 4]) -> u64 {
@@ -272,17 +291,9 @@ impl Tex<'_> {
             for (j, &wyj) in wy.iter().enumerate() {
                 let mut row = [0f32; 4];
                 for (&p, &wxk) in taps[j * pitch..j * pitch + 4].iter().zip(wx) {
-                    if p != 0 {
-                        // Lanes R, B, G, A as `bilerp` gives them.
-                        let c = [p & 255, (p >> 16) & 255, (p >> 8) & 255, p >> 24];
-                        for (r, c) in row.iter_mut().zip(c) {
-                            *r += wxk * c as f32;
-                        }
-                    }
+                    add_tap(&mut row, p, wxk);
                 }
-                for (a, r) in acc.iter_mut().zip(row) {
-                    *a += wyj * r;
-                }
+                add_row(&mut acc, row, wyj);
             }
             return pack_cubic(acc);
         }
@@ -297,18 +308,9 @@ impl Tex<'_> {
                 let Some(x) = (cx + k).checked_sub(1).filter(|&x| x < pitch) else {
                     continue;
                 };
-                let p = self.texels[y * pitch + x];
-                if p != 0 {
-                    // Lanes R, B, G, A as `bilerp` gives them.
-                    let c = [p & 255, (p >> 16) & 255, (p >> 8) & 255, p >> 24];
-                    for (r, c) in row.iter_mut().zip(c) {
-                        *r += wxk * c as f32;
-                    }
-                }
+                add_tap(&mut row, self.texels[y * pitch + x], wxk);
             }
-            for (a, r) in acc.iter_mut().zip(row) {
-                *a += wyj * r;
-            }
+            add_row(&mut acc, row, wyj);
         }
         pack_cubic(acc)
     }

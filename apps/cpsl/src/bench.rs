@@ -101,9 +101,8 @@ pub struct BenchRenderArgs {
     /// grid at the layering's default step for the frame size).
     #[arg(long, default_value = "plane", conflicts_with = "layerset")]
     pub geometry: GeometryMode,
-    /// How the CPU renderer resamples the layers (`cubic` is CPU only: the GPU check then
-    /// compares against a bilinear CPU render).
-    #[arg(long, value_enum, default_value_t = FilterArg::Bilinear, conflicts_with = "gpu")]
+    /// How the renderers resample the layers (with --gpu, the GPU renderer too).
+    #[arg(long, value_enum, default_value_t = FilterArg::Bilinear)]
     pub filter: FilterArg,
     /// Print JSON instead of a table.
     #[arg(long)]

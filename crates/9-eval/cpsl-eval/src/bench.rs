@@ -384,7 +384,7 @@ pub struct RenderBench {
     /// ([`cpsl_synth::layers::slanted`]) or meshes at the default step for the frame size
     /// ([`cpsl_synth::layers::meshed`]).
     pub geometry: GeometryMode,
-    /// How the CPU renderer resamples the layers.
+    /// How the renderers resample the layers.
     pub filter: cpsl_render::Filter,
 }
 
@@ -428,7 +428,10 @@ pub fn bench_render(a: &RenderBench, progress: &dyn Progress) -> Result<RenderRe
     };
     let gpu = if a.gpu {
         match cpsl_render_gpu::GpuRenderer::new() {
-            Ok(g) => Some(g),
+            Ok(mut g) => {
+                g.set_filter(a.filter);
+                Some(g)
+            }
             Err(e) => {
                 progress.event(ProgressEvent::Warning {
                     message: format!("--gpu: {e}; timing the CPU only"),

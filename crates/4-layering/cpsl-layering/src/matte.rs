@@ -378,11 +378,14 @@ pub fn build_layers(
                 own: &own,
                 covered: &|p: usize| alpha[p] >= 0.5 / 255.0,
             };
-            let step = match cfg.mesh_step {
-                0 => crate::geometry::auto_mesh_step(camera.width, camera.height),
-                s => s,
+            let (step, finest) = match cfg.mesh_step {
+                0 => (
+                    crate::geometry::auto_mesh_step(camera.width, camera.height),
+                    crate::geometry::FINEST_MESH_STEP,
+                ),
+                s => (s, s),
             };
-            let geometry = fit_geometry(cfg.geometry, &camera, &px, depth, extent, step);
+            let geometry = fit_geometry(cfg.geometry, &camera, &px, depth, extent, step, finest);
             let planned = &plan.layers[i];
             let (name, role) = match (planned.kind, back) {
                 (_, true) => (format!("background {i}"), LayerRole::Background),

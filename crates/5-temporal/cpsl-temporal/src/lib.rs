@@ -590,7 +590,7 @@ impl VideoLayerer {
                     layer.geometry = cpsl_core::Geometry::Mesh(std::sync::Arc::new(grid));
                 } else {
                     layer.geometry =
-                        fit_geometry(GeometryMode::Slanted, &cam, &px, layer.depth, extent, 0);
+                        fit_geometry(GeometryMode::Slanted, &cam, &px, layer.depth, extent, 0, 0);
                 }
             });
         // The warp blends premultiplied texels alike in every channel, and the refresh only

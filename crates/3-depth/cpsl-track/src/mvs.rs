@@ -268,8 +268,8 @@ fn edge_band(depth: &[f32], (w, h): (usize, usize), cfg: &MvsConfig) -> Result<V
 pub struct Fusion {
     /// Share of pixels whose depth came from the views.
     pub from_views: f64,
-    /// `(a, b)` when the prior filled the other pixels, its inverse depth mapped by
-    /// `a / z + b`; `None` when its depth order disagrees with the views' and they were left
+    /// `(a, b)` when the prior filled the other pixels: the affine fit `a / z + b` of its
+    /// inverse depth to the views' (a curve may map it, see [`fuse`]); `None` when its depth order disagrees with the views' and they were left
     /// unknown (NaN).
     pub prior: Option<(f64, f64)>,
 }
@@ -399,7 +399,9 @@ pub fn resize_depth(z: &[f32], from: (u32, u32), to: (u32, u32)) -> Result<Vec<f
 ///
 /// 1. the prior's inverse depth is fitted to the views' (robust affine fit over pixels with
 ///    confidence of at least `min_conf`: weighted least squares re-weighted with Cauchy
-///    weights);
+///    weights; then a robust increasing piecewise-linear curve, which maps the prior instead
+///    of the line where it fits the views at least [`CURVE_GAIN`] times as tightly: a
+///    network's depth is bent, not only scaled and shifted);
 /// 2. confident pixels keep the views' depth, unless they depart from the fitted prior by
 ///    more than [`OUTLIER_SCALES`] robust residual scales of the fit and by more than
 ///    [`OUTLIER_SHARE`] of its inverse depth: then they are the views' errors (the flow fattened
@@ -449,13 +451,17 @@ pub fn fuse(
     if samples.len() < prior.len() / 100 || samples.len() < 10 {
         return Ok(None);
     }
-    let Some((a, b, spread_scale)) = fit_affine(&samples) else {
+    let Some((a, b, affine_scale)) = fit_affine(&samples) else {
         return Ok(None);
     };
+    // A monotone curve through the affine fit absorbs how a network bends depth (its inverse
+    // depth to some power, compressed far away); it stands where it explains the views better.
+    let curve = Curve::fit(&samples, affine_scale).filter(|(_, s)| *s < CURVE_GAIN * affine_scale);
+    let spread_scale = curve.as_ref().map_or(affine_scale, |c| c.1);
     // How far the prior's shape is trusted: by how well it explains the views (the fit's
     // robust residual scale relative to the inverse depth).
     let mut ys: Vec<f64> = samples.iter().map(|s| s.1).collect();
-    let misfit = spread_scale / crate::median(&mut ys);
+    let misfit = affine_scale / crate::median(&mut ys);
     let own =
         ((misfit - TRUSTED_MISFIT) / (UNTRUSTED_MISFIT - TRUSTED_MISFIT)).clamp(0.0, 1.0) as f32;
     // A prior whose order the views turn around (a <= 0) has nothing to give.
@@ -465,7 +471,9 @@ pub fn fuse(
         .iter()
         .map(|&p| {
             if prior_fits && p.is_finite() && p > 0.0 {
-                (a / p as f64 + b).max(floor) as f32
+                let x = 1.0 / p as f64;
+                let y = curve.as_ref().map_or(a * x + b, |(c, _)| c.at(x));
+                y.max(floor) as f32
             } else {
                 f32::NAN
             }
@@ -562,6 +570,113 @@ const TRUSTED_MISFIT: f64 = 0.01;
 /// Misfit of a prior whose shape is not trusted at all: the views' own inverse depth is
 /// spread (between the two, a blend).
 const UNTRUSTED_MISFIT: f64 = 0.05;
+
+/// How much lower than the affine fit's the curve's robust residual scale must be for the
+/// curve to stand. On the built-in scene's forward path with a network-like prior the curve
+/// was 9 % tighter and worse (8.4 % AbsRel over the 90 % most confident pixels against 8.0).
+pub const CURVE_GAIN: f64 = 0.9;
+
+/// A piecewise-linear, increasing map of the prior's inverse depth to the views', knots at
+/// quantiles of the prior's, extended linearly beyond the end knots.
+struct Curve {
+    knots: Vec<f64>,
+    values: Vec<f64>,
+}
+
+impl Curve {
+    /// The curve's value at `x`.
+    fn at(&self, x: f64) -> f64 {
+        let (t, v) = (&self.knots, &self.values);
+        let j = t.partition_point(|&k| k <= x).clamp(1, t.len() - 1) - 1;
+        v[j] + (v[j + 1] - v[j]) * (x - t[j]) / (t[j + 1] - t[j])
+    }
+
+    /// Robust fit to `(prior, views)` inverse-depth pairs (least squares re-weighted with
+    /// Cauchy weights, starting from `scale`): knots at quantiles of the prior's inverse depth,
+    /// one segment per [`CURVE_SAMPLES`] samples and at most [`CURVE_SEGMENTS`], at least a
+    /// `2 * CURVE_SEGMENTS`-th of the range apart; a knot where the fit turns down is dropped
+    /// and the rest fitted again. `None` with too few samples or knots, or when the fit still
+    /// turns down. With the robust scale.
+    fn fit(samples: &[(f64, f64)], scale: f64) -> Option<(Self, f64)> {
+        let segments = (samples.len() / CURVE_SAMPLES).min(CURVE_SEGMENTS);
+        if segments < 2 {
+            return None;
+        }
+        let mut xs: Vec<f64> = samples.iter().map(|s| s.0).collect();
+        xs.sort_by(f64::total_cmp);
+        let quantile =
+            |q: f64| xs[((q * (xs.len() - 1) as f64).round() as usize).min(xs.len() - 1)];
+        let (lo, hi) = (quantile(0.01), quantile(0.99));
+        let gap = (hi - lo) / (2 * CURVE_SEGMENTS) as f64;
+        let mut knots = vec![lo];
+        for j in 1..segments {
+            let t = quantile(0.01 + 0.98 * j as f64 / segments as f64);
+            if t - knots[knots.len() - 1] >= gap && hi - t >= gap {
+                knots.push(t);
+            }
+        }
+        knots.push(hi);
+        while knots.len() >= 3 {
+            let (curve, scale) = Self::fit_knots(samples, knots.clone(), scale)?;
+            match curve.values.windows(2).position(|v| v[1] <= v[0]) {
+                None => return Some((curve, scale)),
+                // Drop the interior knot of the segment that turns down.
+                Some(j) => {
+                    knots.remove(if j + 1 == knots.len() - 1 { j } else { j + 1 });
+                }
+            }
+        }
+        None
+    }
+
+    /// The robust fit with the given knots; `None` when singular.
+    fn fit_knots(samples: &[(f64, f64)], knots: Vec<f64>, mut scale: f64) -> Option<(Self, f64)> {
+        let m = knots.len();
+        let mut curve = Self {
+            knots,
+            values: vec![0.0; m],
+        };
+        for round in 0..6 {
+            // Normal equations of the hat-function basis (tridiagonal, row-major).
+            let mut n = vec![0.0; m * m];
+            let mut r = vec![0.0; m];
+            for &(x, y) in samples {
+                let w = if round == 0 {
+                    1.0
+                } else {
+                    let e = (y - curve.at(x)) / scale;
+                    1.0 / (1.0 + e * e)
+                };
+                let t = &curve.knots;
+                let j = t.partition_point(|&k| k <= x).clamp(1, m - 1) - 1;
+                let u = (x - t[j]) / (t[j + 1] - t[j]);
+                let (h0, h1) = (1.0 - u, u);
+                n[j * m + j] += w * h0 * h0;
+                n[j * m + j + 1] += w * h0 * h1;
+                n[(j + 1) * m + j] += w * h0 * h1;
+                n[(j + 1) * m + j + 1] += w * h1 * h1;
+                r[j] += w * h0 * y;
+                r[j + 1] += w * h1 * y;
+            }
+            curve.values = crate::ba::cholesky_solve(&mut n, m, r)?;
+            let mut e: Vec<f64> = samples
+                .iter()
+                .map(|&(x, y)| (y - curve.at(x)).abs())
+                .collect();
+            scale = (1.4826 * crate::median(&mut e)).max(1e-9);
+        }
+        curve
+            .values
+            .iter()
+            .all(|v| v.is_finite())
+            .then_some((curve, scale))
+    }
+}
+
+/// Samples per segment of the prior's curve.
+const CURVE_SAMPLES: usize = 500;
+/// Most segments of the prior's curve.
+const CURVE_SEGMENTS: usize = 6;
 
 /// Robust affine fit `y = a x + b` (least squares re-weighted with Cauchy weights); `None`
 /// when degenerate.
@@ -731,6 +846,36 @@ mod tests {
             let r = z * truth(i);
             assert!((r - 1.0).abs() < 0.02, "pixel {i}: {r}");
         }
+    }
+
+    #[test]
+    fn a_curve_maps_a_bent_prior_and_an_affine_one() {
+        // The views' inverse depth is the prior's to the power 1.6 (a network compressing
+        // the far range), a tenth of the samples wild.
+        let bent = |x: f64| 0.1 * x.powf(1.6);
+        let samples: Vec<(f64, f64)> = (0..4000)
+            .map(|i| {
+                let x = 1.0 + 2.0 * (i as f64 / 4000.0);
+                (x, if i % 10 == 3 { 0.5 * bent(x) } else { bent(x) })
+            })
+            .collect();
+        let (_, _, affine) = super::fit_affine(&samples).unwrap();
+        let (c, scale) = super::Curve::fit(&samples, affine).unwrap();
+        assert!(scale < 0.2 * affine, "{scale} against {affine}");
+        for x in [1.0, 1.5, 2.2, 3.0] {
+            assert!((c.at(x) / bent(x) - 1.0).abs() < 0.015, "{x}: {}", c.at(x));
+        }
+        // An affine map is found as it is, also beyond the samples.
+        let line: Vec<(f64, f64)> = samples.iter().map(|&(x, _)| (x, 0.3 * x - 0.1)).collect();
+        let (c, _) = super::Curve::fit(&line, 1.0).unwrap();
+        assert!((c.at(4.0) - 1.1).abs() < 1e-9 && (c.at(0.5) - 0.05).abs() < 1e-9);
+        // A map that turns down has no curve; too few samples neither.
+        let hump: Vec<(f64, f64)> = samples
+            .iter()
+            .map(|&(x, _)| (x, -(x - 2.0).powi(2)))
+            .collect();
+        assert!(super::Curve::fit(&hump, 1.0).is_none());
+        assert!(super::Curve::fit(&samples[..600], affine).is_none());
     }
 
     #[test]

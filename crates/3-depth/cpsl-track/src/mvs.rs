@@ -3,8 +3,10 @@
 //! and backward flow disagree by more than `max_fb` px dropped, each remaining pixel
 //! triangulated (closest point of the two rays) and kept when in front of both cameras and
 //! seen under at least `min_angle_deg`, and dropped when the flow ends farther than
-//! `max_epipolar` px from the epipolar line (the pixel moved on its own). Over the neighbours the median inverse depth is
-//! taken; the confidence is the share of the neighbours that could see the pixel (in view,
+//! `max_epipolar` px from the epipolar line (the pixel moved on its own). Over the neighbours
+//! the inverse depths within 5 % of their median are averaged, each weighted by the square of
+//! its ray angle (the inverse of its variance under a flow error of a fixed number of
+//! pixels); the confidence is the share of the neighbours that could see the pixel (in view,
 //! under enough angle) that triangulated it within 5 % of the median, and 0 unless two did,
 //! and 0 within `edge_band` px of a jump in the depth (where flow smooths across an occlusion
 //! boundary).
@@ -130,7 +132,10 @@ pub fn depth_from_flows(
     let (w, h) = (cam.width as usize, cam.height as usize);
     let (p0, c0) = (pose, pose.translation);
     let cos_min = cfg.min_angle_deg.to_radians().cos();
-    let mut samples: Vec<Vec<f32>> = vec![Vec::new(); w * h];
+    // Per pixel, each neighbour's inverse depth and the square of its ray angle (the
+    // inverse of its variance: a flow error of a pixel moves the depth by its share of the
+    // angle).
+    let mut samples: Vec<Vec<(f32, f32)>> = vec![Vec::new(); w * h];
     // Per pixel, the neighbours that could see it under enough angle (triangulated or not).
     let mut seen = vec![0u8; w * h];
     for nb in neighbours {
@@ -174,7 +179,8 @@ pub fn depth_from_flows(
                 }
                 let x3: Vec3 = c0 + d0 * s;
                 let (r0, r1) = ((x3 - c0).normalized(), (x3 - c1).normalized());
-                if r0.dot(r1) > cos_min {
+                let cos = r0.dot(r1);
+                if cos > cos_min {
                     continue;
                 }
                 seen[y * w + x] += 1;
@@ -188,7 +194,8 @@ pub fn depth_from_flows(
                 if (pu - u as f64).hypot(pv - v as f64) > cfg.max_epipolar {
                     continue;
                 }
-                samples[y * w + x].push((1.0 / s) as f32);
+                let angle = cos.clamp(-1.0, 1.0).acos() as f32;
+                samples[y * w + x].push(((1.0 / s) as f32, angle * angle));
             }
         }
     }
@@ -197,10 +204,16 @@ pub fn depth_from_flows(
         if s.is_empty() {
             continue;
         }
-        s.sort_by(f32::total_cmp);
-        let m = s[s.len() / 2];
-        let agree = s.iter().filter(|&&v| (v - m).abs() <= 0.05 * m).count();
-        depth[i] = 1.0 / m;
+        s.sort_by(|a, b| a.0.total_cmp(&b.0));
+        let m = s[s.len() / 2].0;
+        let near = |v: f32| (v - m).abs() <= 0.05 * m;
+        let agree = s.iter().filter(|p| near(p.0)).count();
+        // The agreeing samples' mean weighted by their inverse variance.
+        let (sum, weight) = s
+            .iter()
+            .filter(|p| near(p.0))
+            .fold((0.0, 0.0), |(a, b), p| (a + p.0 * p.1, b + p.1));
+        depth[i] = weight / sum;
         if agree >= 2 {
             confidence[i] = agree as f32 / f32::from(seen[i]);
         }

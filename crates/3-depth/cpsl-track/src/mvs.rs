@@ -6,7 +6,9 @@
 //! `max_epipolar` px from the epipolar line (the pixel moved on its own). Over the neighbours
 //! the inverse depths within 5 % of their median are averaged, each weighted by the square of
 //! its ray angle (the inverse of its variance under a flow error of a fixed number of
-//! pixels); the confidence is the share of the neighbours that could see the pixel (in view,
+//! pixels: the variance, relative to the inverse depth squared, is the flow's angular noise,
+//! the median over the pixels of the agreeing samples' weighted scatter, over the summed
+//! weight); the confidence is the share of the neighbours that could see the pixel (in view,
 //! under enough angle) that triangulated it within 5 % of the median, and 0 unless two did,
 //! and 0 within `edge_band` px of a jump in the depth (where flow smooths across an occlusion
 //! boundary).
@@ -32,6 +34,10 @@ pub struct ViewDepth {
     pub depth: Vec<f32>,
     /// Per pixel in `[0, 1]`.
     pub confidence: Vec<f32>,
+    /// Per pixel, the variance of the inverse depth relative to its square (from the
+    /// neighbours' ray angles and the flow's noise, [`depth_from_flows`]); empty where not
+    /// known (then [`fuse`] keeps the views' depth wherever it is confident).
+    pub variance: Vec<f32>,
 }
 
 impl ViewDepth {
@@ -200,6 +206,10 @@ pub fn depth_from_flows(
         }
     }
     let (mut depth, mut confidence) = (vec![f32::NAN; w * h], vec![0.0f32; w * h]);
+    // Per pixel the agreeing samples' summed weight (ray angle squared), and where two or
+    // more agree, their weighted scatter: an estimate of the flow's angular noise squared.
+    let mut precision = vec![0.0f32; w * h];
+    let mut noise: Vec<f32> = Vec::new();
     for (i, s) in samples.iter_mut().enumerate() {
         if s.is_empty() {
             continue;
@@ -214,10 +224,26 @@ pub fn depth_from_flows(
             .filter(|p| near(p.0))
             .fold((0.0, 0.0), |(a, b), p| (a + p.0 * p.1, b + p.1));
         depth[i] = weight / sum;
+        precision[i] = weight;
+        if agree >= 2 {
+            let mean = sum / weight;
+            let scatter: f32 = s
+                .iter()
+                .filter(|p| near(p.0))
+                .map(|p| p.1 * ((p.0 - mean) / mean).powi(2))
+                .sum();
+            noise.push(scatter / (agree - 1) as f32);
+        }
         if agree >= 2 {
             confidence[i] = agree as f32 / f32::from(seen[i]);
         }
     }
+    noise.sort_by(f32::total_cmp);
+    let noise = noise.get(noise.len() / 2).copied().unwrap_or(f32::NAN);
+    let variance = precision
+        .iter()
+        .map(|&p| if p > 0.0 { noise / p } else { f32::INFINITY })
+        .collect();
     if cfg.edge_band > 0 {
         let band = edge_band(&depth, (w, h), cfg)?;
         for (c, b) in confidence.iter_mut().zip(band) {
@@ -231,6 +257,7 @@ pub fn depth_from_flows(
         height: cam.height,
         depth,
         confidence,
+        variance,
     })
 }
 
@@ -330,6 +357,7 @@ pub fn carry(cam: &Camera, from: &Pose, depth: &ViewDepth, to: &Pose) -> Result<
         height: cam.height,
         depth: z,
         confidence: conf,
+        variance: Vec::new(),
     })
 }
 
@@ -430,6 +458,12 @@ pub fn resize_depth(z: &[f32], from: (u32, u32), to: (u32, u32)) -> Result<Vec<f
 ///    prior stands; where the fit turns the prior's order around, those pixels stay unknown
 ///    (NaN).
 ///
+/// Where the views carry a variance ([`ViewDepth::variance`]), a confident pixel's inverse
+/// depth is averaged with step 3's estimate there, each weighted by its inverse variance; the
+/// estimate's variance is the robust spread of the confident views around it less the views'
+/// median variance (an exact prior in other units: a few tenths of a percent; FastDepth:
+/// several percent, so the views stand).
+///
 /// The result's confidence is the views' where they are kept, the filtered confidence where
 /// their depth was spread (times `min_conf`), and 0 where the fitted prior stands alone.
 /// `None` when fewer than 1 % of the pixels are confident.
@@ -516,25 +550,65 @@ pub fn fuse(
         })
         .collect();
     let spread = edge_aware(guide, &weighted)?;
+    // What the surroundings say at a pixel: the fitted prior bent by the views' departure
+    // from it, or the views' own inverse depth spread, as far as the prior is trusted.
+    let estimate = |f: f32, s: &Vec3f| -> Option<f32> {
+        if s[2] <= SPREAD_MIN_WEIGHT {
+            return None;
+        }
+        let near = s[1] / s[2];
+        Some(if f.is_finite() {
+            own * near + (1.0 - own) * (f + s[0] / s[2])
+        } else {
+            near
+        })
+    };
+    // The estimate's own variance (relative, squared): the robust spread of the confident
+    // views around it less what the views' variance explains.
+    let known = views.variance.len() == n;
+    let mut residuals = Vec::new();
+    let mut variances = Vec::new();
+    if known {
+        for i in 0..n {
+            let (z, c, f) = (views.depth[i], views.confidence[i], fitted[i]);
+            if let (true, Some(e)) = (confident(z, c, f), estimate(f, &spread[i])) {
+                if views.variance[i].is_finite() {
+                    residuals.push(((1.0 / z - e) / e).abs());
+                    variances.push(views.variance[i]);
+                }
+            }
+        }
+    }
+    let estimate_variance = if residuals.len() >= 10 {
+        residuals.sort_by(f32::total_cmp);
+        variances.sort_by(f32::total_cmp);
+        let r = 1.4826 * residuals[residuals.len() / 2];
+        (r * r - variances[variances.len() / 2]).max(1e-6)
+    } else {
+        f32::INFINITY
+    };
     let mut from_views = 0usize;
     let (mut depth, mut confidence) = (Vec::with_capacity(n), Vec::with_capacity(n));
-    for ((&z, &c), (&f, s)) in views
+    for (i, ((&z, &c), (&f, s))) in views
         .depth
         .iter()
         .zip(&views.confidence)
         .zip(fitted.iter().zip(&spread))
+        .enumerate()
     {
         let (z, c) = if confident(z, c, f) {
             from_views += 1;
-            (z, c)
-        } else if s[2] > SPREAD_MIN_WEIGHT {
-            let near = s[1] / s[2];
-            let inv = if f.is_finite() {
-                own * near + (1.0 - own) * (f + s[0] / s[2])
-            } else {
-                near
-            };
-            (1.0 / inv.max(floor), s[2] * min_conf)
+            // The views and the estimate around them, each weighted by its inverse variance.
+            match estimate(f, s) {
+                Some(e) if known && views.variance[i].is_finite() => {
+                    let (pv, pe) = (1.0 / views.variance[i], 1.0 / estimate_variance);
+                    let inv = (pv / z + pe * e) / (pv + pe);
+                    (1.0 / inv.max(floor), c)
+                }
+                _ => (z, c),
+            }
+        } else if let Some(e) = estimate(f, s) {
+            (1.0 / e.max(floor), s[2] * min_conf)
         } else {
             (1.0 / f, 0.0)
         };
@@ -550,6 +624,7 @@ pub fn fuse(
         height: views.height,
         depth,
         confidence,
+        variance: Vec::new(),
     };
     Ok(Some((
         fused,
@@ -752,6 +827,7 @@ mod tests {
             height: 1,
             depth,
             confidence,
+            variance: Vec::new(),
         };
         // Agreeing (1/2 and 1/2.04, equal weights), agreeing with twice the weight, too far
         // apart (a moving point), one not confident, one unknown.
@@ -795,6 +871,7 @@ mod tests {
             confidence: (0..inv.len())
                 .map(|i| if seen(i) { 0.0 } else { 1.0 })
                 .collect(),
+            variance: Vec::new(),
         };
         let guide =
             Mat::new_rows_cols_with_default(h as i32, w as i32, CV_8U, Scalar::all(128.0)).unwrap();
@@ -843,6 +920,7 @@ mod tests {
                 .map(|i| if seen(i) { 1.0 / truth(i) } else { f32::NAN })
                 .collect(),
             confidence: (0..w * h).map(|i| f32::from(u8::from(seen(i)))).collect(),
+            variance: Vec::new(),
         };
         let prior: Vec<f32> = inv.iter().map(|v| 1.0 / (3.0 * v)).collect();
         let guide = Mat::from_exact_iter((0..w * h).map(|i| if col(i) < 20 { 40u8 } else { 200 }))

@@ -1,7 +1,7 @@
 // End-to-end test of the browser player: `cpsl demo` makes a small package, `cpsl serve`
 // serves it, headless Debian Chromium (driven by playwright-core) plays it at given poses
-// and frames, and every render must match the CPU reference (`cpsl render`) of the same
-// pose and frame.
+// and frames, and every render must match the CPU reference (`cpsl render`, with the
+// player's filter: bilinear unless `filter=cubic`) of the same pose and frame.
 //
 //   node test/e2e.mjs            (CPSL_BIN: the cpsl binary, default ../target/release/cpsl)
 //
@@ -72,12 +72,12 @@ try {
   });
   for (const c of cases) {
     const ref = join(work, `ref_${c.frame}_${c.dps}.png`);
-    run(["render", pkg, "--frame", String(c.frame), "--pose", c.pose, "-o", ref, "--background", "0,0,0", ...(c.dps ? [] : ["--no-dps"])]);
+    run(["render", "--filter", "bilinear", pkg, "--frame", String(c.frame), "--pose", c.pose, "-o", ref, "--background", "0,0,0", ...(c.dps ? [] : ["--no-dps"])]);
     const want = readPng(readFileSync(ref));
     // The page shows the render with what it leaves uncovered filled, as `cpsl render` writes
     // it by default; count the pixels the fill changes.
     const shown = join(work, `shown_${c.frame}_${c.dps}.png`);
-    run(["render", pkg, "--frame", String(c.frame), "--pose", c.pose, "-o", shown, ...(c.dps ? [] : ["--no-dps"])]);
+    run(["render", "--filter", "bilinear", pkg, "--frame", String(c.frame), "--pose", c.pose, "-o", shown, ...(c.dps ? [] : ["--no-dps"])]);
     const wantShown = readPng(readFileSync(shown));
     let filled = 0;
     for (let i = 0; i < want.rgba.length; i += 4)
@@ -87,7 +87,7 @@ try {
     let strip = "";
     if (c.strip) {
       const plain = join(work, "plain.png");
-      run(["render", pkg, "--frame", String(c.frame), "--pose", c.pose, "-o", plain, "--background", "0,0,0", "--no-dps"]);
+      run(["render", "--filter", "bilinear", pkg, "--frame", String(c.frame), "--pose", c.pose, "-o", plain, "--background", "0,0,0", "--no-dps"]);
       const p = readPng(readFileSync(plain)).rgba;
       c.mask = [];
       for (let i = 0; i < p.length; i += 4)
@@ -120,7 +120,7 @@ try {
   for (const codec of ["vp9", "av1", "mesh", "mp4", "streams"]) {
     const ref = join(work, `ref_${codec}.png`);
     const pose = "0.1,0,0,0,2,0";
-    run(["render", join(work, `${codec}.cpsl`), "--frame", "5", "--pose", pose, "-o", ref, "--background", "0,0,0"]);
+    run(["render", "--filter", "bilinear", join(work, `${codec}.cpsl`), "--frame", "5", "--pose", pose, "-o", ref, "--background", "0,0,0"]);
     const q = new URLSearchParams({ src: `/files/${codec}.cpsl/`, frame: "5", pose, paused: "1" });
     await page.goto(`${server.url}/?${q}`);
     await playerReady(page);
@@ -159,7 +159,7 @@ try {
     for (const [v, name] of ["60k.cpsl", "300k.cpsl"].entries()) {
       const ref = join(work, `ref_variant${v}.png`);
       const pose = "0.1,0,0,0,2,0";
-      run(["render", join(work, "set", name), "--frame", "10", "--pose", pose, "-o", ref, "--background", "0,0,0"]);
+      run(["render", "--filter", "bilinear", join(work, "set", name), "--frame", "10", "--pose", pose, "-o", ref, "--background", "0,0,0"]);
       // The cheap variant's budget sends streams down the resolution ladder: the player
       // upsamples them as the CPU decoder does.
       const m = JSON.parse(readFileSync(join(work, "set", name, "manifest.json"), "utf8"));

@@ -22,12 +22,15 @@ use cpsl_pipeline::synthetic::{synthesise, SynthOptions};
 use cpsl_pipeline::video::{MotionSource, VideoJob};
 use cpsl_player::sweep::{render_sweep, Output, Sweep};
 use cpsl_player::Source;
-use cpsl_render::{CpuRenderer, DpsConfig, FrameLayers, Renderer};
+use cpsl_render::{CpuRenderer, DpsConfig, Filter, FrameLayers, Renderer};
 use cpsl_synth::Scene;
 use cpsl_temporal::GopConfig;
 use serde::Serialize;
 use std::path::PathBuf;
 use std::sync::atomic::AtomicBool;
+
+/// The demo's renders are offline: Catmull-Rom, as `cpsl render` by default.
+const OFFLINE: CpuRenderer = CpuRenderer::new(Filter::Cubic);
 
 /// Arguments of `cpsl demo`.
 #[derive(Args)]
@@ -158,7 +161,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
     let sweep = Sweep::parse("tx:-0.3:0.3:61").expect("valid sweep");
     render_sweep(
         &mut source,
-        &CpuRenderer::default(),
+        &OFFLINE,
         true,
         &sweep.poses(),
         &sweep_dir,
@@ -181,7 +184,7 @@ pub fn run(a: DemoArgs) -> Result<()> {
     let mut scores = Vec::new();
     for (entry, truth) in &synth.views {
         let mut img = cpsl_core::PremulImage::new(set.camera().width, set.camera().height);
-        CpuRenderer::default().render(
+        OFFLINE.render(
             prepared,
             &entry.pose_matrix,
             set.camera(),
@@ -313,7 +316,7 @@ fn clip(a: &DemoArgs, scene: &Scene, bars: &Bars) -> Result<()> {
         .poses();
     render_sweep(
         &mut source,
-        &CpuRenderer::default(),
+        &OFFLINE,
         true,
         &poses,
         &sweep_dir,
@@ -324,7 +327,7 @@ fn clip(a: &DemoArgs, scene: &Scene, bars: &Bars) -> Result<()> {
     let mut img = cpsl_core::PremulImage::new(cam.width, cam.height);
     let mut scores = Vec::new();
     for (i, t) in &truth {
-        CpuRenderer::default().render(
+        OFFLINE.render(
             source.at(*i)?,
             &novel,
             &cam,

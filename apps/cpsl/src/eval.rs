@@ -115,9 +115,10 @@ pub struct EvalArgs {
     /// go to a temporary folder).
     #[arg(long, requires = "codec")]
     pub keep_packages: Option<PathBuf>,
-    /// How the CPU renderer resamples the layered methods' layers: `bilinear` (what the GPU
-    /// and browser players draw) or `cubic` (Catmull-Rom, sharper; EVALUATION.md compares them).
-    #[arg(long, value_enum, default_value_t = FilterArg::Bilinear)]
+    /// How the CPU renderer resamples the layered methods' layers: `cubic` (Catmull-Rom,
+    /// sharper; as `cpsl render` and the players with `filter=cubic` / key C) or `bilinear`
+    /// (the players' real-time default; EVALUATION.md compares them).
+    #[arg(long, value_enum, default_value_t = FilterArg::Cubic)]
     pub filter: FilterArg,
 }
 

@@ -4,6 +4,7 @@
 
 use crate::encode::{parse_bitrate, CodecArg, ContainerArg};
 use crate::progress::Bars;
+use crate::util::FilterArg;
 use anyhow::Result;
 use clap::{Args, ValueEnum};
 use cpsl_eval::rd::{evaluate_rd, Curve, Ratio, RdClip, RdOptions, Summary};
@@ -79,6 +80,10 @@ pub struct EvalRdArgs {
     /// Skip LPIPS.
     #[arg(long)]
     pub no_lpips: bool,
+    /// How the CPU renderer resamples CPSL's and the MPI's layers: `cubic` (Catmull-Rom, as
+    /// `cpsl render`) or `bilinear` (the players' real-time default).
+    #[arg(long, value_enum, default_value_t = FilterArg::Cubic)]
+    pub filter: FilterArg,
     /// Depth of the fox: `video` (the default: from the video itself, camera tracking and
     /// multi-view depth fused with FastDepth) or `fastdepth` (per frame, one scale for the clip).
     #[arg(long, default_value = "video", value_parser = ["fastdepth", "video"])]
@@ -106,6 +111,7 @@ pub fn run(a: EvalRdArgs) -> Result<()> {
         qualities: a.qualities,
         score_every: a.score_every,
         lpips: !a.no_lpips,
+        filter: a.filter.into(),
         video_depth: a.depth == "video",
     };
     let report = evaluate_rd(&opts, &Bars::default(), |method, p| {

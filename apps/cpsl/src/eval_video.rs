@@ -60,9 +60,9 @@ pub struct EvalVideoArgs {
     /// single images). Overrides the configuration file's.
     #[arg(long)]
     pub geometry: Option<GeometryMode>,
-    /// How the CPU renderer resamples the layers for the novel views: `bilinear` (as the
-    /// players draw) or `cubic` (Catmull-Rom, sharper).
-    #[arg(long, value_enum, default_value_t = FilterArg::Bilinear)]
+    /// How the CPU renderer resamples the layers for the novel views: `cubic` (Catmull-Rom,
+    /// sharper, as `cpsl render`) or `bilinear` (the players' real-time default).
+    #[arg(long, value_enum, default_value_t = FilterArg::Cubic)]
     pub filter: FilterArg,
     /// Skip the flicker score (it needs the LPIPS model of scripts/setup-models.sh).
     #[arg(long)]

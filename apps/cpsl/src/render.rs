@@ -50,10 +50,11 @@ pub struct RenderArgs {
     /// falls back to the CPU renderer, saying so, when no adapter exists.
     #[arg(long)]
     pub gpu: bool,
-    /// How the CPU renderer resamples the layers: `bilinear` (what the GPU and browser players
-    /// draw, so that a render matches them) or `cubic` (Catmull-Rom: sharper where the view
-    /// shifts layers by fractions of a pixel; 4x the texel reads, about 3x the CPU's render time).
-    #[arg(long, value_enum, default_value_t = FilterArg::Bilinear)]
+    /// How the renderer resamples the layers: `cubic` (Catmull-Rom: sharper where the view
+    /// shifts layers by fractions of a pixel; 4x the texel reads, about 3x the CPU's render
+    /// time; the players draw it with `filter=cubic` or key C) or `bilinear` (the players'
+    /// real-time default, so that a render matches what they show by default).
+    #[arg(long, value_enum, default_value_t = FilterArg::Cubic)]
     pub filter: FilterArg,
 }
 

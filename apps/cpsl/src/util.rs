@@ -1,11 +1,13 @@
 //! Small helpers shared by the commands.
 
-/// How the CPU renderer resamples layers (`--filter`).
+/// How the renderers resample layers (`--filter`). Offline renders and evaluations default
+/// to `cubic`, the real-time players and the render benchmark to `bilinear`.
 #[derive(Clone, Copy, Debug, clap::ValueEnum)]
 pub enum FilterArg {
-    /// Bilinear, as the GPU and browser players draw.
+    /// Bilinear (2x2 taps): the players' default, the fastest.
     Bilinear,
-    /// Catmull-Rom bicubic: sharper at sub-pixel shifts.
+    /// Catmull-Rom bicubic (4x4 taps): sharper at sub-pixel shifts; lower LPIPS on every
+    /// scene of EVALUATION.md, PSNR within 0.1 dB; about 3x the CPU's render time.
     Cubic,
 }
 

@@ -78,7 +78,8 @@ impl PreparedLayer {
 /// How a renderer resamples a layer's texels at a warped position.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Hash)]
 pub enum Filter {
-    /// Bilinear (2x2 taps): what every renderer and player draws by default.
+    /// Bilinear (2x2 taps): what every renderer and player draws by default (the `cpsl`
+    /// CLI's offline renders and evaluations default to [`Filter::Cubic`]).
     #[default]
     Bilinear,
     /// Catmull-Rom bicubic (4x4 taps; the GPU renderer and the browser player draw it too):

@@ -70,8 +70,9 @@ pub trait Renderer {
 /// The CPU reference renderer behind the [`Renderer`] interface.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct CpuRenderer {
-    /// How layers are resampled: bilinear by default, as the GPU and browser players draw;
-    /// [`Filter::Cubic`] for sharper offline renders.
+    /// How layers are resampled: bilinear by default, as the real-time players draw;
+    /// [`Filter::Cubic`] for sharper offline renders (the `cpsl` CLI's default for renders
+    /// and evaluations).
     pub filter: Filter,
 }
 

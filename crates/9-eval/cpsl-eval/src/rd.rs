@@ -25,7 +25,7 @@ use cpsl_core::{
 };
 use cpsl_layering::GeometryMode;
 use cpsl_package::Codec;
-use cpsl_render::{CpuRenderer, DpsConfig, FrameLayers};
+use cpsl_render::{CpuRenderer, DpsConfig, Filter, FrameLayers};
 use cpsl_temporal::{GopConfig, VideoLayerer};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
@@ -74,6 +74,8 @@ pub struct RdOptions {
     pub score_every: u32,
     /// Score LPIPS.
     pub lpips: bool,
+    /// How the CPU renderer resamples the layered methods' layers.
+    pub filter: Filter,
     /// The fox's depth from the video itself (camera tracking, multi-view depth fused with
     /// FastDepth; [`crate::tracking::video_depth`]) instead of FastDepth alone.
     pub video_depth: bool,
@@ -369,9 +371,9 @@ fn score(
 /// The view of `frame` at `pose`, with or without the Dynamic Pixel Strip, what it leaves
 /// uncovered filled as a viewer fills it ([`cpsl_core::PremulImage::over_fill`]; DIBR fills its holes
 /// the same way).
-fn render_layers(frame: &FrameLayers, dps: bool, pose: &Pose) -> Vec<u8> {
+fn render_layers(frame: &FrameLayers, dps: bool, pose: &Pose, filter: Filter) -> Vec<u8> {
     let cam = frame.set.camera();
-    let img = CpuRenderer::default().view(frame, pose, cam, dps.then_some(&DpsConfig::DEFAULT));
+    let img = CpuRenderer::new(filter).view(frame, pose, cam, dps.then_some(&DpsConfig::DEFAULT));
     img.over_fill()
 }
 
@@ -738,7 +740,12 @@ pub fn evaluate_rd(
     };
     let (p, l) = score(&clip, &mut lpips, |f, pose| {
         let (set, edc) = layered(&segments, f);
-        Ok(render_layers(&FrameLayers::new(set, Some(edc)), true, pose))
+        Ok(render_layers(
+            &FrameLayers::new(set, Some(edc)),
+            true,
+            pose,
+            a.filter,
+        ))
     })?;
     let mut cpsl = Curve {
         method: "cpsl",
@@ -755,7 +762,7 @@ pub fn evaluate_rd(
             &wanted,
         )?;
         let (p, l) = score(&clip, &mut lpips, |f, pose| {
-            Ok(render_layers(&coded.frames[&f], true, pose))
+            Ok(render_layers(&coded.frames[&f], true, pose, a.filter))
         })?;
         cpsl.points.push(Point {
             setting: format!("{:.2}M", b / 1e6),
@@ -806,7 +813,12 @@ pub fn evaluate_rd(
     let segments = mpi_layers(&clip, planes, GopConfig::default().gop)?;
     let (p, l) = score(&clip, &mut lpips, |f, pose| {
         let (set, _) = layered(&segments, f);
-        Ok(render_layers(&FrameLayers::new(set, None), false, pose))
+        Ok(render_layers(
+            &FrameLayers::new(set, None),
+            false,
+            pose,
+            a.filter,
+        ))
     })?;
     let mut mpi = Curve {
         method: "mpi",
@@ -823,7 +835,7 @@ pub fn evaluate_rd(
             &wanted,
         )?;
         let (p, l) = score(&clip, &mut lpips, |f, pose| {
-            Ok(render_layers(&coded.frames[&f], false, pose))
+            Ok(render_layers(&coded.frames[&f], false, pose, a.filter))
         })?;
         mpi.points.push(Point {
             setting: format!("crf {q}"),

@@ -309,8 +309,8 @@ pub struct Fusion {
     /// Share of pixels whose depth came from the views.
     pub from_views: f64,
     /// `(a, b)` when the prior filled the other pixels: the affine fit `a / z + b` of its
-    /// inverse depth to the views' (a curve may map it, see [`fuse`]); `None` when its depth order disagrees with the views' and they were left
-    /// unknown (NaN).
+    /// inverse depth to the views' (a curve may map it, see [`fuse`]); `None` when its depth
+    /// order disagrees with the views' and they were left unknown (NaN).
     pub prior: Option<(f64, f64)>,
 }
 

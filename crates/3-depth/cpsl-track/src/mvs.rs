@@ -216,26 +216,20 @@ pub fn depth_from_flows(
         }
         s.sort_by(|a, b| a.0.total_cmp(&b.0));
         let m = s[s.len() / 2].0;
-        let near = |v: f32| (v - m).abs() <= 0.05 * m;
-        let agree = s.iter().filter(|p| near(p.0)).count();
-        // The agreeing samples' mean weighted by their inverse variance.
+        // The samples that agree with the median, and their mean weighted by their inverse
+        // variance.
+        s.retain(|p| (p.0 - m).abs() <= 0.05 * m);
+        let agree = s.len();
         let (sum, weight) = s
             .iter()
-            .filter(|p| near(p.0))
             .fold((0.0, 0.0), |(a, b), p| (a + p.0 * p.1, b + p.1));
         depth[i] = weight / sum;
         precision[i] = weight;
         if agree >= 2 {
-            let mean = sum / weight;
-            let scatter: f32 = s
-                .iter()
-                .filter(|p| near(p.0))
-                .map(|p| p.1 * ((p.0 - mean) / mean).powi(2))
-                .sum();
-            noise.push(scatter / (agree - 1) as f32);
-        }
-        if agree >= 2 {
             confidence[i] = agree as f32 / f32::from(seen[i]);
+            let mean = sum / weight;
+            let scatter: f32 = s.iter().map(|p| p.1 * ((p.0 - mean) / mean).powi(2)).sum();
+            noise.push(scatter / (agree - 1) as f32);
         }
     }
     noise.sort_by(f32::total_cmp);

@@ -38,6 +38,12 @@ function run(args) {
   return execFileSync(bin, args, { stdio: ["ignore", "pipe", "inherit"] }).toString();
 }
 
+// The CPU reference of what the player draws by default: `cpsl render` with the players'
+// bilinear filter (the command itself defaults to Catmull-Rom).
+function cpuRender(args, filter = "bilinear") {
+  return run(["render", "--filter", filter, ...args]);
+}
+
 let server;
 let browser;
 let failures = 0;
@@ -72,12 +78,12 @@ try {
   });
   for (const c of cases) {
     const ref = join(work, `ref_${c.frame}_${c.dps}.png`);
-    run(["render", "--filter", "bilinear", pkg, "--frame", String(c.frame), "--pose", c.pose, "-o", ref, "--background", "0,0,0", ...(c.dps ? [] : ["--no-dps"])]);
+    cpuRender([pkg, "--frame", String(c.frame), "--pose", c.pose, "-o", ref, "--background", "0,0,0", ...(c.dps ? [] : ["--no-dps"])]);
     const want = readPng(readFileSync(ref));
     // The page shows the render with what it leaves uncovered filled, as `cpsl render` writes
     // it by default; count the pixels the fill changes.
     const shown = join(work, `shown_${c.frame}_${c.dps}.png`);
-    run(["render", "--filter", "bilinear", pkg, "--frame", String(c.frame), "--pose", c.pose, "-o", shown, ...(c.dps ? [] : ["--no-dps"])]);
+    cpuRender([pkg, "--frame", String(c.frame), "--pose", c.pose, "-o", shown, ...(c.dps ? [] : ["--no-dps"])]);
     const wantShown = readPng(readFileSync(shown));
     let filled = 0;
     for (let i = 0; i < want.rgba.length; i += 4)
@@ -87,7 +93,7 @@ try {
     let strip = "";
     if (c.strip) {
       const plain = join(work, "plain.png");
-      run(["render", "--filter", "bilinear", pkg, "--frame", String(c.frame), "--pose", c.pose, "-o", plain, "--background", "0,0,0", "--no-dps"]);
+      cpuRender([pkg, "--frame", String(c.frame), "--pose", c.pose, "-o", plain, "--background", "0,0,0", "--no-dps"]);
       const p = readPng(readFileSync(plain)).rgba;
       c.mask = [];
       for (let i = 0; i < p.length; i += 4)
@@ -120,7 +126,7 @@ try {
   for (const codec of ["vp9", "av1", "mesh", "mp4", "streams"]) {
     const ref = join(work, `ref_${codec}.png`);
     const pose = "0.1,0,0,0,2,0";
-    run(["render", "--filter", "bilinear", join(work, `${codec}.cpsl`), "--frame", "5", "--pose", pose, "-o", ref, "--background", "0,0,0"]);
+    cpuRender([join(work, `${codec}.cpsl`), "--frame", "5", "--pose", pose, "-o", ref, "--background", "0,0,0"]);
     const q = new URLSearchParams({ src: `/files/${codec}.cpsl/`, frame: "5", pose, paused: "1" });
     await page.goto(`${server.url}/?${q}`);
     await playerReady(page);
@@ -136,7 +142,7 @@ try {
     const pose = "0.1,0,0,0,2,0";
     const render = (filter) => {
       const out = join(work, `ref_${name}_${filter}.png`);
-      run(["render", join(work, `${name}.cpsl`), "--frame", "5", "--pose", pose, "-o", out, "--background", "0,0,0", "--filter", filter]);
+      cpuRender([join(work, `${name}.cpsl`), "--frame", "5", "--pose", pose, "-o", out, "--background", "0,0,0"], filter);
       return readPng(readFileSync(out)).rgba;
     };
     const [cubic, bilinear] = [render("cubic"), render("bilinear")];
@@ -159,7 +165,7 @@ try {
     for (const [v, name] of ["60k.cpsl", "300k.cpsl"].entries()) {
       const ref = join(work, `ref_variant${v}.png`);
       const pose = "0.1,0,0,0,2,0";
-      run(["render", "--filter", "bilinear", join(work, "set", name), "--frame", "10", "--pose", pose, "-o", ref, "--background", "0,0,0"]);
+      cpuRender([join(work, "set", name), "--frame", "10", "--pose", pose, "-o", ref, "--background", "0,0,0"]);
       // The cheap variant's budget sends streams down the resolution ladder: the player
       // upsamples them as the CPU decoder does.
       const m = JSON.parse(readFileSync(join(work, "set", name, "manifest.json"), "utf8"));

@@ -173,16 +173,21 @@ impl TrackedDepth {
                         }
                     }
                 }
-                let nb: Vec<Neighbour> = near
+                let nb: Vec<(&Mat, Neighbour)> = near
                     .iter()
                     .zip(&poses)
-                    .map(|(&j, pose)| Neighbour {
-                        pose,
-                        forward: &self.flows[&(index, j)],
-                        backward: &self.flows[&(j, index)],
+                    .map(|(&j, pose)| {
+                        let n = Neighbour {
+                            pose,
+                            forward: &self.flows[&(index, j)],
+                            backward: &self.flows[&(j, index)],
+                            plane: None,
+                        };
+                        (&self.greys[j], n)
                     })
                     .collect();
-                let views = mvs::depth_from_flows(&work, &pose, &nb, &MvsConfig::default())?;
+                let reference = (&self.greys[index], &pose);
+                let views = mvs::depth_with_warps(&work, reference, &nb, &MvsConfig::default())?;
                 // Frames are mostly asked for in order: pairs below every neighbour of this
                 // frame are seldom needed again.
                 let low = near.iter().copied().min().unwrap_or(index).min(index);

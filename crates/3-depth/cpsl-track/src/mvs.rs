@@ -61,6 +61,10 @@ pub struct MvsConfig {
     pub edge_band: u32,
     /// A jump: neighbouring inverse depths differing by more than this share.
     pub edge_jump: f32,
+    /// Where the plane at the median depth moves between the frame and a neighbour by more
+    /// than this many working pixels beyond a shift ([`plane_distortion`]), the flows to
+    /// that neighbour are computed again against it warped by the plane ([`warp`]).
+    pub warp_px: f64,
 }
 
 impl Default for MvsConfig {
@@ -75,6 +79,7 @@ impl Default for MvsConfig {
             max_epipolar: 1.0,
             edge_band: 3,
             edge_jump: 0.1,
+            warp_px: 2.0,
         }
     }
 }
@@ -95,6 +100,7 @@ pub fn flow(a: &Mat, b: &Mat) -> Result<Mat> {
 }
 
 /// A posed neighbour with the flows from the reference frame to it and back ([`flow`]).
+#[derive(Clone, Copy)]
 pub struct Neighbour<'a> {
     /// Camera-to-world pose.
     pub pose: &'a Pose,
@@ -102,6 +108,77 @@ pub struct Neighbour<'a> {
     pub forward: &'a Mat,
     /// Flow from this frame to the reference.
     pub backward: &'a Mat,
+    /// `Some(d)` when the flows were computed against this frame warped onto the reference
+    /// by the plane at depth `d` fronto-parallel to the reference ([`warp`]): then they are
+    /// in the warped frame's pixels.
+    pub plane: Option<f64>,
+}
+
+/// Where the point at depth `plane` on the ray of reference pixel `(x, y)` (camera `cam` at
+/// camera-to-world pose `reference`) projects in the camera at `other`.
+fn on_plane(
+    cam: &Camera,
+    reference: &Pose,
+    other: &Pose,
+    plane: f64,
+    (x, y): (f64, f64),
+) -> Option<(f64, f64)> {
+    let world = reference.translation + reference.rotation * cam.unproject(x, y, plane);
+    cam.project(other.rotation.transpose() * (world - other.translation))
+}
+
+/// `image` (a working grey image of the frame at camera-to-world pose `pose`) warped onto
+/// the reference frame at `reference` by the homography of the plane at depth `plane`
+/// fronto-parallel to the reference: each reference pixel takes the image where its point on
+/// that plane projects (bilinear, edges replicated). Flow from the reference to the result
+/// is what is left after the plane's motion: under forward motion the plane takes out the
+/// zoom that a patch matcher is biased by.
+pub fn warp(
+    cam: &Camera,
+    reference: &Pose,
+    (image, pose): (&Mat, &Pose),
+    plane: f64,
+) -> Result<Mat> {
+    let (w, h) = (cam.width as i32, cam.height as i32);
+    let mut map = Mat::new_rows_cols_with_default(h, w, opencv::core::CV_32FC2, Scalar::all(-1.0))?;
+    let px = map.data_typed_mut::<Vec2f>()?;
+    for y in 0..h as usize {
+        for x in 0..w as usize {
+            if let Some((u, v)) = on_plane(cam, reference, pose, plane, (x as f64, y as f64)) {
+                px[y * w as usize + x] = Vec2f::from([u as f32, v as f32]);
+            }
+        }
+    }
+    let mut out = Mat::default();
+    imgproc::remap(
+        image,
+        &mut out,
+        &map,
+        &opencv::core::no_array(),
+        imgproc::INTER_LINEAR,
+        opencv::core::BORDER_REPLICATE,
+        Scalar::all(0.0),
+    )?;
+    Ok(out)
+}
+
+/// Largest distance in working pixels, over the frame's corners, between where the plane at
+/// depth `plane` fronto-parallel to the reference moves a corner (relative to where it moves
+/// the centre) and where a shift would: how far the plane's motion between the two frames is
+/// from a translation (a zoom, a keystone). Infinite when the plane leaves the other view.
+pub fn plane_distortion(cam: &Camera, reference: &Pose, other: &Pose, plane: f64) -> f64 {
+    let (w, h) = ((cam.width - 1) as f64, (cam.height - 1) as f64);
+    let at = |p| on_plane(cam, reference, other, plane, p);
+    let Some(c) = at((w / 2.0, h / 2.0)) else {
+        return f64::INFINITY;
+    };
+    [(0.0, 0.0), (w, 0.0), (0.0, h), (w, h)]
+        .into_iter()
+        .map(|(x, y)| match at((x, y)) {
+            Some((u, v)) => ((u - c.0) - (x - w / 2.0)).hypot((v - c.1) - (y - h / 2.0)),
+            None => f64::INFINITY,
+        })
+        .fold(0.0, f64::max)
 }
 
 /// Depth of `reference` (a working grey image and its camera-to-world pose) from
@@ -116,16 +193,75 @@ pub fn depth_from_views(
         .iter()
         .map(|(img, _)| Ok((flow(reference.0, img)?, flow(img, reference.0)?)))
         .collect::<Result<Vec<_>>>()?;
-    let nb: Vec<Neighbour> = neighbours
+    let nb: Vec<(&Mat, Neighbour)> = neighbours
         .iter()
         .zip(&flows)
-        .map(|((_, pose), (forward, backward))| Neighbour {
-            pose,
-            forward,
-            backward,
+        .map(|((img, pose), (forward, backward))| {
+            let n = Neighbour {
+                pose,
+                forward,
+                backward,
+                plane: None,
+            };
+            (*img, n)
         })
         .collect();
-    depth_from_flows(cam, reference.1, &nb, cfg)
+    depth_with_warps(cam, reference, &nb, cfg)
+}
+
+/// [`depth_from_flows`] from the unwarped flows of `neighbours` (with their working grey
+/// images), then, where the plane at the median depth found moves between the reference and
+/// a neighbour by more than `cfg.warp_px` beyond a shift ([`plane_distortion`]), again with
+/// the flows to that neighbour warped by the plane ([`warp`]).
+pub fn depth_with_warps(
+    cam: &Camera,
+    (image, pose): (&Mat, &Pose),
+    neighbours: &[(&Mat, Neighbour)],
+    cfg: &MvsConfig,
+) -> Result<ViewDepth> {
+    let plain: Vec<Neighbour> = neighbours
+        .iter()
+        .map(|(_, n)| Neighbour { plane: None, ..*n })
+        .collect();
+    let first = depth_from_flows(cam, pose, &plain, cfg)?;
+    let mut inverse: Vec<f32> = first
+        .depth
+        .iter()
+        .filter(|z| z.is_finite())
+        .map(|z| 1.0 / z)
+        .collect();
+    if inverse.is_empty() {
+        return Ok(first);
+    }
+    let m = inverse.len() / 2;
+    let plane = 1.0 / *inverse.select_nth_unstable_by(m, f32::total_cmp).1 as f64;
+    let warped = neighbours
+        .iter()
+        .map(|(img, n)| {
+            if plane_distortion(cam, pose, n.pose, plane) <= cfg.warp_px {
+                return Ok(None);
+            }
+            let moved = warp(cam, pose, (img, n.pose), plane)?;
+            Ok(Some((flow(image, &moved)?, flow(&moved, image)?)))
+        })
+        .collect::<Result<Vec<_>>>()?;
+    if warped.iter().all(Option::is_none) {
+        return Ok(first);
+    }
+    let nb: Vec<Neighbour> = plain
+        .iter()
+        .zip(&warped)
+        .map(|(n, w)| match w {
+            Some((forward, backward)) => Neighbour {
+                pose: n.pose,
+                forward,
+                backward,
+                plane: Some(plane),
+            },
+            None => *n,
+        })
+        .collect();
+    depth_from_flows(cam, pose, &nb, cfg)
 }
 
 /// [`depth_from_views`] from flows already computed: the depth of the frame at `pose`.
@@ -164,10 +300,25 @@ pub fn depth_from_flows(
         for y in 0..h {
             for x in 0..w {
                 let f = fwd[y * w + x];
-                let (u, v) = (x as f32 + f[0], y as f32 + f[1]);
-                if !(u >= 0.0 && v >= 0.0 && u <= (w - 1) as f32 && v <= (h - 1) as f32) {
+                // Where the flow ends (in the warped neighbour's pixels when it is warped),
+                // and the neighbour's pixel there.
+                let end = (x as f32 + f[0], y as f32 + f[1]);
+                let inside = |(u, v): (f32, f32)| {
+                    u >= 0.0 && v >= 0.0 && u <= (w - 1) as f32 && v <= (h - 1) as f32
+                };
+                if !inside(end) {
                     continue;
                 }
+                let (u, v) = match nb.plane {
+                    None => end,
+                    Some(d) => {
+                        let at = (end.0 as f64, end.1 as f64);
+                        match on_plane(cam, p0, nb.pose, d, at) {
+                            Some((u, v)) if inside((u as f32, v as f32)) => (u as f32, v as f32),
+                            _ => continue,
+                        }
+                    }
+                };
                 let d0 = p0.rotation * cam.unproject(x as f64, y as f64, 1.0);
                 let d1 = nb.pose.rotation * cam.unproject(u as f64, v as f64, 1.0);
                 let w0 = c0 - c1;
@@ -190,7 +341,7 @@ pub fn depth_from_flows(
                     continue;
                 }
                 seen[y * w + x] += 1;
-                let b = bwd[(v.round() as usize) * w + u.round() as usize];
+                let b = bwd[(end.1.round() as usize) * w + end.0.round() as usize];
                 if (f[0] + b[0]).hypot(f[1] + b[1]) > cfg.max_fb {
                     continue;
                 }
@@ -813,6 +964,43 @@ mod tests {
     use super::{fuse, resize_depth, ViewDepth};
     use opencv::core::{Mat, Scalar, CV_8U};
     use opencv::prelude::*;
+
+    #[test]
+    fn the_plane_warp_takes_out_a_zoom_and_leaves_a_shift() {
+        use cpsl_core::{Camera, Pose, Vec3};
+        let cam = Camera::from_fov(64, 48, 60.0);
+        let here = Pose::IDENTITY;
+        // Sideways a fronto-parallel plane only shifts; walking forward it grows.
+        let side = Pose::from_translation(Vec3::new(0.1, 0.0, 0.0));
+        let ahead = Pose::from_translation(Vec3::new(0.0, 0.0, 0.2));
+        assert!(super::plane_distortion(&cam, &here, &side, 2.0) < 1e-9);
+        let zoom = super::plane_distortion(&cam, &here, &ahead, 2.0);
+        // A corner 39.4 px from the centre moves by a tenth of it more than the centre.
+        assert!(
+            (zoom - 0.1 * 31.5f64.hypot(23.5) / 0.9).abs() < 1e-6,
+            "{zoom}"
+        );
+        // An image seen from ahead, warped back by the plane it shows, is the image again.
+        let image: Vec<u8> = (0..48 * 64)
+            .map(|i| ((i % 64) * 2 + (i / 64) * 2) as u8)
+            .collect();
+        let near = Mat::new_rows_cols_with_data(48, 64, &image)
+            .unwrap()
+            .try_clone()
+            .unwrap();
+        let warped = super::warp(&cam, &here, (&near, &here), 2.0).unwrap();
+        assert_eq!(warped.data_typed::<u8>().unwrap(), &image[..]);
+        let far = super::warp(&cam, &ahead, (&near, &here), 1.8).unwrap();
+        let back = super::warp(&cam, &here, (&far, &ahead), 2.0).unwrap();
+        let back = back.data_typed::<u8>().unwrap();
+        // Away from the border (replicated where the zoomed view lacks it), within rounding.
+        for y in 8..40 {
+            for x in 8..56 {
+                let (a, b) = (back[y * 64 + x] as i32, image[y * 64 + x] as i32);
+                assert!((a - b).abs() <= 2, "({x}, {y}): {a} against {b}");
+            }
+        }
+    }
 
     #[test]
     fn blending_averages_agreeing_confident_depth_only() {

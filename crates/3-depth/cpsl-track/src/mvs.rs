@@ -1,5 +1,7 @@
 //! Per-pixel depth of a frame from posed neighbouring frames: dense optical flow (OpenCV's
-//! DIS, [`flow`]) to each neighbour and back, pixels whose forward
+//! DIS, [`flow`]) to each neighbour and back (against the neighbour [`warp`]ed by the plane at
+//! the median depth where that plane's motion is more than a shift: a zoom walking forward, a
+//! keystone orbiting, under which DIS's patches match off), pixels whose forward
 //! and backward flow disagree by more than `max_fb` px dropped, each remaining pixel
 //! triangulated (closest point of the two rays) and kept when in front of both cameras and
 //! seen under at least `min_angle_deg`, and dropped when the flow ends farther than

@@ -165,9 +165,30 @@ impl TrackedDepth {
                 near.sort_by_key(|&j| j.abs_diff(index));
                 near.truncate(Self::NEIGHBOURS);
                 let poses: Vec<Pose> = near.iter().map(|&j| t.poses[j].expect("placed")).collect();
-                for &j in &near {
+                let cfg = MvsConfig::default();
+                let reference = (&self.greys[index], &pose);
+                // The plane the neighbours are warped by where it moves more than a shift:
+                // the median depth of the frame fused last in this world (the same units);
+                // for the first, the median depth of the unwarped views.
+                let plane = self
+                    .recent
+                    .iter()
+                    .rev()
+                    .find(|(j, _)| t.world[*j] == t.world[index])
+                    .and_then(|(_, z)| mvs::median_depth(z));
+                let warped = near
+                    .iter()
+                    .zip(&poses)
+                    .map(|(&j, nb_pose)| match plane {
+                        Some(p) => {
+                            mvs::warped_flows(&work, reference, (&self.greys[j], nb_pose), p, &cfg)
+                        }
+                        None => Ok(None),
+                    })
+                    .collect::<Result<Vec<_>>>()?;
+                for (&j, w) in near.iter().zip(&warped) {
                     for pair in [(index, j), (j, index)] {
-                        if !self.flows.contains_key(&pair) {
+                        if w.is_none() && !self.flows.contains_key(&pair) {
                             let f = mvs::flow(&self.greys[pair.0], &self.greys[pair.1])?;
                             self.flows.insert(pair, f);
                         }
@@ -176,18 +197,29 @@ impl TrackedDepth {
                 let nb: Vec<(&Mat, Neighbour)> = near
                     .iter()
                     .zip(&poses)
-                    .map(|(&j, pose)| {
-                        let n = Neighbour {
-                            pose,
-                            forward: &self.flows[&(index, j)],
-                            backward: &self.flows[&(j, index)],
-                            plane: None,
+                    .zip(&warped)
+                    .map(|((&j, pose), w)| {
+                        let n = match w {
+                            Some((forward, backward)) => Neighbour {
+                                pose,
+                                forward,
+                                backward,
+                                plane,
+                            },
+                            None => Neighbour {
+                                pose,
+                                forward: &self.flows[&(index, j)],
+                                backward: &self.flows[&(j, index)],
+                                plane: None,
+                            },
                         };
                         (&self.greys[j], n)
                     })
                     .collect();
-                let reference = (&self.greys[index], &pose);
-                let views = mvs::depth_with_warps(&work, reference, &nb, &MvsConfig::default())?;
+                let views = match plane {
+                    Some(_) => mvs::depth_from_flows(&work, &pose, &nb_only(&nb), &cfg)?,
+                    None => mvs::depth_with_warps(&work, reference, &nb, &cfg)?,
+                };
                 // Frames are mostly asked for in order: pairs below every neighbour of this
                 // frame are seldom needed again.
                 let low = near.iter().copied().min().unwrap_or(index).min(index);
@@ -298,6 +330,11 @@ impl TrackedDepth {
         }
         crate::median(&mut self.ratios.clone())
     }
+}
+
+/// The neighbours of `nb` without their images.
+fn nb_only<'a>(nb: &[(&Mat, Neighbour<'a>)]) -> Vec<Neighbour<'a>> {
+    nb.iter().map(|(_, n)| *n).collect()
 }
 
 /// Depth `z` at working size `size` brought to `to` and multiplied by `scale`.

@@ -212,40 +212,27 @@ pub fn depth_from_views(
 }
 
 /// [`depth_from_flows`] from the unwarped flows of `neighbours` (with their working grey
-/// images), then, where the plane at the median depth found moves between the reference and
-/// a neighbour by more than `cfg.warp_px` beyond a shift ([`plane_distortion`]), again with
-/// the flows to that neighbour warped by the plane ([`warp`]).
+/// images), then, where the plane at the median depth found ([`median_depth`]) moves
+/// between the reference and a neighbour by more than `cfg.warp_px` beyond a shift, again
+/// with the flows to that neighbour warped by the plane ([`warped_flows`]).
 pub fn depth_with_warps(
     cam: &Camera,
-    (image, pose): (&Mat, &Pose),
+    reference: (&Mat, &Pose),
     neighbours: &[(&Mat, Neighbour)],
     cfg: &MvsConfig,
 ) -> Result<ViewDepth> {
+    let pose = reference.1;
     let plain: Vec<Neighbour> = neighbours
         .iter()
         .map(|(_, n)| Neighbour { plane: None, ..*n })
         .collect();
     let first = depth_from_flows(cam, pose, &plain, cfg)?;
-    let mut inverse: Vec<f32> = first
-        .depth
-        .iter()
-        .filter(|z| z.is_finite())
-        .map(|z| 1.0 / z)
-        .collect();
-    if inverse.is_empty() {
+    let Some(plane) = median_depth(&first) else {
         return Ok(first);
-    }
-    let m = inverse.len() / 2;
-    let plane = 1.0 / *inverse.select_nth_unstable_by(m, f32::total_cmp).1 as f64;
+    };
     let warped = neighbours
         .iter()
-        .map(|(img, n)| {
-            if plane_distortion(cam, pose, n.pose, plane) <= cfg.warp_px {
-                return Ok(None);
-            }
-            let moved = warp(cam, pose, (img, n.pose), plane)?;
-            Ok(Some((flow(image, &moved)?, flow(&moved, image)?)))
-        })
+        .map(|(img, n)| warped_flows(cam, reference, (img, n.pose), plane, cfg))
         .collect::<Result<Vec<_>>>()?;
     if warped.iter().all(Option::is_none) {
         return Ok(first);
@@ -264,6 +251,41 @@ pub fn depth_with_warps(
         })
         .collect();
     depth_from_flows(cam, pose, &nb, cfg)
+}
+
+/// The median depth of the pixels of `d` with a depth (the median of their inverse depths,
+/// inverted); `None` when none has one.
+pub fn median_depth(d: &ViewDepth) -> Option<f64> {
+    let mut inverse: Vec<f32> = d
+        .depth
+        .iter()
+        .filter(|z| z.is_finite() && **z > 0.0)
+        .map(|z| 1.0 / z)
+        .collect();
+    if inverse.is_empty() {
+        return None;
+    }
+    let m = inverse.len() / 2;
+    Some(1.0 / *inverse.select_nth_unstable_by(m, f32::total_cmp).1 as f64)
+}
+
+/// The flows from `reference` to `neighbour` (working grey images with their camera-to-world
+/// poses) and back, with the neighbour [`warp`]ed by the plane at depth `plane`
+/// fronto-parallel to the reference, when that plane moves between the two by more than
+/// `cfg.warp_px` beyond a shift ([`plane_distortion`]); `None` when it does not (the plain
+/// flows serve).
+pub fn warped_flows(
+    cam: &Camera,
+    (image, pose): (&Mat, &Pose),
+    neighbour: (&Mat, &Pose),
+    plane: f64,
+    cfg: &MvsConfig,
+) -> Result<Option<(Mat, Mat)>> {
+    if plane_distortion(cam, pose, neighbour.1, plane) <= cfg.warp_px {
+        return Ok(None);
+    }
+    let moved = warp(cam, pose, neighbour, plane)?;
+    Ok(Some((flow(image, &moved)?, flow(&moved, image)?)))
 }
 
 /// [`depth_from_views`] from flows already computed: the depth of the frame at `pose`.

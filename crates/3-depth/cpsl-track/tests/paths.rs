@@ -410,39 +410,49 @@ fn score_best(d: &ViewDepth, truth: &[f32], share: f64) -> (f64, f64, f64) {
 
 #[test]
 fn tracked_depth_fuses_views_with_the_prior_in_its_units() {
-    // Sideways: every frame fused; the prior (three times the exact depth) sets the units.
-    let path = sideways();
-    let (scene, frames) = clip(&path);
-    let cam = scene.camera;
-    let (est, greys) = track_keeping_greys(cam, &frames);
-    assert!(TrackedDepth::new(est.clone(), greys[1..].to_vec()).is_err());
-    let mut tracked = TrackedDepth::new(est, greys).unwrap();
-    let (mut ratios, mut offs) = (Vec::new(), Vec::new());
-    for (i, p) in path.iter().enumerate() {
-        let truth = scene.render(&cam, p, 0.0, 1).depth;
-        let prior: Vec<f32> = truth.iter().map(|z| 3.0 * z).collect();
-        let (z, from) = tracked.depth(i, &frames[i], &prior, (W, H)).unwrap();
+    // Sideways and around a point: every frame fused; the prior (three times the exact depth)
+    // sets the units. On the orbit the neighbours are warped by the median plane of the
+    // frame fused before (its keystone is several pixels).
+    for (name, path) in [("sideways", sideways()), ("orbit", orbit())] {
+        let (scene, frames) = clip(&path);
+        let cam = scene.camera;
+        let (est, greys) = track_keeping_greys(cam, &frames);
+        assert!(TrackedDepth::new(est.clone(), greys[1..].to_vec()).is_err());
+        let mut tracked = TrackedDepth::new(est, greys).unwrap();
+        let (mut ratios, mut offs) = (Vec::new(), Vec::new());
+        for (i, p) in path.iter().enumerate() {
+            let truth = scene.render(&cam, p, 0.0, 1).depth;
+            let prior: Vec<f32> = truth.iter().map(|z| 3.0 * z).collect();
+            let (z, from) = tracked.depth(i, &frames[i], &prior, (W, H)).unwrap();
+            assert!(
+                matches!(from, DepthFrom::Views { share, .. } if share > 0.3),
+                "{name}, frame {i}: {from:?}"
+            );
+            let rel = sorted_ratios(&z, &prior);
+            ratios.push(rel[rel.len() / 2]);
+            let off = rel.iter().filter(|r| (*r - 1.0).abs() > 0.05).count();
+            offs.push(off as f64 / rel.len() as f64);
+        }
+        // Measured 2026-11-28: per-frame median ratios sideways 0.993-1.002, orbit
+        // 0.992-1.000; 1.6-6.0 % (median 4.4 %) and 2.3-6.4 % (median 3.9 %) of pixels off
+        // by more than 5 % (sideways before the flow at full resolution, the band around
+        // depth jumps and the edge-aware spread of the views: 0.978-1.026 and 2-43 %, median
+        // 4 %; 0.985-1.007 and 3.5-10.6 %, median 7 %, before the prior was mapped by a curve
+        // and the views weighed by variance).
+        offs.sort_by(f64::total_cmp);
+        eprintln!("{name}: median ratios {ratios:.3?}, shares more than 5 % off {offs:.3?}");
         assert!(
-            matches!(from, DepthFrom::Views { share, .. } if share > 0.3),
-            "frame {i}: {from:?}"
+            ratios.iter().all(|r| (r - 1.0).abs() < 0.02),
+            "{name}: {ratios:?}"
         );
-        let rel = sorted_ratios(&z, &prior);
-        ratios.push(rel[rel.len() / 2]);
-        let off = rel.iter().filter(|r| (*r - 1.0).abs() > 0.05).count();
-        offs.push(off as f64 / rel.len() as f64);
+        assert!(offs[offs.len() - 1] < 0.1, "{name}: {offs:?}");
+        assert!(offs[offs.len() / 2] < 0.06, "{name}: {offs:?}");
     }
-    // Measured: per-frame median ratios 0.985-1.007, 3.5-10.6 % of pixels off by more than
-    // 5 % (median 7 %; before the flow at full resolution, the band around depth jumps and
-    // the edge-aware spread of the views: 0.978-1.026 and 2-43 %, median 4 %).
-    offs.sort_by(f64::total_cmp);
-    eprintln!("median ratios {ratios:.3?}, shares more than 5 % off {offs:.3?}");
-    assert!(ratios.iter().all(|r| (r - 1.0).abs() < 0.02), "{ratios:?}");
-    assert!(offs[offs.len() - 1] < 0.15, "{offs:?}");
-    assert!(offs[offs.len() / 2] < 0.09, "{offs:?}");
 
     // A static camera: every frame takes its prior as it is, and says why.
     let still = vec![Pose::IDENTITY; 6];
     let (scene, frames) = clip(&still);
+    let cam = scene.camera;
     let mut t = Tracker::new(cam, TrackConfig::default()).unwrap();
     let greys: Vec<_> = frames.iter().map(|f| t.grey(f, W, H).unwrap()).collect();
     for g in &greys {

@@ -37,7 +37,9 @@ pub enum DepthFrom {
 }
 
 /// Depth from a tracked clip: each frame asked for gets multi-view depth from up to
-/// [`TrackedDepth::NEIGHBOURS`] nearest placed frames ([`mvs::depth_from_views`]), fused with
+/// [`TrackedDepth::NEIGHBOURS`] nearest placed frames ([`mvs::depth_from_views`]; each
+/// neighbour warped by the plane at the median depth of the frame fused last in its world
+/// where that plane moves more than a shift, [`mvs::warped_flows`]), fused with
 /// its monocular prior ([`mvs::fuse`]) at the tracking resolution and brought back to the
 /// prior's. The clip is put in the prior's units: the scale of each world of the trajectory
 /// (its first baseline is 1; segments tied into one world share it) is fixed by its first

@@ -20,7 +20,7 @@
 //! guided by the colour picture.
 
 use crate::{Result, TrackError};
-use cpsl_core::{Camera, Pose, Vec3};
+use cpsl_core::{Camera, Homography, Pose, Vec3};
 use opencv::core::{Mat, Point, Scalar, Size, Vec2f, Vec3f, BORDER_CONSTANT};
 use opencv::prelude::*;
 use opencv::{imgproc, video, ximgproc};
@@ -116,17 +116,11 @@ pub struct Neighbour<'a> {
     pub plane: Option<f64>,
 }
 
-/// Where the point at depth `plane` on the ray of reference pixel `(x, y)` (camera `cam` at
-/// camera-to-world pose `reference`) projects in the camera at `other`.
-fn on_plane(
-    cam: &Camera,
-    reference: &Pose,
-    other: &Pose,
-    plane: f64,
-    (x, y): (f64, f64),
-) -> Option<(f64, f64)> {
-    let world = reference.translation + reference.rotation * cam.unproject(x, y, plane);
-    cam.project(other.rotation.transpose() * (world - other.translation))
+/// The homography of the plane at depth `plane` fronto-parallel to the camera `cam` at
+/// camera-to-world pose `reference`: its pixels to those of the camera at `other`
+/// ([`Homography::plane_forward`], the renderer's equation 1).
+fn plane_homography(cam: &Camera, reference: &Pose, other: &Pose, plane: f64) -> Homography {
+    Homography::plane_forward(cam, cam, &reference.relative_to(other), plane)
 }
 
 /// `image` (a working grey image of the frame at camera-to-world pose `pose`) warped onto
@@ -144,9 +138,10 @@ pub fn warp(
     let (w, h) = (cam.width as i32, cam.height as i32);
     let mut map = Mat::new_rows_cols_with_default(h, w, opencv::core::CV_32FC2, Scalar::all(-1.0))?;
     let px = map.data_typed_mut::<Vec2f>()?;
+    let hom = plane_homography(cam, reference, pose, plane);
     for y in 0..h as usize {
         for x in 0..w as usize {
-            if let Some((u, v)) = on_plane(cam, reference, pose, plane, (x as f64, y as f64)) {
+            if let Some((u, v)) = hom.apply(x as f64, y as f64) {
                 px[y * w as usize + x] = Vec2f::from([u as f32, v as f32]);
             }
         }
@@ -170,13 +165,13 @@ pub fn warp(
 /// from a translation (a zoom, a keystone). Infinite when the plane leaves the other view.
 pub fn plane_distortion(cam: &Camera, reference: &Pose, other: &Pose, plane: f64) -> f64 {
     let (w, h) = ((cam.width - 1) as f64, (cam.height - 1) as f64);
-    let at = |p| on_plane(cam, reference, other, plane, p);
-    let Some(c) = at((w / 2.0, h / 2.0)) else {
+    let hom = plane_homography(cam, reference, other, plane);
+    let Some(c) = hom.apply(w / 2.0, h / 2.0) else {
         return f64::INFINITY;
     };
     [(0.0, 0.0), (w, 0.0), (0.0, h), (w, h)]
         .into_iter()
-        .map(|(x, y)| match at((x, y)) {
+        .map(|(x, y)| match hom.apply(x, y) {
             Some((u, v)) => ((u - c.0) - (x - w / 2.0)).hypot((v - c.1) - (y - h / 2.0)),
             None => f64::INFINITY,
         })
@@ -321,6 +316,8 @@ pub fn depth_from_flows(
             nb.backward.data_typed::<Vec2f>()?,
         );
         let c1 = nb.pose.translation;
+        // A warped neighbour's flows end in the warped picture: its plane maps them back.
+        let plane = nb.plane.map(|d| plane_homography(cam, p0, nb.pose, d));
         for y in 0..h {
             for x in 0..w {
                 let f = fwd[y * w + x];
@@ -333,15 +330,12 @@ pub fn depth_from_flows(
                 if !inside(end) {
                     continue;
                 }
-                let (u, v) = match nb.plane {
+                let (u, v) = match &plane {
                     None => end,
-                    Some(d) => {
-                        let at = (end.0 as f64, end.1 as f64);
-                        match on_plane(cam, p0, nb.pose, d, at) {
-                            Some((u, v)) if inside((u as f32, v as f32)) => (u as f32, v as f32),
-                            _ => continue,
-                        }
-                    }
+                    Some(hom) => match hom.apply(end.0 as f64, end.1 as f64) {
+                        Some((u, v)) if inside((u as f32, v as f32)) => (u as f32, v as f32),
+                        _ => continue,
+                    },
                 };
                 let d0 = p0.rotation * cam.unproject(x as f64, y as f64, 1.0);
                 let d1 = nb.pose.rotation * cam.unproject(u as f64, v as f64, 1.0);
@@ -721,17 +715,21 @@ pub fn fuse(
     let spread = edge_aware(guide, &weighted)?;
     // What the surroundings say at a pixel: the fitted prior bent by the views' departure
     // from it, or the views' own inverse depth spread, as far as the prior is trusted.
-    let estimate = |f: f32, s: &Vec3f| -> Option<f32> {
-        if s[2] <= SPREAD_MIN_WEIGHT {
-            return None;
-        }
-        let near = s[1] / s[2];
-        Some(if f.is_finite() {
-            own * near + (1.0 - own) * (f + s[0] / s[2])
-        } else {
-            near
+    let estimates: Vec<Option<f32>> = fitted
+        .iter()
+        .zip(&spread)
+        .map(|(&f, s)| {
+            if s[2] <= SPREAD_MIN_WEIGHT {
+                return None;
+            }
+            let near = s[1] / s[2];
+            Some(if f.is_finite() {
+                own * near + (1.0 - own) * (f + s[0] / s[2])
+            } else {
+                near
+            })
         })
-    };
+        .collect();
     // The estimate's own variance (relative, squared): the robust spread of the confident
     // views around it less what the views' variance explains.
     let known = views.variance.len() == n;
@@ -740,7 +738,7 @@ pub fn fuse(
     if known {
         for i in 0..n {
             let (z, c, f) = (views.depth[i], views.confidence[i], fitted[i]);
-            if let (true, Some(e)) = (confident(z, c, f), estimate(f, &spread[i])) {
+            if let (true, Some(e)) = (confident(z, c, f), estimates[i]) {
                 if views.variance[i].is_finite() {
                     residuals.push(((1.0 / z - e) / e).abs());
                     variances.push(views.variance[i]);
@@ -768,7 +766,7 @@ pub fn fuse(
         let (z, c) = if confident(z, c, f) {
             from_views += 1;
             // The views and the estimate around them, each weighted by its inverse variance.
-            match estimate(f, s) {
+            match estimates[i] {
                 Some(e) if known && views.variance[i].is_finite() => {
                     let (pv, pe) = (1.0 / views.variance[i], 1.0 / estimate_variance);
                     let inv = (pv / z + pe * e) / (pv + pe);
@@ -776,7 +774,7 @@ pub fn fuse(
                 }
                 _ => (z, c),
             }
-        } else if let Some(e) = estimate(f, s) {
+        } else if let Some(e) = estimates[i] {
             (1.0 / e.max(floor), s[2] * min_conf)
         } else {
             (1.0 / f, 0.0)

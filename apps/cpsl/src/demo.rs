@@ -295,6 +295,7 @@ fn clip(a: &DemoArgs, scene: &Scene, bars: &Bars) -> Result<()> {
         },
         codec: a.codec.into(),
         container: cpsl_codec::Container::Fragment,
+        segments: cpsl_codec::Segments::default(),
         fps: Some(CLIP_FPS),
         target: EncodeTarget::Package(package.clone(), RateControl::Budget(a.bitrate)),
     };

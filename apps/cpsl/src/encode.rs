@@ -62,6 +62,26 @@ impl From<ContainerArg> for Container {
     }
 }
 
+/// Where a package's segments start.
+#[derive(ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SegmentAtArg {
+    /// Every GOP, and at a refresh of the layering that brings a new layer: a refresh whose
+    /// layers all kept their tracks continues the layer streams instead of starting each
+    /// again with a key frame.
+    Gop,
+    /// At every I-frame of the layering (the paper's groups of pictures).
+    Refresh,
+}
+
+impl From<SegmentAtArg> for cpsl_codec::Segments {
+    fn from(c: SegmentAtArg) -> Self {
+        match c {
+            SegmentAtArg::Gop => Self::Gop,
+            SegmentAtArg::Refresh => Self::Refresh,
+        }
+    }
+}
+
 /// Parses a bitrate: `3M`, `800k`, `2.5M`, `1500000` (bits per second).
 pub fn parse_bitrate(s: &str) -> Result<f64, String> {
     let t = s.trim();
@@ -103,6 +123,12 @@ pub struct EncodeArgs {
     /// How the layer streams are stored.
     #[arg(long, value_enum, default_value_t = ContainerArg::Fragment)]
     pub container: ContainerArg,
+    /// Where segments (and the layer streams' key frames) start: `gop`, every --gop frames
+    /// and at a refresh of the layering that brings a new layer (one whose layers all kept
+    /// their tracks continues the streams); or `refresh`, at every I-frame of the layering
+    /// (the paper's groups of pictures).
+    #[arg(long, value_enum, default_value_t = SegmentAtArg::Gop)]
+    pub segment_at: SegmentAtArg,
     /// Total bitrate budget (`3M`, `800k`), allocated per layer by saliency and edges; without
     /// it every layer is coded at --quality.
     #[arg(long, value_parser = parse_bitrate)]
@@ -148,6 +174,7 @@ pub fn run(a: EncodeArgs) -> Result<()> {
         video,
         codec,
         container: a.container.into(),
+        segments: a.segment_at.into(),
         fps: a.fps,
         target,
     };

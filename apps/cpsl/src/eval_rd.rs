@@ -2,7 +2,7 @@
 //! MPI coded with the same codec, on a synthetic moving clip or the fox video
 //! (`cpsl_eval::rd`).
 
-use crate::encode::{parse_bitrate, CodecArg, ContainerArg};
+use crate::encode::{parse_bitrate, CodecArg, ContainerArg, SegmentAtArg};
 use crate::progress::Bars;
 use crate::util::FilterArg;
 use anyhow::Result;
@@ -68,6 +68,9 @@ pub struct EvalRdArgs {
     /// How the layer streams are stored (CPSL and the MPI baseline).
     #[arg(long, value_enum, default_value_t = ContainerArg::Fragment)]
     pub container: ContainerArg,
+    /// Where CPSL's segments start (as `cpsl encode --segment-at`).
+    #[arg(long, value_enum, default_value_t = SegmentAtArg::Gop)]
+    pub segment_at: SegmentAtArg,
     /// CPSL budgets (total bits per second).
     #[arg(long, value_delimiter = ',', default_value = "0.5M,1M,2M,3M,6M", value_parser = parse_bitrate)]
     pub bitrates: Vec<f64>,
@@ -107,6 +110,7 @@ pub fn run(a: EvalRdArgs) -> Result<()> {
         mpi_planes: a.mpi_planes,
         codec,
         container: a.container.into(),
+        segments: a.segment_at.into(),
         bitrates: a.bitrates,
         qualities: a.qualities,
         score_every: a.score_every,

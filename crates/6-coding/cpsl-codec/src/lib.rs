@@ -126,4 +126,22 @@ pub struct CodingOptions {
     /// How the layer streams are stored: movie fragments with init segments (package
     /// version 4, the default) or self-contained MP4 files (versions 2 and 3).
     pub container: Container,
+    /// Where segments start.
+    pub segments: Segments,
+}
+
+/// Where a package's segments, and with them the layer streams' key frames, start.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Segments {
+    /// Every `gop` frames (the default), and at a refresh of the layering that brings a new
+    /// layer. A refresh whose layers all kept their tracks (the layering's association found
+    /// each in the frame before: the content continues) does not cut the segment: its
+    /// streams code the new decomposition as the rest of their group instead of starting
+    /// again with a key frame each. The video's last segment takes up to a few frames more
+    /// rather than leave a short one.
+    #[default]
+    Gop,
+    /// At every I-frame of the layering, as the paper's groups of pictures: every refresh
+    /// starts each stream again with a key frame.
+    Refresh,
 }

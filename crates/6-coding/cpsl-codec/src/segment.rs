@@ -495,8 +495,8 @@ pub(crate) struct Finished {
     pub carried: Carried,
 }
 
-/// A segment being coded: started at an I-frame, fed frame by frame, finished at the next
-/// I-frame or at the end of the video.
+/// A segment being coded: started at a frame the writer chose (see [`crate::Segments`]), fed
+/// frame by frame, finished where the next starts or at the end of the video.
 pub(crate) struct SegmentEncoder {
     root: PathBuf,
     dir_name: String,
@@ -628,7 +628,16 @@ impl SegmentEncoder {
         self.frames
     }
 
-    /// Takes the segment's next frame: coded at once, or held until the coding is chosen.
+    /// Whether [`SegmentEncoder::push`] takes `frame`: each of its layers has a stream (its
+    /// track's, or its index's where layers have no tracks). A refreshed frame whose layers
+    /// all kept their tracks (the layering found each in the frame before) continues the
+    /// streams, which code the new decomposition as the rest of their group.
+    pub fn takes(&self, frame: &LayeredFrame) -> bool {
+        map_frame(&self.tracks, frame).is_ok()
+    }
+
+    /// Takes the segment's next frame (see [`SegmentEncoder::takes`]): coded at once, or held
+    /// until the coding is chosen.
     pub fn push(&mut self, frame: LayeredFrame) -> Result<(), CodecError> {
         let map = map_frame(&self.tracks, &frame)?;
         self.side.push(side_frame(&frame, &map, self.frames == 0));

@@ -1,10 +1,10 @@
 //! Writing a package: frames pushed in and coded as they arrive, a segment per group of
-//! pictures, the budget shared out across segments, the manifest, and the staged folder moved
-//! into place.
+//! pictures (where they start: [`crate::Segments`]), the budget shared out across segments,
+//! the manifest, and the staged folder moved into place.
 
 use crate::segment::{BudgetPlan, Carried, SegmentEncoder, SegmentReport};
-use crate::{yuv, CodecError, CodingOptions, Container, RateControl};
-use cpsl_core::LayeredFrame;
+use crate::{yuv, CodecError, CodingOptions, Container, RateControl, Segments};
+use cpsl_core::{LayeredFrame, RefreshReason};
 use cpsl_package::Segment;
 use std::path::Path;
 
@@ -21,6 +21,14 @@ pub fn segment_budget(bps: f64, fps: f64, done: u32, spent: f64, n: usize, last:
     let balance = bps * done as f64 / fps - spent;
     let most = if last { 2.0 } else { 1.5 };
     (share + balance).clamp(0.5 * share, most * share)
+}
+
+/// The fewest frames a segment starts with at the end of a video of known length under
+/// [`Segments::Gop`]: fewer join the segment before (a group of a few frames costs nearly a
+/// key frame per stream for them). The layering's shortest group at a clip's end is the same
+/// (its default `min_gap`, or half the GOP).
+fn tail(gop: u32) -> u32 {
+    (gop / 2).clamp(1, 4)
 }
 
 /// Writes a package: segments are coded into a hidden staging folder beside the output, and
@@ -95,8 +103,9 @@ impl PackageWriter {
     }
 
     /// Takes the next frame and codes it (under a budget, the first frames of a segment may
-    /// wait for its trial encodes). An I-frame closes the segment before it, whose report is
-    /// returned then; [`PackageWriter::flush`] or [`PackageWriter::finish`] closes the last.
+    /// wait for its trial encodes). A frame that starts a segment (see [`Segments`]) closes the
+    /// one before it, whose report is returned then; [`PackageWriter::flush`] or
+    /// [`PackageWriter::finish`] closes the last.
     pub fn push(&mut self, frame: LayeredFrame) -> Result<Option<SegmentReport>, CodecError> {
         let expected = self.frames + self.open.as_ref().map_or(0, |o| o.frames() as u32);
         if frame.index != expected {
@@ -105,23 +114,38 @@ impl PackageWriter {
                 reason: format!("frames must be pushed in order; frame {expected} expected"),
             });
         }
-        match (&mut self.open, frame.refresh) {
-            (Some(open), None) => {
+        let gop = self.opts.gop as usize;
+        let continues = self.open.as_ref().is_some_and(|open| {
+            let room = open.frames() < gop || self.left.is_some_and(|n| n < tail(self.opts.gop));
+            match (self.opts.segments, frame.refresh) {
+                (_, Some(RefreshReason::First)) => false,
+                (Segments::Refresh, r) => r.is_none(),
+                (Segments::Gop, _) => room && open.takes(&frame),
+            }
+        });
+        match (&mut self.open, continues) {
+            (Some(open), true) => {
                 open.push(frame)?;
                 Ok(None)
             }
             _ => {
                 let report = self.close(false)?;
-                let last = self.left.is_some_and(|n| n <= self.opts.gop);
-                self.start(frame, self.left, last)?;
+                // Under `Segments::Gop` a tail shorter than `tail` frames joins this segment.
+                let whole = match self.opts.segments {
+                    Segments::Gop => self.opts.gop + tail(self.opts.gop) - 1,
+                    Segments::Refresh => self.opts.gop,
+                };
+                let last = self.left.is_some_and(|n| n <= whole);
+                let expected = self.left.filter(|_| last);
+                self.start(frame, expected, last)?;
                 Ok(report)
             }
         }
     }
 
-    /// Opens the next segment with `first`; `left`: the frames still to come, `first`
-    /// included, when known (a budget plans for at most these); `last`: they are the video's
-    /// last frames.
+    /// Opens the next segment with `first`; `left`: the frames it will take, `first`
+    /// included, when known (a budget plans for these, else for a GOP); `last`: they are the
+    /// video's last frames.
     fn start(
         &mut self,
         first: LayeredFrame,
@@ -133,7 +157,7 @@ impl PackageWriter {
                 bps,
                 done: self.frames,
                 spent: self.spent,
-                expected: left.map_or(self.opts.gop, |n| n.min(self.opts.gop)).max(1) as usize,
+                expected: left.unwrap_or(self.opts.gop).max(1) as usize,
                 last,
             }),
             RateControl::Quality(_) => None,

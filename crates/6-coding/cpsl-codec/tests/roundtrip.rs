@@ -5,7 +5,7 @@ use cpsl_codec::{
     decode_segment, decode_stream, encode_stream, has_encoder, CodingOptions, PackageWriter,
     RateControl, SegmentReader,
 };
-use cpsl_core::{LayerSet, LayeredFrame, Pose};
+use cpsl_core::{Edc, Layer, LayerSet, LayeredFrame, Limits, Pose, PremulImage, RefreshReason};
 use cpsl_layering::LayeringConfig;
 use cpsl_package::{Codec, Package};
 use cpsl_synth::Scene;
@@ -62,6 +62,7 @@ fn h264(rate: RateControl) -> CodingOptions {
         fps: FPS,
         gop: GOP,
         container: cpsl_codec::Container::Fragment,
+        segments: cpsl_codec::Segments::default(),
     }
 }
 
@@ -509,6 +510,7 @@ fn a_segments_fragment_after_an_init_segment_plays_its_layers_one_after_another(
     let older = dir.path().join("older.cpsl");
     let opts = CodingOptions {
         container: cpsl_codec::Container::StreamFragments,
+        segments: cpsl_codec::Segments::default(),
         ..opts
     };
     write(&older, &segs, opts);
@@ -530,4 +532,134 @@ fn a_segments_fragment_after_an_init_segment_plays_its_layers_one_after_another(
         bytes(&old) - bytes(&pkg),
         56 * (seg.streams.len() as u64 - 1)
     );
+}
+
+/// A 64x48 frame of two layers with tracks `tracks`: a near square whose left edge is at
+/// `x0`, and the background.
+fn two_layers(
+    index: u32,
+    refresh: Option<RefreshReason>,
+    tracks: [u32; 2],
+    x0: usize,
+) -> LayeredFrame {
+    let cam = cpsl_core::Camera::from_fov(64, 48, 60.0);
+    let mut near = PremulImage::new(64, 48);
+    let mut far = PremulImage::new(64, 48);
+    for y in 0..48 {
+        for x in 0..64 {
+            far.as_bytes_mut()[(y * 64 + x) * 4..][..4].copy_from_slice(&[
+                40,
+                90,
+                (4 * x) as u8,
+                255,
+            ]);
+            if (x0..x0 + 24).contains(&x) && (12..36).contains(&y) {
+                near.as_bytes_mut()[(y * 64 + x) * 4..][..4].copy_from_slice(&[
+                    200,
+                    (5 * y) as u8,
+                    30,
+                    255,
+                ]);
+            }
+        }
+    }
+    let layers = [(near, 2.0, tracks[0]), (far, 5.0, tracks[1])]
+        .into_iter()
+        .map(|(image, z, t)| {
+            let mut l = Layer::new(image, z);
+            l.meta.track = Some(t);
+            l
+        })
+        .collect();
+    let set = LayerSet::new_premultiplied(cam, layers, &Limits::default()).unwrap();
+    LayeredFrame::new(index, refresh, set, Edc::empty(64, 48, 2, 1.0 / 64.0))
+}
+
+#[test]
+fn segments_start_every_gop_and_at_refreshes_that_bring_new_layers() {
+    use RefreshReason::{Confidence, First};
+    // GOP 4 over 9 frames: a refresh at frame 2 keeps both tracks, one at frame 6 brings a
+    // new background layer (track 7).
+    let frames: Vec<LayeredFrame> = (0..9u32)
+        .map(|i| {
+            let (refresh, tracks) = match i {
+                0 => (Some(First), [0, 1]),
+                2 => (Some(Confidence), [0, 1]),
+                6 => (Some(Confidence), [0, 7]),
+                7.. => (None, [0, 7]),
+                _ => (None, [0, 1]),
+            };
+            two_layers(i, refresh, tracks, 4 + 3 * i as usize)
+        })
+        .collect();
+    let starts = |segments: cpsl_codec::Segments, known: bool| {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("clip.cpsl");
+        let opts = CodingOptions {
+            gop: 4,
+            segments,
+            ..h264(RateControl::Quality(18.0))
+        };
+        let mut w = PackageWriter::create(&out, *frames[0].set.camera(), 2, opts).unwrap();
+        for (i, f) in frames.iter().enumerate() {
+            w.set_frames_left(known.then_some((frames.len() - i) as u32));
+            w.push(f.clone()).unwrap();
+        }
+        w.finish().unwrap();
+        let pkg = Package::open(&out).unwrap();
+        assert!(pkg.verify().is_empty(), "{:?}", pkg.verify());
+        // Every frame decodes to its own layers, through the refreshes inside segments too.
+        let decoded: Vec<_> = (0..pkg.manifest().segments.len())
+            .flat_map(|s| decode_segment(&pkg, s).unwrap())
+            .collect();
+        assert_eq!(decoded.len(), frames.len());
+        for (d, f) in decoded.iter().zip(&frames) {
+            assert!(psnr(&d.set, &f.set) > 30.0, "frame {}", f.index);
+            let tracks: Vec<_> = d.set.layers().iter().map(|l| l.meta.track).collect();
+            let want: Vec<_> = f.set.layers().iter().map(|l| l.meta.track).collect();
+            assert_eq!(tracks, want, "frame {}", f.index);
+        }
+        let starts: Vec<u32> = pkg.manifest().segments.iter().map(|s| s.start).collect();
+        starts
+    };
+    // By the clock: frame 2's refresh continues the streams, frame 6's new layer cuts.
+    assert_eq!(starts(cpsl_codec::Segments::Gop, false), [0, 4, 6]);
+    assert_eq!(starts(cpsl_codec::Segments::Gop, true), [0, 4, 6]);
+    // At every refresh, as the paper's groups of pictures (frame 4 continues frame 2's).
+    assert_eq!(starts(cpsl_codec::Segments::Refresh, true), [0, 2, 6]);
+}
+
+#[test]
+fn a_short_tail_joins_the_last_segment() {
+    let frames: Vec<LayeredFrame> = (0..9u32)
+        .map(|i| {
+            two_layers(
+                i,
+                (i == 0).then_some(RefreshReason::First),
+                [0, 1],
+                4 + 3 * i as usize,
+            )
+        })
+        .collect();
+    let starts = |known: bool| {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("clip.cpsl");
+        let opts = CodingOptions {
+            gop: 4,
+            ..h264(RateControl::Quality(30.0))
+        };
+        let mut w = PackageWriter::create(&out, *frames[0].set.camera(), 2, opts).unwrap();
+        for (i, f) in frames.iter().enumerate() {
+            w.set_frames_left(known.then_some((frames.len() - i) as u32));
+            w.push(f.clone()).unwrap();
+        }
+        let m = w.finish().unwrap();
+        m.segments
+            .iter()
+            .map(|s| (s.start, s.frames))
+            .collect::<Vec<_>>()
+    };
+    // GOP 4 over 9 frames: a one-frame segment at the end unless the writer knows it comes.
+    assert_eq!(starts(false), [(0, 4), (4, 4), (8, 1)]);
+    assert_eq!(starts(true), [(0, 4), (4, 5)]);
 }

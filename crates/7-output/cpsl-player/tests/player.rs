@@ -37,6 +37,7 @@ fn seeks_anywhere_and_opens_every_source() {
         fps: 10.0,
         gop: 4,
         container: cpsl_codec::Container::Fragment,
+        segments: cpsl_codec::Segments::default(),
     };
     let mut writer = PackageWriter::create(&path, *sets[0].camera(), 2, opts).unwrap();
     for (i, s) in sets.iter().enumerate() {

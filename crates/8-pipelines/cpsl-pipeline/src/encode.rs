@@ -32,6 +32,8 @@ pub struct EncodeJob {
     pub codec: Codec,
     /// How the layer streams are stored.
     pub container: Container,
+    /// Where segments start.
+    pub segments: cpsl_codec::Segments,
     /// Frames per second of the package; the input's when `None`.
     pub fps: Option<f64>,
     /// What to write.
@@ -187,6 +189,7 @@ pub fn encode(
                     fps,
                     gop: job.video.gop.gop as u32,
                     container: job.container,
+                    segments: job.segments,
                 };
                 writers.push(PackageWriter::create(path, *f.set.camera(), layers, opts)?);
             }

@@ -83,6 +83,7 @@ fn layered_frames_variants_and_interruption() {
         video: video.clone(),
         codec: Codec::H264,
         container: cpsl_codec::Container::Fragment,
+        segments: cpsl_codec::Segments::default(),
         fps: Some(10.0),
         target: EncodeTarget::Variants(variants.clone(), vec![400e3, 150e3]),
     };

@@ -66,6 +66,8 @@ pub struct RdOptions {
     pub codec: Codec,
     /// How the layer streams are stored.
     pub container: Container,
+    /// Where CPSL's segments start (the MPI's start every GOP either way).
+    pub segments: cpsl_codec::Segments,
     /// CPSL budgets (total bits per second).
     pub bitrates: Vec<f64>,
     /// Qualities (CRF) of the baselines; five points spread over the codec's range if `None`.
@@ -504,38 +506,43 @@ struct Coded {
 /// Codes `segments` as a package in `dir` with `rate`, and decodes the scored frames.
 fn code(
     dir: &Path,
-    segments: &Segments,
+    groups: &Segments,
     k: u32,
-    (codec, container): (Codec, Container),
+    (codec, container, segments): (Codec, Container, cpsl_codec::Segments),
     rate: RateControl,
     wanted: &[usize],
 ) -> Result<Coded> {
     let path = dir.join("rd.cpsl");
-    let cam = *segments[0][0].set.camera();
+    let cam = *groups[0][0].set.camera();
     let opts = CodingOptions {
         codec,
         rate,
         fps: FPS,
-        gop: segments.iter().map(Vec::len).max().unwrap_or(1) as u32,
+        gop: GopConfig::default().gop as u32,
         container,
+        segments,
     };
     let mut writer = PackageWriter::create(&path, cam, k, opts)?;
-    let mut spend = Vec::new();
-    let mut left: usize = segments.iter().map(Vec::len).sum();
-    for s in segments {
-        // As `cpsl encode` does: the last segment knows it is the last.
+    let mut reports = Vec::new();
+    let mut left: usize = groups.iter().map(Vec::len).sum();
+    // As `cpsl encode` does: frame by frame, the writer told how many are left.
+    for f in groups.iter().flatten() {
         writer.set_frames_left(Some(left as u32));
-        left -= s.len();
-        let r = writer.push_segment(s)?;
-        if let Some(b) = r.budget_bits {
-            spend.push(SegmentSpend {
+        left -= 1;
+        reports.extend(writer.push(f.clone())?);
+    }
+    reports.extend(writer.flush()?);
+    let spend = reports
+        .iter()
+        .filter_map(|r| {
+            Some(SegmentSpend {
                 frames: r.frames,
-                budget_kbit: b / 1e3,
+                budget_kbit: r.budget_bits? / 1e3,
                 spent_kbit: r.bits / 1e3,
                 fitted: r.fitted,
-            });
-        }
-    }
+            })
+        })
+        .collect();
     let m = writer.finish()?;
     // Only the frames scored are decoded and kept (a 32-plane MPI segment at 1080p would
     // not fit in memory whole), in order, so that the player decodes each segment once.
@@ -757,7 +764,7 @@ pub fn evaluate_rd(
             tmp.path(),
             &segments,
             a.layers,
-            (codec, a.container),
+            (codec, a.container, a.segments),
             RateControl::Budget(b),
             &wanted,
         )?;
@@ -830,7 +837,7 @@ pub fn evaluate_rd(
             tmp.path(),
             &segments,
             a.mpi_planes,
-            (codec, a.container),
+            (codec, a.container, cpsl_codec::Segments::Gop),
             RateControl::Quality(q),
             &wanted,
         )?;

@@ -165,6 +165,7 @@ impl RoundTrip {
                 fps: CODED_FPS,
                 gop: 1,
                 container: cpsl_codec::Container::Fragment,
+                segments: cpsl_codec::Segments::default(),
             },
             dir,
             _temp: temp,

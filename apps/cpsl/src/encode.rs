@@ -129,6 +129,13 @@ pub struct EncodeArgs {
     /// (the paper's groups of pictures).
     #[arg(long, value_enum, default_value_t = SegmentAtArg::Gop)]
     pub segment_at: SegmentAtArg,
+    /// Keep the paper's fixed refresh threshold under a budget. By default a budget below
+    /// 0.024 bits per pixel (1.5 Mbit/s at 1080p30, 0.66 Mbit/s at 720p30) lowers the adaptive
+    /// refresh's confidence threshold by 0.1, so that the layering refreshes less where a
+    /// refresh costs the streams more than the drift it removes (variants: for their median
+    /// budget).
+    #[arg(long)]
+    pub fixed_refresh: bool,
     /// Total bitrate budget (`3M`, `800k`), allocated per layer by saliency and edges; without
     /// it every layer is coded at --quality.
     #[arg(long, value_parser = parse_bitrate)]
@@ -169,7 +176,8 @@ pub fn run(a: EncodeArgs) -> Result<()> {
         (true, true) => EncodeTarget::Archive(a.output.clone(), rate),
         (false, true) => EncodeTarget::Package(a.output.clone(), rate),
     };
-    let (video, mut depth) = a.layering.job(&a.input)?;
+    let (mut video, mut depth) = a.layering.job(&a.input)?;
+    video.gop.rate_aware_refresh = !a.fixed_refresh;
     let job = EncodeJob {
         video,
         codec,

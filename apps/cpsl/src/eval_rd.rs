@@ -71,6 +71,10 @@ pub struct EvalRdArgs {
     /// Where CPSL's segments start (as `cpsl encode --segment-at`).
     #[arg(long, value_enum, default_value_t = SegmentAtArg::Gop)]
     pub segment_at: SegmentAtArg,
+    /// Layer CPSL once for every budget with the paper's fixed refresh threshold, instead of
+    /// for each budget with the threshold it sets (as `cpsl encode --bitrate` does).
+    #[arg(long)]
+    pub fixed_refresh: bool,
     /// CPSL budgets (total bits per second).
     #[arg(long, value_delimiter = ',', default_value = "0.5M,1M,2M,3M,6M", value_parser = parse_bitrate)]
     pub bitrates: Vec<f64>,
@@ -111,6 +115,7 @@ pub fn run(a: EvalRdArgs) -> Result<()> {
         codec,
         container: a.container.into(),
         segments: a.segment_at.into(),
+        rate_aware_refresh: !a.fixed_refresh,
         bitrates: a.bitrates,
         qualities: a.qualities,
         score_every: a.score_every,

@@ -124,6 +124,19 @@ fn plan(target: &EncodeTarget) -> Result<Vec<(PathBuf, RateControl)>, PipelineEr
     }
 }
 
+/// The budget the layering is made for: the package's, or the variants' median (the lower of
+/// the middle two); `None` at constant quality.
+fn layering_budget(outputs: &[(PathBuf, RateControl)]) -> Option<f64> {
+    let budgets: Vec<f64> = outputs
+        .iter()
+        .filter_map(|(_, r)| match r {
+            RateControl::Budget(b) => Some(*b),
+            RateControl::Quality(_) => None,
+        })
+        .collect();
+    budgets.get(budgets.len().saturating_sub(1) / 2).copied()
+}
+
 /// Says when a segment missed its budget.
 fn warn_over_budget(r: &SegmentReport, progress: &dyn Progress) {
     if !r.feasible {
@@ -153,6 +166,11 @@ pub fn encode(
 ) -> Result<Encoded, PipelineError> {
     require_encoder(job.codec)?;
     let outputs = plan(&job.target)?;
+    let input = &job.video.input;
+    let media = cpsl_media::open(input)
+        .context_with(|| format!("opening {}", input.display()))?
+        .info()
+        .clone();
     let fps = match job.fps {
         Some(f) if f.is_finite() && (0.1..=1000.0).contains(&f) => f,
         Some(f) => {
@@ -160,14 +178,22 @@ pub fn encode(
                 "--fps {f}: give 0.1 to 1000 frames per second"
             )))
         }
-        None => {
-            let input = &job.video.input;
-            cpsl_media::open(input)
-                .context_with(|| format!("opening {}", input.display()))?
-                .info()
-                .fps
-        }
+        None => media.fps,
     };
+    // Under a budget the layering's refresh weighs what it costs (`GopConfig::for_budget`);
+    // variants share one layering, made for their median budget.
+    let mut video = job.video.clone();
+    if let Some(bps) = layering_budget(&outputs) {
+        let (w, h) = match job.video.stereo {
+            Some(layout) => layout
+                .view_size(media.width, media.height)
+                .unwrap_or((0, 0)),
+            None => (media.width, media.height),
+        };
+        video.gop = video
+            .gop
+            .for_budget(bps / (f64::from(w) * f64::from(h) * fps));
+    }
     let interrupted = || PipelineError::Interrupted("package");
     let layers = job.video.layering.layers as u32;
     let mut writers: Vec<PackageWriter> = Vec::new();
@@ -175,7 +201,7 @@ pub fn encode(
     let mut coding = 0.0;
     let mut notes = Vec::new();
     let t = Instant::now();
-    let info = layer_video(&job.video, depth, progress, |r| {
+    let info = layer_video(&video, depth, progress, |r| {
         notes.push((r.frame.index, r.depth_note));
         if stop.load(Ordering::SeqCst) {
             return Err(interrupted());

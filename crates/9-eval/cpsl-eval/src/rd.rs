@@ -68,6 +68,9 @@ pub struct RdOptions {
     pub container: Container,
     /// Where CPSL's segments start (the MPI's start every GOP either way).
     pub segments: cpsl_codec::Segments,
+    /// CPSL layered for each budget with the refresh threshold it sets
+    /// (`GopConfig::for_budget`); off: one layering for every budget.
+    pub rate_aware_refresh: bool,
     /// CPSL budgets (total bits per second).
     pub bitrates: Vec<f64>,
     /// Qualities (CRF) of the baselines; five points spread over the codec's range if `None`.
@@ -383,13 +386,18 @@ fn render_layers(frame: &FrameLayers, dps: bool, pose: &Pose, filter: Filter) ->
 type Segments = Vec<Vec<LayeredFrame>>;
 
 /// CPSL: I/P propagation with exact depth on I-frames.
-fn cpsl_layers(clip: &Clip, a: &RdOptions, bars: &dyn Progress) -> Result<Segments> {
+fn cpsl_layers(
+    clip: &Clip,
+    a: &RdOptions,
+    gop: GopConfig,
+    bars: &dyn Progress,
+) -> Result<Segments> {
     let mut cfg = cpsl_layering::LayeringConfig {
         layers: a.layers as usize,
         ..Default::default()
     };
     cfg.matte.geometry = a.geometry.unwrap_or(GeometryMode::VIDEO_DEFAULT);
-    let mut layerer = VideoLayerer::new(clip.camera, cfg, GopConfig::default())?;
+    let mut layerer = VideoLayerer::new(clip.camera, cfg, gop)?;
     let stage = "layer clip";
     bars.event(ProgressEvent::Start {
         stage,
@@ -735,8 +743,14 @@ pub fn evaluate_rd(
         .context_with(|| "creating a temporary folder".into())?;
     let mut curves = Vec::new();
 
-    // CPSL.
-    let segments = cpsl_layers(&clip, a, bars)?;
+    // CPSL: uncompressed with the default layering; under each budget layered for it, as
+    // `cpsl encode --bitrate` does (`GopConfig::for_budget`), again only where that changes.
+    let base = GopConfig {
+        rate_aware_refresh: a.rate_aware_refresh,
+        ..GopConfig::default()
+    };
+    let mut segments = cpsl_layers(&clip, a, base, bars)?;
+    let mut layered_for = base;
     let layered = |segments: &Segments, i: usize| {
         segments
             .iter()
@@ -759,7 +773,14 @@ pub fn evaluate_rd(
         uncompressed: uncompressed(p, l),
         points: Vec::new(),
     };
+    let pixels_per_second = f64::from(clip.camera.width) * f64::from(clip.camera.height) * FPS;
     for &b in &a.bitrates {
+        let gop = base.for_budget(b / pixels_per_second);
+        if gop != layered_for {
+            drop(std::mem::take(&mut segments));
+            segments = cpsl_layers(&clip, a, gop, bars)?;
+            layered_for = gop;
+        }
         let coded = code(
             tmp.path(),
             &segments,

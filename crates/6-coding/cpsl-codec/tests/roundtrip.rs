@@ -575,6 +575,22 @@ fn two_layers(
     LayeredFrame::new(index, refresh, set, Edc::empty(64, 48, 2, 1.0 / 64.0))
 }
 
+/// Writes `frames` as a package at `out` with `opts` (two layers), frame by frame, the writer
+/// told how many are left when the length is `known`.
+fn write_frames(
+    out: &Path,
+    frames: &[LayeredFrame],
+    opts: CodingOptions,
+    known: bool,
+) -> cpsl_package::PackageManifest {
+    let mut w = PackageWriter::create(out, *frames[0].set.camera(), 2, opts).unwrap();
+    for (i, f) in frames.iter().enumerate() {
+        w.set_frames_left(known.then_some((frames.len() - i) as u32));
+        w.push(f.clone()).unwrap();
+    }
+    w.finish().unwrap()
+}
+
 #[test]
 fn segments_start_every_gop_and_at_refreshes_that_bring_new_layers() {
     use RefreshReason::{Confidence, First};
@@ -600,12 +616,7 @@ fn segments_start_every_gop_and_at_refreshes_that_bring_new_layers() {
             segments,
             ..h264(RateControl::Quality(18.0))
         };
-        let mut w = PackageWriter::create(&out, *frames[0].set.camera(), 2, opts).unwrap();
-        for (i, f) in frames.iter().enumerate() {
-            w.set_frames_left(known.then_some((frames.len() - i) as u32));
-            w.push(f.clone()).unwrap();
-        }
-        w.finish().unwrap();
+        write_frames(&out, &frames, opts, known);
         let pkg = Package::open(&out).unwrap();
         assert!(pkg.verify().is_empty(), "{:?}", pkg.verify());
         // Every frame decodes to its own layers, through the refreshes inside segments too.
@@ -648,13 +659,8 @@ fn a_short_tail_joins_the_last_segment() {
             gop: 4,
             ..h264(RateControl::Quality(30.0))
         };
-        let mut w = PackageWriter::create(&out, *frames[0].set.camera(), 2, opts).unwrap();
-        for (i, f) in frames.iter().enumerate() {
-            w.set_frames_left(known.then_some((frames.len() - i) as u32));
-            w.push(f.clone()).unwrap();
-        }
-        let m = w.finish().unwrap();
-        m.segments
+        write_frames(&out, &frames, opts, known)
+            .segments
             .iter()
             .map(|s| (s.start, s.frames))
             .collect::<Vec<_>>()

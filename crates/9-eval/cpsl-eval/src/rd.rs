@@ -382,16 +382,13 @@ fn render_layers(frame: &FrameLayers, dps: bool, pose: &Pose, filter: Filter) ->
     img.over_fill()
 }
 
-/// Frames grouped into segments at their I-frames.
-type Segments = Vec<Vec<LayeredFrame>>;
-
 /// CPSL: I/P propagation with exact depth on I-frames.
 fn cpsl_layers(
     clip: &Clip,
     a: &RdOptions,
     gop: GopConfig,
     bars: &dyn Progress,
-) -> Result<Segments> {
+) -> Result<Vec<LayeredFrame>> {
     let mut cfg = cpsl_layering::LayeringConfig {
         layers: a.layers as usize,
         ..Default::default()
@@ -403,25 +400,18 @@ fn cpsl_layers(
         stage,
         total: Some(clip.rgb.len() as u64),
     });
-    let mut segments: Segments = Vec::new();
+    let mut frames = Vec::with_capacity(clip.rgb.len());
     for (i, (rgb, depth)) in clip.rgb.iter().zip(&clip.depth).enumerate() {
         layerer.set_frames_left(Some(clip.rgb.len() - i));
         let z = layerer.next_is_intra().then_some(depth.as_slice());
-        let f = layerer.push(rgb, z).context_with(|| format!("frame {i}"))?;
-        if f.refresh.is_some() {
-            segments.push(Vec::new());
-        }
-        segments
-            .last_mut()
-            .expect("first frame is an I-frame")
-            .push(f);
+        frames.push(layerer.push(rgb, z).context_with(|| format!("frame {i}"))?);
         bars.event(ProgressEvent::Advance {
             stage,
             done: i as u64 + 1,
         });
     }
     bars.event(ProgressEvent::Finish { stage });
-    Ok(segments)
+    Ok(frames)
 }
 
 /// Inverse-depth range of the clip (`1/far`, `1/near`): its 0.1% and 99.9% quantiles, so that
@@ -450,13 +440,13 @@ fn inverse_range(clip: &Clip) -> (f64, f64) {
 }
 
 /// MPI: `planes` planes uniform in inverse depth over the clip's range, fixed for every frame,
-/// each pixel fully in the plane of its depth; one segment per GOP.
-fn mpi_layers(clip: &Clip, planes: usize, gop: usize) -> Result<Segments> {
+/// each pixel fully in the plane of its depth; an I-frame every GOP.
+fn mpi_layers(clip: &Clip, planes: usize, gop: usize) -> Result<Vec<LayeredFrame>> {
     let (lo, hi) = inverse_range(clip);
     let step = (hi - lo) / planes as f64;
     let cam = clip.camera;
     let (w, h) = (cam.width as usize, cam.height as usize);
-    let mut segments: Segments = Vec::new();
+    let mut frames = Vec::with_capacity(clip.rgb.len());
     for (i, (rgb, depth)) in clip.rgb.iter().zip(&clip.depth).enumerate() {
         let mut data = vec![vec![0u8; w * h * 4]; planes];
         for p in 0..w * h {
@@ -482,25 +472,18 @@ fn mpi_layers(clip: &Clip, planes: usize, gop: usize) -> Result<Segments> {
             })
             .collect::<Result<Vec<_>>>()?;
         let set = LayerSet::new(cam, layers, &Limits::default())?;
-        let intra = i % gop == 0;
-        if intra {
-            segments.push(Vec::new());
-        }
-        segments
-            .last_mut()
-            .expect("frame 0 starts a segment")
-            .push(LayeredFrame::new(
-                i as u32,
-                intra.then_some(if i == 0 {
-                    RefreshReason::First
-                } else {
-                    RefreshReason::Gop
-                }),
-                set,
-                Edc::empty(cam.width, cam.height, planes as u16, 1.0 / 64.0),
-            ));
+        let refresh = match i {
+            0 => Some(RefreshReason::First),
+            _ => (i % gop == 0).then_some(RefreshReason::Gop),
+        };
+        frames.push(LayeredFrame::new(
+            i as u32,
+            refresh,
+            set,
+            Edc::empty(cam.width, cam.height, planes as u16, 1.0 / 64.0),
+        ));
     }
-    Ok(segments)
+    Ok(frames)
 }
 
 /// The source and decoded layers of a scored frame.
@@ -511,17 +494,17 @@ struct Coded {
     frames: std::collections::HashMap<usize, FrameLayers>,
 }
 
-/// Codes `segments` as a package in `dir` with `rate`, and decodes the scored frames.
+/// Codes `frames` as a package in `dir` with `rate`, and decodes the scored frames.
 fn code(
     dir: &Path,
-    groups: &Segments,
+    frames: &[LayeredFrame],
     k: u32,
     (codec, container, segments): (Codec, Container, cpsl_codec::Segments),
     rate: RateControl,
     wanted: &[usize],
 ) -> Result<Coded> {
     let path = dir.join("rd.cpsl");
-    let cam = *groups[0][0].set.camera();
+    let cam = *frames[0].set.camera();
     let opts = CodingOptions {
         codec,
         rate,
@@ -532,11 +515,9 @@ fn code(
     };
     let mut writer = PackageWriter::create(&path, cam, k, opts)?;
     let mut reports = Vec::new();
-    let mut left: usize = groups.iter().map(Vec::len).sum();
     // As `cpsl encode` does: frame by frame, the writer told how many are left.
-    for f in groups.iter().flatten() {
-        writer.set_frames_left(Some(left as u32));
-        left -= 1;
+    for (i, f) in frames.iter().enumerate() {
+        writer.set_frames_left(Some((frames.len() - i) as u32));
         reports.extend(writer.push(f.clone())?);
     }
     reports.extend(writer.flush()?);
@@ -558,7 +539,7 @@ fn code(
     let mut scored: Vec<u32> = wanted.iter().map(|&f| f as u32).collect();
     scored.sort_unstable();
     scored.dedup();
-    let frames = scored
+    let decoded = scored
         .into_iter()
         .filter(|&f| f < m.frames)
         .map(|f| Ok((f as usize, player.decode(f)?)))
@@ -570,15 +551,15 @@ fn code(
     Ok(Coded {
         bitrate: m.bitrate() + init_bits as f64 * m.frame_rate / m.frames as f64,
         segments: spend,
-        frames,
+        frames: decoded,
     })
 }
 
 /// The allocator's proxy distortion (visibility-weighted squared error of the premultiplied
 /// RGBA, summed over layers, per sample) of decoded frames against their sources.
-fn proxy(segments: &Segments, coded: &Coded) -> f64 {
+fn proxy(frames: &[LayeredFrame], coded: &Coded) -> f64 {
     let (mut e, mut n) = (0.0, 0.0);
-    for f in segments.iter().flatten() {
+    for f in frames {
         let Some(dec) = coded.frames.get(&(f.index as usize)).map(|d| &d.set) else {
             continue;
         };
@@ -749,18 +730,10 @@ pub fn evaluate_rd(
         rate_aware_refresh: a.rate_aware_refresh,
         ..GopConfig::default()
     };
-    let mut segments = cpsl_layers(&clip, a, base, bars)?;
+    let mut frames = cpsl_layers(&clip, a, base, bars)?;
     let mut layered_for = base;
-    let layered = |segments: &Segments, i: usize| {
-        segments
-            .iter()
-            .flatten()
-            .find(|f| f.index as usize == i)
-            .map(|f| (f.set.clone(), f.edc.clone()))
-            .expect("every frame layered")
-    };
     let (p, l) = score(&clip, &mut lpips, |f, pose| {
-        let (set, edc) = layered(&segments, f);
+        let (set, edc) = (frames[f].set.clone(), frames[f].edc.clone());
         Ok(render_layers(
             &FrameLayers::new(set, Some(edc)),
             true,
@@ -777,13 +750,13 @@ pub fn evaluate_rd(
     for &b in &a.bitrates {
         let gop = base.for_budget(b / pixels_per_second);
         if gop != layered_for {
-            drop(std::mem::take(&mut segments));
-            segments = cpsl_layers(&clip, a, gop, bars)?;
+            drop(std::mem::take(&mut frames));
+            frames = cpsl_layers(&clip, a, gop, bars)?;
             layered_for = gop;
         }
         let coded = code(
             tmp.path(),
-            &segments,
+            &frames,
             a.layers,
             (codec, a.container, a.segments),
             RateControl::Budget(b),
@@ -797,12 +770,12 @@ pub fn evaluate_rd(
             bitrate: Some(coded.bitrate),
             psnr: p,
             lpips: l,
-            proxy: Some(proxy(&segments, &coded)),
+            proxy: Some(proxy(&frames, &coded)),
             segments: coded.segments.clone(),
         });
         on_point(cpsl.method, cpsl.points.last().expect("pushed"));
     }
-    drop(segments);
+    drop(frames);
     curves.push(cpsl);
 
     // DIBR streaming: colour over quantised inverse depth, 8-bit in an 8-bit stream and
@@ -838,9 +811,9 @@ pub fn evaluate_rd(
     // MPI.
     let planes = a.mpi_planes as usize;
     // The MPI is segmented like CPSL's fixed GOP (CPSL may also refresh earlier).
-    let segments = mpi_layers(&clip, planes, GopConfig::default().gop)?;
+    let frames = mpi_layers(&clip, planes, GopConfig::default().gop)?;
     let (p, l) = score(&clip, &mut lpips, |f, pose| {
-        let (set, _) = layered(&segments, f);
+        let set = frames[f].set.clone();
         Ok(render_layers(
             &FrameLayers::new(set, None),
             false,
@@ -856,7 +829,7 @@ pub fn evaluate_rd(
     for &q in &qualities {
         let coded = code(
             tmp.path(),
-            &segments,
+            &frames,
             a.mpi_planes,
             (codec, a.container, cpsl_codec::Segments::Gop),
             RateControl::Quality(q),
@@ -870,7 +843,7 @@ pub fn evaluate_rd(
             bitrate: Some(coded.bitrate),
             psnr: p,
             lpips: l,
-            proxy: Some(proxy(&segments, &coded)),
+            proxy: Some(proxy(&frames, &coded)),
             segments: coded.segments.clone(),
         });
         on_point(mpi.method, mpi.points.last().expect("pushed"));

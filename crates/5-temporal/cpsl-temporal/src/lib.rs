@@ -56,7 +56,7 @@ mod motion;
 mod robust;
 mod warp;
 
-use motion::{identity_map, layer_maps, shrink_flow, Depths, FrameMotion};
+use motion::{identity_map, layer_maps, mapped, shrink_flow, Depths, FrameMotion};
 pub use warp::{warp_labels, warp_values};
 #[cfg(target_arch = "x86_64")]
 mod simd;
@@ -582,12 +582,16 @@ impl VideoLayerer {
             layer.depth = z.max(prev * (1.0 + 1e-6));
             prev = layer.depth;
         }
-        // A slanted layer's plane and a mesh layer's grid follow the new depth: refitted over
-        // the layer's pixels (a fronto-parallel layer stays so, as the I-frame chose). A grid
-        // vertex keeps the previous frame's value unless it moved by more than
-        // `GRID_HOLD` in log depth: steadier geometry, and a side stream of mostly zeros.
+        // A slanted layer's plane and a mesh layer's grid follow the layer (a fronto-parallel
+        // layer stays so, as the I-frame chose): with a new depth map, refitted over the
+        // layer's pixels; with depth carried along the motion, carried along the layer's own
+        // map into the I-frame, as its picture is (the carried depth map, warped frame by
+        // frame with the motion of every layer, smears across layer edges). A grid vertex
+        // keeps the previous frame's value unless it moved by more than `GRID_HOLD` in log
+        // depth: steadier geometry, and a side stream of mostly zeros.
         let cam = *s.key.camera();
         let previous = &s.geometries;
+        let key_layers = s.key.layers();
         layers
             .par_iter_mut()
             .enumerate()
@@ -605,8 +609,22 @@ impl VideoLayerer {
                     covered: &covered,
                 };
                 let extent = layer.extent().map(|e| e.map(|v| v as usize));
-                if let cpsl_core::Geometry::Mesh(key) = &layer.geometry {
-                    let Some(mut grid) = fit_grid(&cam, &px, key.step, layer.depth) else {
+                // With depth carried along the motion: the I-frame's surface carried along the
+                // layer's map (a plane that would not stay in front is refitted).
+                let carried = depth_propagated
+                    .then(|| {
+                        let at = |u: f64, v: f64| mapped(&maps[l], (gw, gh), (w, h), (u, v));
+                        carry_geometry(&key_layers[l], &cam, at, layer.extent())
+                    })
+                    .flatten();
+                if let Some(plane @ cpsl_core::Geometry::Slanted(_)) = carried {
+                    layer.geometry = plane;
+                } else if let cpsl_core::Geometry::Mesh(key) = &layer.geometry {
+                    let fitted = match carried {
+                        Some(cpsl_core::Geometry::Mesh(g)) => Some((*g).clone()),
+                        _ => fit_grid(&cam, &px, key.step, layer.depth),
+                    };
+                    let Some(mut grid) = fitted else {
                         return; // no pixel left: the grid carries over
                     };
                     if let Some(cpsl_core::Geometry::Mesh(last)) = previous.get(l) {
@@ -680,6 +698,55 @@ impl VideoLayerer {
     }
 }
 
+/// The I-frame layer `key`'s surface carried to a P-frame whose pixel `(u, v)` shows the
+/// I-frame's pixel `at(u, v)`: a grid takes, at each vertex, the I-frame surface's inverse
+/// depth where the vertex's position maps to; a slanted plane is the plane through those
+/// values on a lattice over the layer's `extent`. `None` where no surface results (a plane
+/// that would reach behind the camera over the extent: refitted instead).
+fn carry_geometry(
+    key: &cpsl_core::Layer,
+    cam: &Camera,
+    at: impl Fn(f64, f64) -> (f64, f64),
+    extent: Option<[u32; 4]>,
+) -> Option<cpsl_core::Geometry> {
+    use cpsl_core::Geometry;
+    let inv = |u: f64, v: f64| {
+        let (x, y) = at(u, v);
+        key.geometry.inverse_depth_at(key.depth, cam, x, y)
+    };
+    match &key.geometry {
+        Geometry::Plane => Some(Geometry::Plane),
+        Geometry::Mesh(g) => {
+            let mut grid = (**g).clone();
+            for j in 0..g.rows {
+                for i in 0..g.cols {
+                    let (u, v) = g.vertex(i, j, cam.width, cam.height);
+                    let z = inv(u, v) as f32;
+                    if z.is_finite() && z > 0.0 {
+                        grid.inverse_depth[(j * g.cols + i) as usize] = z;
+                    }
+                }
+            }
+            Some(Geometry::Mesh(std::sync::Arc::new(grid)))
+        }
+        Geometry::Slanted(_) => {
+            let [x0, y0, x1, y1] = extent?.map(f64::from);
+            const N: usize = 5;
+            let samples: Vec<[f64; 4]> = (0..N * N)
+                .map(|k| {
+                    let u = x0 + (x1 - x0) * (k % N) as f64 / (N - 1) as f64;
+                    let v = y0 + (y1 - y0) * (k / N) as f64 / (N - 1) as f64;
+                    [(u - cam.cx) / cam.fx, (v - cam.cy) / cam.fy, inv(u, v), 1.0]
+                })
+                .collect();
+            let plane = Geometry::Slanted(cpsl_core::fit_plane(&samples, 0)?);
+            let box_ = [x0 - 1.0, y0 - 1.0, x1 + 1.0, y1 + 1.0];
+            let (least, ..) = plane.least_inverse_depth(key.depth, cam, box_);
+            (least.is_finite() && least > 0.0).then_some(plane)
+        }
+    }
+}
+
 fn ms(t: Instant) -> f64 {
     t.elapsed().as_secs_f64() * 1e3
 }
@@ -694,7 +761,74 @@ fn with_tracks(set: LayerSet, tracks: &[u32]) -> Result<LayerSet, VideoError> {
 
 #[cfg(test)]
 mod tests {
-    use super::GopConfig;
+    use super::{carry_geometry, GopConfig};
+    use cpsl_core::{Camera, DepthGrid, Geometry, Layer, PremulImage, Vec3};
+    use std::sync::Arc;
+
+    #[test]
+    fn a_carried_surface_follows_the_layers_map() {
+        let cam = Camera::centred(64, 48, 60.0);
+        let blank = || PremulImage::new(64, 48);
+        // A grid whose inverse depth rises along x, and a map that shifts by 8 px.
+        let (cols, rows) = DepthGrid::dims(64, 48, 8);
+        let inverse_depth = (0..rows)
+            .flat_map(|_| (0..cols).map(|i| 0.5 + 0.01 * i as f32))
+            .collect();
+        let grid = DepthGrid {
+            step: 8,
+            cols,
+            rows,
+            inverse_depth,
+        };
+        let key = Layer {
+            geometry: Geometry::Mesh(Arc::new(grid.clone())),
+            ..Layer::new(blank(), 2.0)
+        };
+        let shift = |u: f64, v: f64| (u + 8.0, v);
+        let Some(Geometry::Mesh(moved)) = carry_geometry(&key, &cam, shift, None) else {
+            panic!("a mesh carries to a mesh");
+        };
+        for j in 0..rows {
+            for i in 0..cols - 2 {
+                let (u, v) = grid.vertex(i, j, 64, 48);
+                let want = grid.inverse_depth_at(&cam, u + 8.0, v);
+                assert!((moved.at(i, j) - want).abs() < 1e-6, "vertex ({i}, {j})");
+                // One vertex on: the next vertex's value.
+                assert!((moved.at(i, j) - grid.at(i + 1, j)).abs() < 1e-6);
+            }
+        }
+        // The identity keeps a slanted plane; a shift moves it as the picture moves.
+        let m = Vec3::new(0.1, -0.05, 0.5);
+        let key = Layer {
+            geometry: Geometry::Slanted(m),
+            ..Layer::new(blank(), 2.0)
+        };
+        let extent = Some([4, 4, 59, 43]);
+        let same = carry_geometry(&key, &cam, |u, v| (u, v), extent);
+        let Some(Geometry::Slanted(n)) = same else {
+            panic!("a plane carries to a plane");
+        };
+        assert!((n - m).norm() < 1e-9, "{n:?}");
+        let moved = carry_geometry(&key, &cam, shift, extent).expect("in front");
+        for (u, v) in [(10.0, 10.0), (40.0, 30.0)] {
+            let got = moved.inverse_depth_at(2.0, &cam, u, v);
+            let want = key.geometry.inverse_depth_at(2.0, &cam, u + 8.0, v);
+            assert!((got - want).abs() < 1e-9);
+        }
+        // A plane that the shift would take behind the camera over the extent: none.
+        let steep = Layer {
+            geometry: Geometry::Slanted(Vec3::new(-2.0, 0.0, 0.5)),
+            ..Layer::new(blank(), 2.0)
+        };
+        let far = |u: f64, v: f64| (u + 40.0, v);
+        assert!(carry_geometry(&steep, &cam, far, extent).is_none());
+        // Fronto-parallel layers stay so.
+        let flat = Layer::new(blank(), 2.0);
+        assert_eq!(
+            carry_geometry(&flat, &cam, shift, extent),
+            Some(Geometry::Plane)
+        );
+    }
 
     #[test]
     fn a_small_budget_lowers_the_refresh_threshold() {

@@ -77,6 +77,21 @@ pub(crate) fn identity_map(w: usize, h: usize, gw: usize, gh: usize) -> Vec<f32>
         .collect()
 }
 
+/// Where a layer's `map` into its I-frame (on a `gw x gh` grid over a `w x h` frame,
+/// bilinearly interpolated) sends the frame's pixel position `(x, y)`.
+pub(crate) fn mapped(
+    map: &[f32],
+    (gw, gh): (usize, usize),
+    (w, h): (usize, usize),
+    (x, y): (f64, f64),
+) -> (f64, f64) {
+    let (sx, sy) = (w as f64 / gw as f64, h as f64 / gh as f64);
+    // The inverse of `grid_to_full`.
+    let (gx, gy) = ((x + 0.5) / sx - 0.5, (y + 0.5) / sy - 0.5);
+    let [mx, my] = sample2(map, gw, gh, gx as f32, gy as f32);
+    (mx as f64, my as f64)
+}
+
 /// Bilinear sample of both channels of a 2-channel grid at `(x, y)` (clamped).
 #[inline(always)]
 pub(crate) fn sample2(d: &[f32], gw: usize, gh: usize, x: f32, y: f32) -> [f32; 2] {

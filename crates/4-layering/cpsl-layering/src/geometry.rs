@@ -32,7 +32,9 @@ impl GeometryMode {
     /// depth, views filled, 0.5 to 6 Mbit/s), meshes lead uncompressed (28.90 against 28.48 dB)
     /// and at 6 Mbit/s but trail by 0.2 to 1.8 dB from 0.5 to 3 Mbit/s, where their grids,
     /// even coarsened, take bits from the pictures (EVALUATION.md); on the fox (depth from the
-    /// video) meshes lead at every rate, so the best choice depends on the footage. Single
+    /// video) meshes led on 2026-11-27. Re-run on 2026-11-29 (P-frames carrying their
+    /// surfaces along the layers' maps): meshes lead the synthetic clip from 2 Mbit/s up and
+    /// trail below, and trail the planes on the fox by about 1 dB, so planes stay. Single
     /// images default to meshes ([`GeometryMode::default`]).
     pub const VIDEO_DEFAULT: Self = Self::Plane;
 

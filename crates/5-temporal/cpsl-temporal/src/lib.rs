@@ -608,20 +608,23 @@ impl VideoLayerer {
                     own: &own,
                     covered: &covered,
                 };
-                let extent = layer.extent().map(|e| e.map(|v| v as usize));
+                let bounds = layer.extent();
+                let extent = bounds.map(|e| e.map(|v| v as usize));
                 // With depth carried along the motion: the I-frame's surface carried along the
                 // layer's map (a plane that would not stay in front is refitted).
                 let carried = depth_propagated
                     .then(|| {
                         let at = |u: f64, v: f64| mapped(&maps[l], (gw, gh), (w, h), (u, v));
-                        carry_geometry(&key_layers[l], &cam, at, layer.extent())
+                        carry_geometry(&key_layers[l], &cam, at, bounds)
                     })
                     .flatten();
                 if let Some(plane @ cpsl_core::Geometry::Slanted(_)) = carried {
                     layer.geometry = plane;
                 } else if let cpsl_core::Geometry::Mesh(key) = &layer.geometry {
                     let fitted = match carried {
-                        Some(cpsl_core::Geometry::Mesh(g)) => Some((*g).clone()),
+                        Some(cpsl_core::Geometry::Mesh(g)) => {
+                            Some(std::sync::Arc::unwrap_or_clone(g))
+                        }
                         _ => fit_grid(&cam, &px, key.step, layer.depth),
                     };
                     let Some(mut grid) = fitted else {

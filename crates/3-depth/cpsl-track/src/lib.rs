@@ -1227,10 +1227,13 @@ impl Solver {
     }
 }
 
-/// Median (NaN when empty); sorts `v`.
+/// Median (NaN when empty): the element at half the length in sorted order; reorders `v`.
 pub(crate) fn median(v: &mut [f64]) -> f64 {
-    v.sort_by(f64::total_cmp);
-    v.get(v.len() / 2).copied().unwrap_or(f64::NAN)
+    if v.is_empty() {
+        return f64::NAN;
+    }
+    let m = v.len() / 2;
+    *v.select_nth_unstable_by(m, f64::total_cmp).1
 }
 
 /// Non-zero entries of an OpenCV mask (0 for an empty one).

@@ -661,6 +661,14 @@ pub fn fuse(
     if samples.len() < prior.len() / 100 || samples.len() < 10 {
         return Ok(None);
     }
+    let floor = samples.iter().map(|s| s.1).fold(f64::INFINITY, f64::min) * 0.5;
+    // The fits need a few tens of thousands of pixels, not every confident one (a carried
+    // depth map is confident almost everywhere): every k-th.
+    let samples: Vec<(f64, f64)> = samples
+        .iter()
+        .step_by(samples.len().div_ceil(FIT_SAMPLES))
+        .copied()
+        .collect();
     let Some((a, b, affine_scale)) = fit_affine(&samples) else {
         return Ok(None);
     };
@@ -676,7 +684,6 @@ pub fn fuse(
         ((misfit - TRUSTED_MISFIT) / (UNTRUSTED_MISFIT - TRUSTED_MISFIT)).clamp(0.0, 1.0) as f32;
     // A prior whose order the views turn around (a <= 0) has nothing to give.
     let prior_fits = a > 0.0;
-    let floor = samples.iter().map(|s| s.1).fold(f64::INFINITY, f64::min) * 0.5;
     let fitted: Vec<f32> = prior
         .iter()
         .map(|&p| {
@@ -747,10 +754,12 @@ pub fn fuse(
         }
     }
     let estimate_variance = if residuals.len() >= 10 {
-        residuals.sort_by(f32::total_cmp);
-        variances.sort_by(f32::total_cmp);
-        let r = 1.4826 * residuals[residuals.len() / 2];
-        (r * r - variances[variances.len() / 2]).max(1e-6)
+        let mid = |v: &mut Vec<f32>| {
+            let m = v.len() / 2;
+            *v.select_nth_unstable_by(m, f32::total_cmp).1
+        };
+        let r = 1.4826 * mid(&mut residuals);
+        (r * r - mid(&mut variances)).max(1e-6)
     } else {
         f32::INFINITY
     };
@@ -928,6 +937,11 @@ impl Curve {
     }
 }
 
+/// Most (prior, views) pairs the prior's fits take: beyond it, every k-th confident pixel.
+/// On the fox the fused frames have 50 000 to 120 000 confident pixels at 480x270; all of
+/// them took the fits 50 to 140 ms.
+const FIT_SAMPLES: usize = 20_000;
+
 /// Samples per segment of the prior's curve.
 const CURVE_SAMPLES: usize = 500;
 /// Most segments of the prior's curve.
@@ -963,8 +977,7 @@ fn fit_affine(samples: &[(f64, f64)]) -> Option<(f64, f64, f64)> {
             .iter()
             .map(|&(x, y)| (y - (a * x + b)).abs())
             .collect();
-        r.sort_by(f64::total_cmp);
-        scale = (1.4826 * r[r.len() / 2]).max(1e-9);
+        scale = (1.4826 * crate::median(&mut r)).max(1e-9);
     }
     (a.is_finite() && b.is_finite()).then_some((a, b, scale))
 }

@@ -19,7 +19,7 @@ use cpsl_pipeline::encode::{encode, EncodeJob, EncodeTarget};
 use cpsl_pipeline::image::{layer_image, write_image_layers};
 use cpsl_pipeline::sources::{layering_config, CameraChoice, VideoDepth};
 use cpsl_pipeline::synthetic::{synthesise, SynthOptions};
-use cpsl_pipeline::video::{MotionSource, VideoJob};
+use cpsl_pipeline::video::{MotionSource, PFrameDepth, VideoJob};
 use cpsl_player::sweep::{render_sweep, Output, Sweep};
 use cpsl_player::Source;
 use cpsl_render::{CpuRenderer, DpsConfig, Filter, FrameLayers, Renderer};
@@ -289,7 +289,7 @@ fn clip(a: &DemoArgs, scene: &Scene, bars: &Bars) -> Result<()> {
             )?,
             gop: GopConfig::default(),
             motion: MotionSource::Auto,
-            depth_every_frame: false,
+            p_depth: PFrameDepth::default(),
             max_frames: None,
             stereo: None,
         },

@@ -5,6 +5,7 @@
 use crate::encode::{parse_bitrate, CodecArg, ContainerArg, SegmentAtArg};
 use crate::progress::Bars;
 use crate::util::FilterArg;
+use crate::video::PDepthArg;
 use anyhow::Result;
 use clap::{Args, ValueEnum};
 use cpsl_eval::rd::{evaluate_rd, Curve, Ratio, RdClip, RdOptions, Summary};
@@ -95,6 +96,12 @@ pub struct EvalRdArgs {
     /// multi-view depth fused with FastDepth) or `fastdepth` (per frame, one scale for the clip).
     #[arg(long, default_value = "video", value_parser = ["fastdepth", "video"])]
     pub depth: String,
+    /// Where CPSL's P-frames take their depth, as `cpsl layer-video --p-depth`: `poses` (the
+    /// I-frame's depth carried by the tracked camera's poses, on the fox with depth from the
+    /// video; along the motion otherwise), `motion` (along the motion: the paper's) or
+    /// `estimated` (the clip's own depth of every frame).
+    #[arg(long, value_enum, default_value_t = PDepthArg::Poses)]
+    pub p_depth: PDepthArg,
     /// Write the curves and summary as JSON.
     #[arg(long)]
     pub json: Option<PathBuf>,
@@ -122,6 +129,7 @@ pub fn run(a: EvalRdArgs) -> Result<()> {
         lpips: !a.no_lpips,
         filter: a.filter.into(),
         video_depth: a.depth == "video",
+        p_depth: a.p_depth.into(),
     };
     let report = evaluate_rd(&opts, &Bars::default(), |method, p| {
         let spend: Vec<String> = p

@@ -8,7 +8,7 @@ use clap::{Args, ValueEnum};
 use cpsl_layering::GeometryMode;
 use cpsl_pipeline::sources::{layering_config, open_depth_model, StereoDepth, VideoDepth};
 use cpsl_pipeline::track::VideoTrackedDepth;
-use cpsl_pipeline::video::{write_layered_video, MotionSource, VideoJob};
+use cpsl_pipeline::video::{write_layered_video, MotionSource, PFrameDepth, VideoJob};
 use cpsl_temporal::GopConfig;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -51,6 +51,29 @@ impl From<MotionArg> for MotionSource {
         match a {
             MotionArg::Auto => MotionSource::Auto,
             MotionArg::Flow => MotionSource::Flow,
+        }
+    }
+}
+
+/// Where P-frames' depth comes from.
+#[derive(ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum PDepthArg {
+    /// The last I-frame's depth carried by the camera's poses, the rest the depth model
+    /// fitted to it (with `--depth video`; along the motion with other depth sources).
+    Poses,
+    /// Carried along the motion with the layers (the paper's: depth on I-frames only).
+    Motion,
+    /// Estimated on every frame, as on I-frames (with `--depth video` a multi-view pass per
+    /// frame: about twice the time).
+    Estimated,
+}
+
+impl From<PDepthArg> for PFrameDepth {
+    fn from(a: PDepthArg) -> Self {
+        match a {
+            PDepthArg::Poses => PFrameDepth::Poses,
+            PDepthArg::Motion => PFrameDepth::Motion,
+            PDepthArg::Estimated => PFrameDepth::Estimated,
         }
     }
 }
@@ -115,9 +138,14 @@ pub struct VideoLayeringArgs {
     /// Scene units per integer step of 16-bit PNG / uint16 .npy --depth-frames.
     #[arg(long, default_value_t = 0.001)]
     pub depth_scale: f32,
-    /// Estimate depth on P-frames too (by default their depth is carried along the motion).
-    #[arg(long)]
-    pub depth_every_frame: bool,
+    /// Where P-frames' depth comes from: `poses` (the default: with `--depth video`, the
+    /// last I-frame's depth carried by the tracked camera's poses, what it does not reach
+    /// from the depth model fitted to it, so that slanted planes and meshes follow the
+    /// camera; along the motion with other depth sources), `motion` (carried along the
+    /// motion with the layers: the paper's) or `estimated` (as on I-frames: with `--depth
+    /// video` a multi-view pass per frame).
+    #[arg(long, value_enum, default_value_t = PDepthArg::Poses)]
+    pub p_depth: PDepthArg,
     #[command(flatten)]
     pub stereo: StereoArgs,
     #[command(flatten)]
@@ -176,7 +204,7 @@ impl VideoLayeringArgs {
             )?,
             gop: self.temporal.config(self.gop as usize),
             motion: self.motion.into(),
-            depth_every_frame: self.depth_every_frame,
+            p_depth: self.p_depth.into(),
             max_frames: self.max_frames,
             stereo: self.stereo.stereo,
         };

@@ -277,6 +277,59 @@ impl TrackedDepth {
         ))
     }
 
+    /// Depth of frame `index` (whose picture is `rgb` and monocular depth `prior`, both
+    /// `width x height`) without views of its own: `from_depth`, the depth [`Self::depth`]
+    /// gave frame `from` (same size and units), carried to it by the two frames' poses
+    /// ([`mvs::carry`], at the working resolution), what it does not reach (disoccluded, or
+    /// outside `from`'s view) taken from the prior fitted to it ([`mvs::fuse`]). The carried
+    /// pixels count as confident. A few milliseconds against the hundreds of a multi-view
+    /// pass: what a P-frame of a video gets, whose layers move with the picture. `None` when
+    /// either frame is not placed, they lie in different worlds, the world has no scale yet
+    /// (none of its frames fused) or too little lands.
+    #[allow(clippy::too_many_arguments)]
+    pub fn carry_depth(
+        &self,
+        from: usize,
+        from_depth: &[f32],
+        index: usize,
+        rgb: &[u8],
+        prior: &[f32],
+        (width, height): (u32, u32),
+    ) -> Result<Option<Vec<f32>>> {
+        let t = &self.trajectory;
+        let pose = |i: usize| t.poses.get(i).copied().flatten();
+        let (Some(from_pose), Some(to_pose)) = (pose(from), pose(index)) else {
+            return Ok(None);
+        };
+        if t.world[from] != t.world[index] {
+            return Ok(None);
+        }
+        let Some(&scale) = self.scale.get(&t.world[index]) else {
+            return Ok(None);
+        };
+        let size = (t.camera.width, t.camera.height);
+        let mut z = mvs::resize_depth(from_depth, (width, height), size)?;
+        z.iter_mut().for_each(|v| *v /= scale as f32);
+        let confidence = z
+            .iter()
+            .map(|v| f32::from(u8::from(v.is_finite())))
+            .collect();
+        let depth = ViewDepth {
+            width: size.0,
+            height: size.1,
+            depth: z,
+            confidence,
+            variance: Vec::new(),
+        };
+        let moved = mvs::carry(&t.camera, &from_pose, &depth, &to_pose)?;
+        let small = mvs::resize_depth(prior, (width, height), size)?;
+        let guide = crate::work_rgb(rgb, width, height, size)?;
+        match mvs::fuse(&moved, &small, &guide, Self::MIN_CONFIDENCE)? {
+            Some((z, _)) => Ok(Some(scaled(&z.depth, size, (width, height), scale)?)),
+            None => Ok(None),
+        }
+    }
+
     /// The depth of the frame nearest to `index` among those fused from their own views in
     /// its world, carried to it and fused with its `small` prior (guided by `guide`): the
     /// frame, the fused depth (working resolution, trajectory units) and the share of pixels

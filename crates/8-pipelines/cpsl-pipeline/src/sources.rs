@@ -236,6 +236,23 @@ impl VideoDepth {
         })
     }
 
+    /// Depth of frame `index` (picture `rgb`, seen by `cam`) carried from frame `from`'s depth
+    /// `from_depth` by the camera's motion, where the source knows it (the video itself,
+    /// [`crate::track::VideoTrackedDepth::carried`]); `None` otherwise.
+    pub fn carried(
+        &mut self,
+        from: usize,
+        from_depth: &[f32],
+        index: usize,
+        rgb: &[u8],
+        cam: &Camera,
+    ) -> Result<Option<Vec<f32>>, PipelineError> {
+        match self {
+            VideoDepth::Tracked(t) => t.carried(from, from_depth, index, rgb, cam),
+            _ => Ok(None),
+        }
+    }
+
     /// What the last frame's depth came from, where it is worth saying per frame (stereo,
     /// the video itself, and their fallbacks).
     pub fn note(&self) -> Option<&str> {

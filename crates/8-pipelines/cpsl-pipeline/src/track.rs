@@ -279,6 +279,30 @@ impl VideoTrackedDepth {
         )
     }
 
+    /// Depth of frame `index` (picture `rgb`, seen by `cam`) without a multi-view pass:
+    /// `from_depth`, what [`Self::depth`] gave frame `from`, carried to it by the two frames'
+    /// poses, the rest the prior fitted to it ([`TrackedDepth::carry_depth`]). `None` where
+    /// the poses cannot carry it (a frame not placed, another world, a camera that does not
+    /// translate).
+    pub fn carried(
+        &mut self,
+        from: usize,
+        from_depth: &[f32],
+        index: usize,
+        rgb: &[u8],
+        cam: &Camera,
+    ) -> Result<Option<Vec<f32>>, PipelineError> {
+        let Some(Ok(tracked)) = &self.tracked else {
+            return Ok(None);
+        };
+        if tracked.trajectory().motion != cpsl_track::CameraMotion::Translating {
+            return Ok(None);
+        }
+        let (w, h) = (cam.width, cam.height);
+        let prior = self.prior.depth(rgb, w, h)?;
+        Ok(tracked.carry_depth(from, from_depth, index, rgb, &prior, (w, h))?)
+    }
+
     /// Depth of frame `index`, whose picture is `rgb` seen by `cam` (the input's size).
     pub fn depth(
         &mut self,

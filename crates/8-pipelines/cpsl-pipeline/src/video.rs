@@ -23,6 +23,22 @@ pub enum MotionSource {
     Flow,
 }
 
+/// Where a P-frame's depth comes from.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum PFrameDepth {
+    /// Carried along the motion with the layers (the paper's: depth on I-frames only).
+    Motion,
+    /// Where the depth source tracks the camera (depth from the video), the last I-frame's
+    /// depth carried to the frame by the two cameras' poses, what it does not reach taken
+    /// from the monocular prior fitted to it; along the motion otherwise. A few
+    /// milliseconds and one run of the prior instead of a multi-view pass, and each layer's
+    /// slanted plane or mesh then follows the camera.
+    #[default]
+    Poses,
+    /// Estimated on every frame, as on I-frames.
+    Estimated,
+}
+
 /// How a video is layered.
 #[derive(Debug, Clone)]
 pub struct VideoJob {
@@ -36,8 +52,8 @@ pub struct VideoJob {
     pub gop: GopConfig,
     /// Where P-frame motion comes from.
     pub motion: MotionSource,
-    /// Estimate depth on P-frames too (by default it is carried along the motion).
-    pub depth_every_frame: bool,
+    /// Where P-frames' depth comes from.
+    pub p_depth: PFrameDepth,
     /// Stop after this many frames.
     pub max_frames: Option<usize>,
     /// The frames hold two views (side by side or top and bottom): the left one is layered,
@@ -56,6 +72,9 @@ pub struct FrameRecord {
     pub ms: f64,
     /// Where this frame's depth came from, when the source says (stereo and its fallbacks).
     pub depth_note: Option<String>,
+    /// The frame's depth was carried from its I-frame's by the camera's poses
+    /// ([`PFrameDepth::Poses`]).
+    pub depth_carried: bool,
     /// Frames still to come, this one included, when the input says how many it has.
     pub frames_left: Option<usize>,
 }
@@ -106,6 +125,8 @@ pub fn layer_video(
         total: total.map(|n| n as u64),
     });
     let mut count = 0;
+    // The last I-frame's depth, for P-frames that carry it by the camera's poses.
+    let mut intra_depth: Option<(usize, Vec<f32>)> = None;
     while job.max_frames.is_none_or(|m| count < m) {
         let Some(frame) = src
             .next_frame()
@@ -125,14 +146,26 @@ pub fn layer_video(
         };
         layerer.set_frames_left(total.map(|n| n.saturating_sub(count)));
         let intra = layerer.next_is_intra();
-        let (z, depth_note) = if intra || job.depth_every_frame {
+        let (z, depth_note) = if intra || job.p_depth == PFrameDepth::Estimated {
             let z = depth
                 .depth(frame.index, &rgb, right.as_deref(), &cam)
                 .context_with(|| format!("depth of frame {}", frame.index))?;
+            if intra {
+                intra_depth = Some((frame.index, z.clone()));
+            }
             (Some(z), depth.note().map(String::from))
         } else {
-            (None, None)
+            // Carried depth has no note of its own: a P-frame belongs to its I-frame's run
+            // of depth notes ([`depth_runs`]); `video.json` says `carried`.
+            let carried = match (&intra_depth, job.p_depth) {
+                (Some((from, z)), PFrameDepth::Poses) => depth
+                    .carried(*from, z, frame.index, &rgb, &cam)
+                    .context_with(|| format!("depth of frame {}", frame.index))?,
+                _ => None,
+            };
+            (carried, None)
         };
+        let depth_carried = !intra && job.p_depth == PFrameDepth::Poses && z.is_some();
         let given = match job.motion {
             MotionSource::Auto if job.stereo.is_none() => frame.motion,
             _ => None,
@@ -146,6 +179,7 @@ pub fn layer_video(
             decoder_motion,
             ms: t.elapsed().as_secs_f64() * 1e3,
             depth_note,
+            depth_carried,
             frames_left: total.map(|n| n.saturating_sub(count)),
         })?;
         count += 1;
@@ -228,7 +262,8 @@ pub struct VideoFrameEntry {
     pub confidence: Vec<f32>,
     /// Crack rate above the last I-frame's.
     pub crack: f32,
-    /// `estimated` or `propagated`.
+    /// `estimated`, `carried` (from the I-frame's by the camera's poses) or `propagated`
+    /// (along the motion).
     pub depth: String,
     /// Where an estimated depth came from, when the source says: stereo with its share of
     /// matched pixels, or the fallback taken and why.
@@ -262,10 +297,10 @@ impl VideoFrameEntry {
             tracks: f.set.layers().iter().map(|l| l.meta.track).collect(),
             confidence: f.confidence.clone(),
             crack: f.crack,
-            depth: if f.depth_propagated {
-                "propagated"
-            } else {
-                "estimated"
+            depth: match (f.depth_propagated, r.depth_carried) {
+                (true, _) => "propagated",
+                (false, true) => "carried",
+                (false, false) => "estimated",
             }
             .into(),
             depth_note: r.depth_note.clone(),

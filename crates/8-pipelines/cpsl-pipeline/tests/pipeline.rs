@@ -8,7 +8,7 @@ use cpsl_io::pfm::{write_pfm, FloatImage};
 use cpsl_package::{Codec, Package, VariantSet, VARIANTS_FILE};
 use cpsl_pipeline::encode::{encode, EncodeJob, EncodeTarget};
 use cpsl_pipeline::sources::{CameraChoice, VideoDepth};
-use cpsl_pipeline::video::{write_layered_video, MotionSource, VideoJob, VIDEO_FILE};
+use cpsl_pipeline::video::{write_layered_video, MotionSource, PFrameDepth, VideoJob, VIDEO_FILE};
 use cpsl_pipeline::PipelineError;
 use cpsl_synth::Scene;
 use cpsl_temporal::GopConfig;
@@ -50,7 +50,7 @@ fn clip(dir: &Path) -> VideoJob {
             ..GopConfig::default()
         },
         motion: MotionSource::Auto,
-        depth_every_frame: false,
+        p_depth: PFrameDepth::default(),
         max_frames: None,
         stereo: None,
     }
@@ -119,4 +119,78 @@ fn layered_frames_variants_and_interruption() {
         .filter(|n| n.starts_with('.') || n == "clip.cpsl")
         .collect();
     assert!(left.is_empty(), "{left:?}");
+}
+
+/// A depth "model" that hands out the exact depth of the frames in the order it is asked,
+/// times three (other units, as a network's).
+struct InOrder(std::collections::VecDeque<Vec<f32>>);
+
+impl cpsl_core::DepthSource for InOrder {
+    fn name(&self) -> String {
+        "exact depth in order".into()
+    }
+
+    fn depth(
+        &mut self,
+        _rgb: &[u8],
+        _width: u32,
+        _height: u32,
+    ) -> Result<Vec<f32>, cpsl_core::DepthSourceError> {
+        Ok(self.0.pop_front().expect("asked once per frame"))
+    }
+}
+
+#[test]
+fn p_frames_take_the_i_frames_depth_carried_by_the_tracked_poses() {
+    // A camera moving sideways over the still scene: with depth from the video, P-frames
+    // take the I-frame's depth carried by the poses (`carried`), or with the paper's
+    // setting, along the motion (`propagated`).
+    let dir = tempfile::tempdir().unwrap();
+    let scene = Scene::default_scene(320, 240);
+    let cam = scene.camera;
+    let n = 12;
+    let mut depths = Vec::new();
+    for i in 0..n {
+        let pose = Pose::from_translation(cpsl_core::Vec3::new(0.05 * i as f64, 0.0, 0.0));
+        let v = scene.render(&cam, &pose, 0.0, 1);
+        let file = dir.path().join(format!("frames/{i:04}.png"));
+        cpsl_io::images::write_png(&file, cam.width, cam.height, 3, &v.rgb).unwrap();
+        depths.push(v.depth.iter().map(|z| 3.0 * z).collect::<Vec<f32>>());
+    }
+    let camera = dir.path().join("camera.json");
+    std::fs::write(&camera, serde_json::to_vec(&cam).unwrap()).unwrap();
+    let job = VideoJob {
+        input: dir.path().join("frames"),
+        camera: CameraChoice::File(camera),
+        layering: cpsl_pipeline::sources::layering_config(None, 4, None).unwrap(),
+        gop: GopConfig {
+            adaptive_refresh: false,
+            ..GopConfig::default()
+        },
+        motion: MotionSource::Flow,
+        p_depth: PFrameDepth::Poses,
+        max_frames: None,
+        stereo: None,
+    };
+    for (p_depth, kind) in [
+        (PFrameDepth::Poses, "carried"),
+        (PFrameDepth::Motion, "propagated"),
+    ] {
+        let prior = InOrder(depths.clone().into());
+        let mut depth = VideoDepth::Tracked(Box::new(
+            cpsl_pipeline::track::VideoTrackedDepth::new(Box::new(prior)),
+        ));
+        let out = dir.path().join(format!("layers-{kind}"));
+        let job = VideoJob {
+            p_depth,
+            ..job.clone()
+        };
+        let m = write_layered_video(&job, &mut depth, &out, &NoProgress).unwrap();
+        let kinds: Vec<&str> = m.frames.iter().map(|f| f.depth.as_str()).collect();
+        assert_eq!(kinds[0], "estimated");
+        assert!(kinds[1..].iter().all(|k| *k == kind), "{kinds:?}");
+        // The I-frame's note covers its P-frames.
+        assert!(m.frames[0].depth_note.is_some());
+        assert!(m.frames[1..].iter().all(|f| f.depth_note.is_none()));
+    }
 }

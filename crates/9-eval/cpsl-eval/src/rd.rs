@@ -25,6 +25,7 @@ use cpsl_core::{
 };
 use cpsl_layering::GeometryMode;
 use cpsl_package::Codec;
+use cpsl_pipeline::video::PFrameDepth;
 use cpsl_render::{CpuRenderer, DpsConfig, Filter, FrameLayers};
 use cpsl_temporal::{GopConfig, VideoLayerer};
 use serde::Serialize;
@@ -84,6 +85,10 @@ pub struct RdOptions {
     /// The fox's depth from the video itself (camera tracking, multi-view depth fused with
     /// FastDepth; [`crate::tracking::video_depth`]) instead of FastDepth alone.
     pub video_depth: bool,
+    /// Where CPSL's P-frames take their depth: carried along the motion, carried from the
+    /// I-frame by the tracked poses (the fox with depth from the video; along the motion
+    /// otherwise), or the clip's own depth of every frame.
+    pub p_depth: PFrameDepth,
 }
 
 /// Everything a run measured (the JSON of `cpsl eval-rd --json`).
@@ -209,6 +214,8 @@ struct Clip {
     rgb: Vec<Vec<u8>>,
     depth: Vec<Vec<f32>>,
     views: Vec<View>,
+    /// What carries an I-frame's depth to a P-frame by the camera's poses, where known.
+    carrier: Option<crate::video::DepthCarrier>,
 }
 
 /// A scored novel view.
@@ -267,6 +274,7 @@ fn ray_cast(a: &RdOptions, bars: &dyn Progress) -> Clip {
         rgb,
         depth,
         views,
+        carrier: None,
     }
 }
 
@@ -324,6 +332,7 @@ fn fox_clip(a: &RdOptions) -> Result<Clip> {
         rgb: f.frames,
         depth: f.depth,
         views,
+        carrier: f.carrier,
     })
 }
 
@@ -382,7 +391,7 @@ fn render_layers(frame: &FrameLayers, dps: bool, pose: &Pose, filter: Filter) ->
     img.over_fill()
 }
 
-/// CPSL: I/P propagation with exact depth on I-frames.
+/// CPSL: I/P propagation with the clip's depth on I-frames (P-frames as `a.p_depth` says).
 fn cpsl_layers(
     clip: &Clip,
     a: &RdOptions,
@@ -401,9 +410,22 @@ fn cpsl_layers(
         total: Some(clip.rgb.len() as u64),
     });
     let mut frames = Vec::with_capacity(clip.rgb.len());
+    let mut intra = 0;
     for (i, (rgb, depth)) in clip.rgb.iter().zip(&clip.depth).enumerate() {
         layerer.set_frames_left(Some(clip.rgb.len() - i));
-        let z = layerer.next_is_intra().then_some(depth.as_slice());
+        let carried = match (&clip.carrier, a.p_depth) {
+            _ if layerer.next_is_intra() => {
+                intra = i;
+                None
+            }
+            (Some(c), PFrameDepth::Poses) => c.carry(intra, &clip.depth[intra], i, rgb)?,
+            _ => None,
+        };
+        let z = match a.p_depth {
+            _ if i == intra => Some(depth.as_slice()),
+            PFrameDepth::Estimated => Some(depth.as_slice()),
+            _ => carried.as_deref(),
+        };
         frames.push(layerer.push(rgb, z).context_with(|| format!("frame {i}"))?);
         bars.event(ProgressEvent::Advance {
             stage,

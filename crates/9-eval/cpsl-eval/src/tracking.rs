@@ -256,6 +256,7 @@ pub fn video_depth(frames: &[Vec<u8>], camera: Camera, prior: &[Vec<f32>]) -> Re
             100.0 * share
         ),
         centres,
+        tracked,
     })
 }
 
@@ -267,6 +268,8 @@ pub struct VideoDepth {
     pub how: String,
     /// Per frame of the trajectory's largest world, its camera centre in the depth's units.
     pub centres: Vec<Option<cpsl_core::Vec3>>,
+    /// The tracked clip, which carries a frame's depth to another by their poses.
+    pub tracked: TrackedDepth,
 }
 
 /// Depth of the fox's frames scored at the 3-D points of an independent reconstruction.

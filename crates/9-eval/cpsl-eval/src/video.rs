@@ -336,6 +336,64 @@ pub struct Fox {
     pub depth: Vec<Vec<f32>>,
     /// Where the depth comes from.
     pub depth_name: String,
+    /// With depth from the video: what carries a frame's depth to another frame by the
+    /// tracked camera's poses, as `cpsl layer-video` gives its P-frames depth.
+    pub carrier: Option<DepthCarrier>,
+}
+
+/// Carries a fox frame's depth to another frame by the tracked camera's poses, the rest its
+/// FastDepth fitted to it ([`cpsl_track::TrackedDepth::carry_depth`]), as a P-frame of
+/// `cpsl layer-video` gets it ([`cpsl_pipeline::video::PFrameDepth::Poses`]): in the
+/// clip's units, unknown pixels filled as [`load_fox`] fills them.
+pub struct DepthCarrier {
+    tracked: cpsl_track::TrackedDepth,
+    /// Each frame's FastDepth.
+    prior: Vec<Vec<f32>>,
+    /// Clip units per unit of the tracked depth.
+    scale: f32,
+    camera: Camera,
+}
+
+impl DepthCarrier {
+    /// Frame `to`'s depth carried from frame `from`'s, `from_depth` (the clip's units);
+    /// `None` where the poses cannot carry it.
+    pub fn carry(
+        &self,
+        from: usize,
+        from_depth: &[f32],
+        to: usize,
+        rgb: &[u8],
+    ) -> Result<Option<Vec<f32>>> {
+        let size = (self.camera.width, self.camera.height);
+        let z: Vec<f32> = from_depth.iter().map(|v| v / self.scale).collect();
+        let Some(mut out) = self
+            .tracked
+            .carry_depth(from, &z, to, rgb, &self.prior[to], size)?
+        else {
+            return Ok(None);
+        };
+        fill_depth(&mut out, self.scale, size)?;
+        Ok(Some(out))
+    }
+}
+
+/// `z` times `k`, pixels without a positive depth given one from their neighbours (push-pull
+/// in inverse depth, as the layering fills them), so that every method sees the same depth.
+fn fill_depth(z: &mut [f32], k: f32, (w, h): (u32, u32)) -> Result<()> {
+    let known: Vec<f32> = z
+        .iter()
+        .map(|v| f32::from(u8::from(v.is_finite() && *v > 0.0)))
+        .collect();
+    let mut inv: Vec<f32> = z
+        .iter()
+        .zip(&known)
+        .map(|(v, &m)| if m > 0.0 { 1.0 / (v * k) } else { 0.0 })
+        .collect();
+    if !cpsl_core::fill::push_pull(&mut inv, &known, w as usize, h as usize, 1) {
+        return Err(EvalError::Invalid("fox: a frame without depth".into()));
+    }
+    z.iter_mut().zip(&inv).for_each(|(v, i)| *v = 1.0 / i);
+    Ok(())
 }
 
 /// The fox at `1/scale` of full size ([`Fox`]).
@@ -344,11 +402,11 @@ pub fn load_fox(data: &Path, scale: u32, from_video: bool) -> Result<Fox> {
     let camera = video.camera.scaled(1.0 / scale as f64);
     let (frames, mut depth, mut name) =
         estimate_frames(&video.files, camera, scale as usize, Some(&video.lens))?;
-    let mut path_scale = None;
+    let (mut path_scale, mut tracked) = (None, None);
     if from_video {
         let v = crate::tracking::video_depth(&frames, camera, &depth)?;
         path_scale = spread_ratio(&video.poses, &v.centres);
-        depth = v.depth;
+        tracked = Some((v.tracked, std::mem::replace(&mut depth, v.depth)));
         name = v.how;
     }
     // Depth from the video is in the units of its own camera path: the path's size against
@@ -368,19 +426,8 @@ pub fn load_fox(data: &Path, scale: u32, from_video: bool) -> Result<Fox> {
             (k, "object depth")
         }
     };
-    let (w, h) = (camera.width as usize, camera.height as usize);
     for z in &mut depth {
-        // Pixels the model gave no positive depth get one from their neighbours (in inverse
-        // depth, as the layering does), so that every method sees the same depth.
-        let known: Vec<f32> = z.iter().map(|v| v.is_finite() as u8 as f32).collect();
-        let mut inv: Vec<f32> = z
-            .iter()
-            .map(|v| if v.is_finite() { 1.0 / (v * k) } else { 0.0 })
-            .collect();
-        if !cpsl_core::fill::push_pull(&mut inv, &known, w, h, 1) {
-            return Err(EvalError::Invalid("fox: a frame without depth".into()));
-        }
-        z.iter_mut().zip(&inv).for_each(|(v, i)| *v = 1.0 / i);
+        fill_depth(z, k, (camera.width, camera.height))?;
     }
     Ok(Fox {
         video,
@@ -388,6 +435,12 @@ pub fn load_fox(data: &Path, scale: u32, from_video: bool) -> Result<Fox> {
         frames,
         depth,
         depth_name: format!("{name}, pose-scaled x{k:.3} ({how})"),
+        carrier: tracked.map(|(tracked, prior)| DepthCarrier {
+            tracked,
+            prior,
+            scale: k,
+            camera,
+        }),
     })
 }
 

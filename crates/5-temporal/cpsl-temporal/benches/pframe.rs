@@ -1,5 +1,6 @@
 //! Criterion benchmark of a P-frame at 1280x720 (motion given, as from the decoder's motion
-//! vectors; depth carried, as when depth inference is skipped on P-frames). The end-to-end
+//! vectors; depth carried, as when depth inference is skipped on P-frames, or given, as
+//! carried by the camera's poses). The end-to-end
 //! figures in BENCHMARKS.md come from `cpsl layer-video`; this tracks the P-frame per change,
 //! with the video default (slanted planes) and with mesh layers.
 #![allow(missing_docs)] // criterion_group! generates undocumented items
@@ -28,9 +29,17 @@ fn bench(c: &mut Criterion) {
         adaptive_refresh: false,
         ..GopConfig::default()
     };
-    for (name, geometry) in [
-        ("p_frame_720p_k6_pair", GeometryMode::VIDEO_DEFAULT),
-        ("p_frame_720p_k6_pair_mesh", GeometryMode::Mesh),
+    // With depth given on P-frames as well (`--p-depth poses`, the default with depth from
+    // the video): layer depths and surfaces refitted to it.
+    for (name, geometry, with_depth) in [
+        ("p_frame_720p_k6_pair", GeometryMode::VIDEO_DEFAULT, false),
+        ("p_frame_720p_k6_pair_mesh", GeometryMode::Mesh, false),
+        (
+            "p_frame_720p_k6_pair_depth",
+            GeometryMode::VIDEO_DEFAULT,
+            true,
+        ),
+        ("p_frame_720p_k6_pair_mesh_depth", GeometryMode::Mesh, true),
     ] {
         let mut cfg = LayeringConfig::default();
         cfg.matte.geometry = geometry;
@@ -41,8 +50,9 @@ fn bench(c: &mut Criterion) {
         c.bench_function(name, |b| {
             b.iter(|| {
                 for (view, motion) in [(&views[1], &there), (&views[0], &back)] {
+                    let depth = with_depth.then_some(view.depth.as_slice());
                     layerer
-                        .push_with_motion(&view.rgb, None, Some(motion.clone()))
+                        .push_with_motion(&view.rgb, depth, Some(motion.clone()))
                         .expect("P-frame");
                 }
             })

@@ -282,11 +282,10 @@ impl TrackedDepth {
     /// gave frame `from` (same size and units), carried to it by the two frames' poses
     /// ([`mvs::carry`], at the working resolution), what it does not reach (disoccluded, or
     /// outside `from`'s view) taken from the prior fitted to it ([`mvs::fuse`]). The carried
-    /// pixels count as confident. A few milliseconds against the hundreds of a multi-view
+    /// pixels count as confident. Tens of milliseconds against the hundreds of a multi-view
     /// pass: what a P-frame of a video gets, whose layers move with the picture. `None` when
     /// either frame is not placed, they lie in different worlds, the world has no scale yet
     /// (none of its frames fused) or too little lands.
-    #[allow(clippy::too_many_arguments)]
     pub fn carry_depth(
         &self,
         from: usize,

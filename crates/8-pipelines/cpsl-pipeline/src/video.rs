@@ -30,7 +30,7 @@ pub enum PFrameDepth {
     Motion,
     /// Where the depth source tracks the camera (depth from the video), the last I-frame's
     /// depth carried to the frame by the two cameras' poses, what it does not reach taken
-    /// from the monocular prior fitted to it; along the motion otherwise. A few
+    /// from the monocular prior fitted to it; along the motion otherwise. Tens of
     /// milliseconds and one run of the prior instead of a multi-view pass, and each layer's
     /// slanted plane or mesh then follows the camera.
     #[default]
@@ -150,7 +150,7 @@ pub fn layer_video(
             let z = depth
                 .depth(frame.index, &rgb, right.as_deref(), &cam)
                 .context_with(|| format!("depth of frame {}", frame.index))?;
-            if intra {
+            if intra && job.p_depth == PFrameDepth::Poses {
                 intra_depth = Some((frame.index, z.clone()));
             }
             (Some(z), depth.note().map(String::from))

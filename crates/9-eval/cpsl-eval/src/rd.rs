@@ -413,18 +413,20 @@ fn cpsl_layers(
     let mut intra = 0;
     for (i, (rgb, depth)) in clip.rgb.iter().zip(&clip.depth).enumerate() {
         layerer.set_frames_left(Some(clip.rgb.len() - i));
+        let is_intra = layerer.next_is_intra();
+        if is_intra {
+            intra = i;
+        }
         let carried = match (&clip.carrier, a.p_depth) {
-            _ if layerer.next_is_intra() => {
-                intra = i;
-                None
+            (Some(c), PFrameDepth::Poses) if !is_intra => {
+                c.carry(intra, &clip.depth[intra], i, rgb)?
             }
-            (Some(c), PFrameDepth::Poses) => c.carry(intra, &clip.depth[intra], i, rgb)?,
             _ => None,
         };
         let z = match a.p_depth {
-            _ if i == intra => Some(depth.as_slice()),
+            _ if is_intra => Some(depth.as_slice()),
             PFrameDepth::Estimated => Some(depth.as_slice()),
-            _ => carried.as_deref(),
+            PFrameDepth::Poses | PFrameDepth::Motion => carried.as_deref(),
         };
         frames.push(layerer.push(rgb, z).context_with(|| format!("frame {i}"))?);
         bars.event(ProgressEvent::Advance {

@@ -39,11 +39,13 @@ pub fn coded_size(width: u32, height: u32) -> (usize, usize) {
 /// Stacks a layer into its colour-over-alpha picture (`cw x 2ch`), replicating the last
 /// column/row where the layer size is odd.
 pub fn stack(img: &PremulImage) -> Yuv420 {
-    let (w, h) = (img.width() as usize, img.height() as usize);
+    let w = img.width() as usize;
     let px = img.as_bytes();
-    stack_with(img.width(), img.height(), |x, y| {
-        let o = (y.min(h - 1) * w + x.min(w - 1)) * 4;
-        [px[o], px[o + 1], px[o + 2], px[o + 3]]
+    stack_with(img.width(), img.height(), |y, row| {
+        let src = &px[y * w * 4..(y + 1) * w * 4];
+        for (d, s) in row.iter_mut().zip(src.chunks_exact(4)) {
+            *d = [s[0], s[1], s[2], s[3]];
+        }
     })
 }
 
@@ -55,9 +57,11 @@ pub fn stack_colour_grey(rgb: &[u8], grey: &[u8], width: u32, height: u32) -> Yu
         rgb.len() == w * h * 3 && grey.len() == w * h,
         "stack: plane sizes"
     );
-    stack_with(width, height, |x, y| {
-        let i = y.min(h - 1) * w + x.min(w - 1);
-        [rgb[i * 3], rgb[i * 3 + 1], rgb[i * 3 + 2], grey[i]]
+    stack_with(width, height, |y, row| {
+        let (rgb, grey) = (&rgb[y * w * 3..(y + 1) * w * 3], &grey[y * w..(y + 1) * w]);
+        for ((d, c), &g) in row.iter_mut().zip(rgb.chunks_exact(3)).zip(grey) {
+            *d = [c[0], c[1], c[2], g];
+        }
     })
 }
 
@@ -193,10 +197,15 @@ fn grey_luma(g: u8) -> u8 {
     (16 + (219 * u32::from(g) + 127) / 255) as u8
 }
 
-/// The stacking of [`stack`] with pixel `(x, y)` read as `[r, g, b, grey]` by `at`, rows of
-/// 2x2 blocks in parallel.
-fn stack_with(width: u32, height: u32, at: impl Fn(usize, usize) -> [u8; 4] + Sync) -> Yuv420 {
+/// Luma of black and of zero grey (limited range).
+const ZERO_LUMA: u8 = 16;
+
+/// The stacking of [`stack`] with row `y` of the image read as `[r, g, b, grey]` pixels by
+/// `row` (into the first `width` of a row of the coded width; the last pixel is then
+/// replicated where that is odd, as is the last row), rows of 2x2 blocks in parallel.
+fn stack_with(width: u32, height: u32, row: impl Fn(usize, &mut [[u8; 4]]) + Sync) -> Yuv420 {
     let (cw, ch) = coded_size(width, height);
+    let (w, h) = (width as usize, height as usize);
     let (pw, ph) = (cw, 2 * ch);
     let mut y_plane = vec![0u8; pw * ph];
     let mut u = vec![128u8; pw / 2 * ph / 2];
@@ -208,21 +217,47 @@ fn stack_with(width: u32, height: u32, at: impl Fn(usize, usize) -> [u8; 4] + Sy
         .zip(grey.par_chunks_mut(2 * pw))
         .zip(u.par_chunks_mut(pw / 2).zip(v.par_chunks_mut(pw / 2)))
         .enumerate()
-        .for_each(|(by, ((colour, grey), (u, v)))| {
-            for bx in 0..cw / 2 {
-                let mut sum = [0i32; 3];
-                for (dx, dy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
-                    let (x, y) = (2 * bx + dx, 2 * by + dy);
-                    let p = at(x, y);
-                    colour[dy * pw + x] = f.luma(p);
-                    grey[dy * pw + x] = grey_luma(p[3]);
-                    for c in 0..3 {
-                        sum[c] += i32::from(p[c]);
+        .for_each_init(
+            || vec![[0u8; 4]; 2 * cw],
+            |rows, (by, ((colour, grey), (u, v)))| {
+                let (r0, r1) = rows.split_at_mut(cw);
+                for (r, y) in [(&mut *r0, 2 * by), (&mut *r1, (2 * by + 1).min(h - 1))] {
+                    row(y, &mut r[..w]);
+                    if w < cw {
+                        r[w] = r[w - 1];
                     }
                 }
-                (u[bx], v[bx]) = f.chroma(sum);
-            }
-        });
+                let (c0, c1) = colour.split_at_mut(pw);
+                let (g0, g1) = grey.split_at_mut(pw);
+                let blocks = r0.chunks_exact(2).zip(r1.chunks_exact(2));
+                let luma = c0.chunks_exact_mut(2).zip(c1.chunks_exact_mut(2));
+                let alpha = g0.chunks_exact_mut(2).zip(g1.chunks_exact_mut(2));
+                let chroma = u.iter_mut().zip(v.iter_mut());
+                for ((((a, b), (la, lb)), (ga, gb)), (cu, cv)) in
+                    blocks.zip(luma).zip(alpha).zip(chroma)
+                {
+                    // A block that is all zero (transparent, most of a layer) keeps the
+                    // conversion of zero: the planes' initial values but for luma.
+                    if a == [[0; 4]; 2] && b == [[0; 4]; 2] {
+                        for l in [la, lb, ga, gb] {
+                            l.fill(ZERO_LUMA);
+                        }
+                        continue;
+                    }
+                    let mut sum = [0i32; 3];
+                    for (src, (l, g)) in [a, b].into_iter().zip([(la, ga), (lb, gb)]) {
+                        for (p, (l, g)) in src.iter().zip(l.iter_mut().zip(g.iter_mut())) {
+                            *l = f.luma(*p);
+                            *g = grey_luma(p[3]);
+                            for c in 0..3 {
+                                sum[c] += i32::from(p[c]);
+                            }
+                        }
+                    }
+                    (*cu, *cv) = f.chroma(sum);
+                }
+            },
+        );
     Yuv420 {
         width: pw,
         height: ph,
@@ -393,6 +428,53 @@ mod tests {
             }
         }
         assert!(worst <= 1, "{worst} levels off");
+    }
+
+    #[test]
+    fn transparent_blocks_take_the_conversion_of_zero() {
+        // 2x2 blocks all transparent, one pixel transparent, none; the picture is the same as
+        // the conversion of each pixel gives.
+        let (w, h) = (6u32, 4u32);
+        let data: Vec<u8> = (0..w * h)
+            .flat_map(|i| {
+                let (x, y) = (i % w, i / w);
+                let clear = match x / 2 {
+                    0 => true,
+                    1 => (x, y) == (2, 0),
+                    _ => false,
+                };
+                if clear {
+                    [0; 4]
+                } else {
+                    [40, 90, 200, 255]
+                }
+            })
+            .collect();
+        let p = stack(&PremulImage::from_premul(w, h, data.clone()).unwrap());
+        let f = &FORWARD;
+        let px = |x: usize, y: usize| {
+            let o = (y * w as usize + x) * 4;
+            [data[o], data[o + 1], data[o + 2], data[o + 3]]
+        };
+        let ch = p.height / 2;
+        for y in 0..ch {
+            for x in 0..p.width {
+                assert_eq!(p.y[y * p.width + x], f.luma(px(x, y)));
+                assert_eq!(p.y[(y + ch) * p.width + x], grey_luma(px(x, y)[3]));
+            }
+        }
+        for by in 0..ch / 2 {
+            for bx in 0..p.width / 2 {
+                let mut sum = [0i32; 3];
+                for (dx, dy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+                    let q = px(2 * bx + dx, 2 * by + dy);
+                    (0..3).for_each(|c| sum[c] += i32::from(q[c]));
+                }
+                let i = by * p.width / 2 + bx;
+                assert_eq!((p.u[i], p.v[i]), f.chroma(sum));
+            }
+        }
+        assert_eq!(p.y[0], ZERO_LUMA);
     }
 
     #[test]

@@ -54,10 +54,10 @@ pub struct EvalRdArgs {
     /// Number of CPSL layers K.
     #[arg(long, default_value_t = 6, value_parser = clap::value_parser!(u32).range(2..=16))]
     pub layers: u32,
-    /// Layer surfaces: `plane` (the paper's fronto-parallel planes; the default for video),
-    /// `slanted` (a plane fitted to each layer's depth where it fits clearly better) or `mesh`
-    /// (a depth mesh or a slanted plane where either fits clearly better; the default for
-    /// single images). Overrides the configuration file's.
+    /// Layer surfaces: `plane` (the paper's fronto-parallel planes), `slanted` (a plane fitted
+    /// to each layer's depth where it fits clearly better; the default for video) or `mesh` (a
+    /// depth mesh or a slanted plane where either fits clearly better; the default for single
+    /// images). Overrides the configuration file's.
     #[arg(long)]
     pub geometry: Option<GeometryMode>,
     /// Planes of the MPI baseline.

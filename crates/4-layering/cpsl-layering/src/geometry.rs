@@ -28,15 +28,15 @@ pub enum GeometryMode {
 
 impl GeometryMode {
     /// The default for video (`layer-video`, `encode`, `demo`'s clip, `eval-video`,
-    /// `eval-rd`): the paper's planes. Measured on the 1080p `cpsl eval-rd` clip (exact
-    /// depth, views filled, 0.5 to 6 Mbit/s), meshes lead uncompressed (28.90 against 28.48 dB)
-    /// and at 6 Mbit/s but trail by 0.2 to 1.8 dB from 0.5 to 3 Mbit/s, where their grids,
-    /// even coarsened, take bits from the pictures (EVALUATION.md); on the fox (depth from the
-    /// video) meshes led on 2026-11-27. Re-run on 2026-11-29 (P-frames carrying their
-    /// surfaces along the layers' maps): meshes lead the synthetic clip from 2 Mbit/s up and
-    /// trail below, and trail the planes on the fox by about 1 dB, so planes stay. Single
-    /// images default to meshes ([`GeometryMode::default`]).
-    pub const VIDEO_DEFAULT: Self = Self::Plane;
+    /// `eval-rd`): slanted planes (since 2026-11-29; the paper's planes before). On the fox
+    /// (depth from the video, P-frames' depth carried by the camera's poses, `cpsl eval-rd
+    /// --clip fox`, every view scored) they lead the planes by 0.6 dB uncompressed and 0.2 to
+    /// 0.5 dB from 1 to 6 Mbit/s, trailing by 0.16 dB at 0.5 Mbit/s, and the meshes by 0.2 to
+    /// 0.7 dB under every budget (meshes lead uncompressed by 0.1 dB, their grids take bits
+    /// from the pictures); on the 1080p synthetic clip (exact depth) the three kinds of plane
+    /// score within 0.05 dB of each other at every rate (EVALUATION.md). Single images
+    /// default to meshes ([`GeometryMode::default`]).
+    pub const VIDEO_DEFAULT: Self = Self::Slanted;
 
     /// The mode's name as the command line writes it.
     pub fn name(self) -> &'static str {

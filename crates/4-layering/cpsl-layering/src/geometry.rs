@@ -30,12 +30,12 @@ impl GeometryMode {
     /// The default for video (`layer-video`, `encode`, `demo`'s clip, `eval-video`,
     /// `eval-rd`): slanted planes (since 2026-11-29; the paper's planes before). On the fox
     /// (depth from the video, P-frames' depth carried by the camera's poses, `cpsl eval-rd
-    /// --clip fox`, every view scored) they lead the planes by 0.6 dB uncompressed and 0.2 to
-    /// 0.5 dB from 1 to 6 Mbit/s, trailing by 0.16 dB at 0.5 Mbit/s, and the meshes by 0.2 to
-    /// 0.7 dB under every budget (meshes lead uncompressed by 0.1 dB, their grids take bits
-    /// from the pictures); on the 1080p synthetic clip (exact depth) the three kinds of plane
-    /// score within 0.05 dB of each other at every rate (EVALUATION.md). Single images
-    /// default to meshes ([`GeometryMode::default`]).
+    /// --clip fox`, every view scored) they lead the planes by 0.6 dB uncompressed and 0.16 to
+    /// 0.53 dB from 1 to 6 Mbit/s, trailing by 0.16 dB at 0.5 Mbit/s, and the meshes by 0.18
+    /// to 0.74 dB under every budget (meshes lead uncompressed by 0.1 dB, their grids take
+    /// bits from the pictures); on the 1080p synthetic clip (exact depth) slanted and
+    /// fronto-parallel planes score within 0.05 dB of each other at every rate
+    /// (EVALUATION.md). Single images default to meshes ([`GeometryMode::default`]).
     pub const VIDEO_DEFAULT: Self = Self::Slanted;
 
     /// The mode's name as the command line writes it.

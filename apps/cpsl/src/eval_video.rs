@@ -54,11 +54,8 @@ pub struct EvalVideoArgs {
     /// Number of layers K.
     #[arg(long, default_value_t = 6)]
     pub layers: usize,
-    /// Layer surfaces: `plane` (the paper's fronto-parallel planes), `slanted` (a plane fitted
-    /// to each layer's depth where it fits clearly better; the default for video) or `mesh` (a
-    /// depth mesh or a slanted plane where either fits clearly better; the default for single
-    /// images). Overrides the configuration file's.
-    #[arg(long)]
+    /// Layer surfaces: `plane`, `slanted` (video's default) or `mesh` (single images').
+    #[arg(long, long_help = crate::util::GEOMETRY_HELP)]
     pub geometry: Option<GeometryMode>,
     /// How the CPU renderer resamples the layers for the novel views: `cubic` (Catmull-Rom,
     /// sharper, as `cpsl render`) or `bilinear` (the players' real-time default).

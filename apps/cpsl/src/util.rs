@@ -20,6 +20,12 @@ impl From<FilterArg> for cpsl_render::Filter {
     }
 }
 
+/// The long help of `--geometry`, shared by every command that layers.
+pub const GEOMETRY_HELP: &str = "Layer surfaces: `plane` (the paper's fronto-parallel planes), \
+`slanted` (a plane fitted to each layer's depth where it fits clearly better; the default for \
+video) or `mesh` (a depth mesh or a slanted plane where either fits clearly better; the \
+default for single images). Overrides the configuration file's.";
+
 /// Parses `R,G,B` (0-255 each).
 pub fn parse_rgb(s: &str) -> Result<[u8; 3], String> {
     let v: Vec<u8> = s

@@ -111,11 +111,8 @@ pub struct VideoLayeringArgs {
     /// Target number of layers K.
     #[arg(long, default_value_t = 6, value_parser = clap::value_parser!(u32).range(2..=16))]
     pub layers: u32,
-    /// Layer surfaces: `plane` (the paper's fronto-parallel planes), `slanted` (a plane fitted
-    /// to each layer's depth where it fits clearly better; the default for video) or `mesh` (a
-    /// depth mesh or a slanted plane where either fits clearly better; the default for single
-    /// images). Overrides the configuration file's.
-    #[arg(long)]
+    /// Layer surfaces: `plane`, `slanted` (video's default) or `mesh` (single images').
+    #[arg(long, long_help = crate::util::GEOMETRY_HELP)]
     pub geometry: Option<GeometryMode>,
     /// Where depth comes from: `video` (the default: the video itself; the camera is tracked
     /// through the whole input first, then each frame's depth is triangulated from its four

@@ -273,21 +273,25 @@ pub fn unstack(p: &Yuv420, width: u32, height: u32) -> PremulImage {
     let w = width as usize;
     let mut img = PremulImage::new(width, height);
     let t = tables();
-    for (y, out) in img.as_bytes_mut().chunks_exact_mut(w * 4).enumerate() {
-        let (luma, grey, u, v) = rows_of(p, y, w);
-        // Two pixels share a chroma sample. A transparent pair stays zero (most of a layer).
-        for (x, px) in out.chunks_mut(8).enumerate() {
-            let a = [2 * x, (2 * x + 1).min(w - 1)].map(|i| t.grey[grey[i] as usize]);
-            if a == [0, 0] {
-                continue;
+    img.as_bytes_mut()
+        .par_chunks_exact_mut(w * 4)
+        .enumerate()
+        .for_each(|(y, out)| {
+            let (luma, grey, u, v) = rows_of(p, y, w);
+            // Two pixels share a chroma sample (the last one alone where the width is odd).
+            let pairs = out.chunks_mut(8).zip(luma.chunks(2)).zip(grey.chunks(2));
+            for (((px, l), g), (&cb, &cr)) in pairs.zip(u.iter().zip(v)) {
+                // A transparent pair stays zero (most of a layer).
+                if g.iter().all(|&g| t.grey[g as usize] == 0) {
+                    continue;
+                }
+                let chroma = t.rgb.chroma(cb, cr);
+                for ((px, &l), &g) in px.chunks_exact_mut(4).zip(l).zip(g) {
+                    let (c, a) = (t.rgb.rgb_with(l, chroma), t.grey[g as usize]);
+                    px.copy_from_slice(&[c[0].min(a), c[1].min(a), c[2].min(a), a]);
+                }
             }
-            let chroma = t.rgb.chroma(u[x], v[x]);
-            for (k, px) in px.chunks_exact_mut(4).enumerate() {
-                let (c, a) = (t.rgb.rgb_with(luma[2 * x + k], chroma), a[k]);
-                px.copy_from_slice(&[c[0].min(a), c[1].min(a), c[2].min(a), a]);
-            }
-        }
-    }
+        });
     img
 }
 

@@ -724,9 +724,20 @@ mod tests {
 pub(crate) struct LogDepth {
     /// `ln z_k`.
     lz: f32,
-    /// The surface's log depth per pixel, for a slanted or mesh layer.
-    map: Option<Vec<f32>>,
-    width: usize,
+    surface: Surface,
+}
+
+/// Where a layer's log depth varies over the image.
+#[derive(Clone, Debug)]
+enum Surface {
+    /// Fronto-parallel: `ln z_k` everywhere.
+    Flat,
+    /// A slanted plane's inverse depth `a x + b y + c`, its logarithm taken where asked for
+    /// (the agreement test asks at a layer's own pixels and around its boundary: a full map per
+    /// layer cost a P-frame more than the test itself).
+    Plane([f64; 3]),
+    /// A mesh's log depth per pixel, row after row `width` long.
+    Map { log: Vec<f32>, width: usize },
 }
 
 impl LogDepth {
@@ -738,19 +749,10 @@ impl LogDepth {
             .par_iter()
             .map(|l| Self {
                 lz: l.depth.ln() as f32,
-                width: w as usize,
-                map: match &l.geometry {
-                    cpsl_core::Geometry::Plane => None,
+                surface: match &l.geometry {
+                    cpsl_core::Geometry::Plane => Surface::Flat,
                     g @ cpsl_core::Geometry::Slanted(_) => {
-                        let [a, b, c] = g.pixel_plane(l.depth, cam).expect("a plane");
-                        Some(
-                            (0..h)
-                                .flat_map(|y| (0..w).map(move |x| (x, y)))
-                                .map(|(x, y)| {
-                                    -((a * x as f64 + b * y as f64 + c).max(1e-12) as f32).ln()
-                                })
-                                .collect(),
-                        )
+                        Surface::Plane(g.pixel_plane(l.depth, cam).expect("a plane"))
                     }
                     cpsl_core::Geometry::Mesh(g) => {
                         // Log depth interpolated over each triangle from its vertices' (a
@@ -760,7 +762,10 @@ impl LogDepth {
                         log.inverse_depth
                             .iter_mut()
                             .for_each(|v| *v = -v.max(1e-12).ln());
-                        Some(log.inverse_depth_map(w, h))
+                        Surface::Map {
+                            log: log.inverse_depth_map(w, h),
+                            width: w as usize,
+                        }
                     }
                 },
             })
@@ -775,9 +780,12 @@ impl LogDepth {
     /// `ln z` of the layer's surface at pixel `(x, y)`.
     #[inline]
     pub(crate) fn at(&self, x: usize, y: usize) -> f32 {
-        match &self.map {
-            None => self.lz,
-            Some(m) => m[y * self.width + x],
+        match &self.surface {
+            Surface::Flat => self.lz,
+            Surface::Plane([a, b, c]) => {
+                -((a * x as f64 + b * y as f64 + c).max(1e-12) as f32).ln()
+            }
+            Surface::Map { log, width } => log[y * width + x],
         }
     }
 }

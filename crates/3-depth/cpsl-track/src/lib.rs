@@ -40,6 +40,7 @@
 
 mod ba;
 mod fused;
+pub mod hamming;
 pub mod mvs;
 mod reloc;
 
@@ -51,7 +52,7 @@ pub use opencv::core::Mat;
 use cpsl_core::{Camera, Mat3, Pose, Vec3};
 use opencv::core::{self, Point2f, Scalar, Size, TermCriteria, Vector};
 use opencv::prelude::*;
-use opencv::{calib3d, features2d, imgproc, video};
+use opencv::{calib3d, imgproc, video};
 use std::collections::HashMap;
 use thiserror::Error;
 
@@ -540,13 +541,13 @@ fn matches(a: &reloc::Features, b: &reloc::Features) -> Result<Vec<(Point2f, Poi
     if a.points.len() < 8 || b.points.len() < 8 {
         return Ok(Vec::new());
     }
-    let matcher = features2d::BFMatcher::create(core::NORM_HAMMING, true)?;
-    let mut m = Vector::new();
-    matcher.train_match(&a.desc, &b.desc, &mut m, &core::no_array())?;
     let (mut pa, mut pb): (Vector<Point2f>, Vector<Point2f>) = (Vector::new(), Vector::new());
-    for d in m.iter().filter(|d| d.distance <= 64.0) {
-        pa.push(a.points[d.query_idx as usize]);
-        pb.push(b.points[d.train_idx as usize]);
+    for (i, j, _) in hamming::mutual(&a.desc, &b.desc)
+        .into_iter()
+        .filter(|m| m.2 <= 64)
+    {
+        pa.push(a.points[i]);
+        pb.push(b.points[j]);
     }
     if pa.len() < 15 {
         return Ok(Vec::new());

@@ -15,6 +15,7 @@
 //! - *Placing* ([`place_frames`]). A frame left unplaced is matched with the map points of
 //!   the nearest placed frames and placed by PnP (RANSAC) in their world.
 
+use crate::hamming::{self, Descriptor};
 use crate::{camera_matrix, mat3, pnp, rotation_deg, triangulate, vec3, Result, Trajectory};
 use cpsl_core::{Camera, Mat3, Pose, Vec3};
 use opencv::core::{self, Point2f, Vector};
@@ -22,10 +23,10 @@ use opencv::features2d;
 use opencv::prelude::*;
 use std::collections::HashMap;
 
-/// ORB features of a frame: positions (working pixels) and descriptors, one row each.
+/// ORB features of a frame: positions (working pixels) and descriptors, one each.
 pub(crate) struct Features {
     pub(crate) points: Vec<Point2f>,
-    pub(crate) desc: Mat,
+    pub(crate) desc: Vec<Descriptor>,
 }
 
 /// Most ORB features kept per frame for relocalisation (40 KB a frame).
@@ -50,27 +51,22 @@ pub(crate) fn features(grey: &Mat, count: i32) -> Result<Features> {
     orb.detect_and_compute(grey, &core::no_array(), &mut kp, &mut desc, false)?;
     Ok(Features {
         points: kp.iter().map(|k| k.pt()).collect(),
-        desc,
+        desc: hamming::descriptors(&desc)?,
     })
 }
 
-/// Nearest-neighbour matches from the descriptor rows of `a` to those of `b` that pass the
-/// ratio test (the second nearest at least 1/0.8 as far) and are at most 64 bits apart.
-pub(crate) fn matches(a: &Mat, b: &Mat) -> Result<Vec<(usize, usize)>> {
-    if a.rows() < 2 || b.rows() < 2 {
-        return Ok(Vec::new());
+/// Nearest-neighbour matches from the descriptors `a` to those of `b` that pass the ratio
+/// test (the second nearest at least 1/0.8 as far) and are at most 64 bits apart.
+pub(crate) fn matches(a: &[Descriptor], b: &[Descriptor]) -> Vec<(usize, usize)> {
+    if a.len() < 2 || b.len() < 2 {
+        return Vec::new();
     }
-    let matcher = features2d::BFMatcher::create(core::NORM_HAMMING, false)?;
-    let mut knn = Vector::<Vector<core::DMatch>>::new();
-    matcher.knn_train_match(a, b, &mut knn, 2, &core::no_array(), false)?;
-    let mut out = Vec::new();
-    for m in knn.iter().filter(|m| m.len() == 2) {
-        let (x, y) = (m.get(0)?, m.get(1)?);
-        if x.distance <= 64.0 && x.distance < 0.8 * y.distance {
-            out.push((x.query_idx as usize, x.train_idx as usize));
-        }
-    }
-    Ok(out)
+    hamming::nearest_two(a, b)
+        .iter()
+        .enumerate()
+        .filter(|(_, [x, y])| x.0 <= 64 && (x.0 as f32) < 0.8 * y.0 as f32)
+        .map(|(i, [x, _])| (i, x.1 as usize))
+        .collect()
 }
 
 /// Partner frames a frame's map points are triangulated with, each giving at least
@@ -90,8 +86,8 @@ const MAP_TURN_DEG: f64 = 20.0;
 /// A placed frame's features with 3-D points (its world's).
 struct MapPoints {
     points: Vec<Vec3>,
-    /// Their descriptors, one row each.
-    desc: Mat,
+    /// Their descriptors, one each.
+    desc: Vec<Descriptor>,
 }
 
 /// Map points of the placed frames, built when first asked for.
@@ -143,7 +139,7 @@ impl<'a> Maps<'a> {
             for &(g, pg) in partners.iter().take(MAP_TRIES) {
                 let fg = &self.features[g];
                 let before = points.len();
-                for (i, j) in matches(&ff.desc, &fg.desc)? {
+                for (i, j) in matches(&ff.desc, &fg.desc) {
                     if taken[i] {
                         continue;
                     }
@@ -162,14 +158,7 @@ impl<'a> Maps<'a> {
                 }
             }
         }
-        let mut desc = Mat::default();
-        let mut rows = Vector::<Mat>::new();
-        for &i in &feature {
-            rows.push(ff.desc.row(i as i32)?.try_clone()?);
-        }
-        if !rows.is_empty() {
-            core::vconcat(&rows, &mut desc)?;
-        }
+        let desc = feature.iter().map(|&i| ff.desc[i]).collect();
         Ok(MapPoints { points, desc })
     }
 }
@@ -348,7 +337,7 @@ pub(crate) fn tie_segments(
                 maps.get(t, a)?;
                 maps.get(t, b)?;
                 let (ma, mb) = (&maps.built[&a], &maps.built[&b]);
-                let m = matches(&ma.desc, &mb.desc)?;
+                let m = matches(&ma.desc, &mb.desc);
                 if m.is_empty() {
                     continue;
                 }
@@ -427,7 +416,7 @@ pub(crate) fn place_frames(
                 let list = by_world
                     .entry(t.world[g])
                     .or_insert_with(|| (vec![false; ff.points.len()], Vec::new()));
-                for (i, j) in matches(&ff.desc, &m.desc)? {
+                for (i, j) in matches(&ff.desc, &m.desc) {
                     if !list.0[i] {
                         list.0[i] = true;
                         list.1.push((g, ff.points[i], m.points[j]));

@@ -12,6 +12,7 @@ use crate::images;
 use cpsl_core::{
     Edc, Geometry, Layer, LayerEntry, LayerSet, Limits, Manifest, PremulImage, FORMAT_NAME,
 };
+use rayon::prelude::*;
 use std::path::Path;
 
 /// Name of the manifest inside a layer-set folder.
@@ -194,20 +195,29 @@ fn write_inner(
     let stage = Staged::folder(dir, is_layer_set_dir)?;
     let manifest = manifest_for(set);
     let (w, h) = (set.camera().width, set.camera().height);
-    for (written, (entry, layer)) in manifest.layers.iter().zip(set.layers()).enumerate() {
+    // The layers are compressed in parallel (most of the time a layer set takes to write),
+    // then written in order.
+    let pngs = manifest
+        .layers
+        .par_iter()
+        .zip(set.layers().par_iter())
+        .map(|(entry, layer)| {
+            images::encode_png(w, h, 4, &layer.image.to_straight()).map_err(|message| {
+                IoError::Image {
+                    path: dir.join(&entry.file),
+                    message,
+                }
+            })
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    for (written, (entry, png)) in manifest.layers.iter().zip(&pngs).enumerate() {
         if fail_after == Some(written) {
             return Err(IoError::io(
                 stage.path(),
                 std::io::Error::other("injected failure"),
             ));
         }
-        let png = images::encode_png(w, h, 4, &layer.image.to_straight()).map_err(|message| {
-            IoError::Image {
-                path: dir.join(&entry.file),
-                message,
-            }
-        })?;
-        stage.write_file(&entry.file, &png)?;
+        stage.write_file(&entry.file, png)?;
     }
     for (name, bytes) in extras {
         stage.write_file(name, bytes)?;

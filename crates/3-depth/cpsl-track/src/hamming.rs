@@ -1,9 +1,10 @@
 //! Brute-force matching of ORB descriptors (256 bits) by Hamming distance, as OpenCV's
 //! `BFMatcher` with `NORM_HAMMING` matches them (the same neighbours, ties to the lower
 //! index; its cross check is [`mutual`]), with the distance taken by the CPU's `popcnt` where
-//! it has one. OpenCV's matcher took 8 % of `layer-video`'s cycles on the fox
-//! (relocalisation); this one takes a ninth of its time (`cargo bench -p cpsl-track --bench
-//! matching`: 0.78 against 7.05 ms for 1000 against 1000 descriptors on two cores).
+//! it has one. OpenCV's matcher (its thread pool's waiting included) took about 40 % of `cpsl
+//! track`'s cycles on the fox, mostly relocalisation's; this one takes a ninth of its time
+//! (`cargo bench -p cpsl-track --bench matching`: 0.78 against 7.05 ms for 1000 against 1000
+//! descriptors on two cores).
 #![allow(unsafe_code)]
 
 use crate::Result;

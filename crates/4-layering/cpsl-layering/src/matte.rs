@@ -291,11 +291,10 @@ pub fn build_layers(
             Some((r, distance(&inside, rw, r.height())))
         })
         .collect();
-    let dist = |l: usize, p: usize| -> f32 {
+    let dist = |l: usize, x: usize, y: usize| -> f32 {
         let Some((r, d)) = &dists[l] else {
             return f32::INFINITY;
         };
-        let (x, y) = (p % w, p / w);
         if x < r.x0 || x >= r.x1 || y < r.y0 || y >= r.y1 {
             return f32::INFINITY;
         }
@@ -312,21 +311,26 @@ pub fn build_layers(
             if back {
                 alpha.fill(1.0);
             } else if let Some((r, di)) = &dists[i] {
-                for (q, &d) in di.iter().enumerate() {
-                    let p = (q / r.width() + r.y0) * w + q % r.width() + r.x0;
-                    let o = owner[p] as usize;
-                    let ramp = |excess: f32| (1.0 - excess / (wf[p] + 1.0)).clamp(0.0, 1.0);
-                    alpha[p] = if o == i {
-                        1.0
-                    } else if o > i {
-                        ramp(d)
-                    } else {
-                        // Behind a nearer layer: extend only where this layer is the one
-                        // nearest the occluder's pixel among the layers behind it, so a layer
-                        // never shows through where another surface borders the occluder.
-                        let nearest = (o + 1..k).map(|l| dist(l, p)).fold(f32::INFINITY, f32::min);
-                        ramp((d - margin).max(0.0)).min((1.0 - (d - nearest)).clamp(0.0, 1.0))
-                    };
+                for (y, drow) in (r.y0..).zip(di.chunks_exact(r.width())) {
+                    for (x, &d) in (r.x0..).zip(drow) {
+                        let p = y * w + x;
+                        let o = owner[p] as usize;
+                        let ramp = |excess: f32| (1.0 - excess / (wf[p] + 1.0)).clamp(0.0, 1.0);
+                        alpha[p] = if o == i {
+                            1.0
+                        } else if o > i {
+                            ramp(d)
+                        } else {
+                            // Behind a nearer layer: extend only where this layer is the one
+                            // nearest the occluder's pixel among the layers behind it, so a
+                            // layer never shows through where another surface borders the
+                            // occluder.
+                            let nearest = (o + 1..k)
+                                .map(|l| dist(l, x, y))
+                                .fold(f32::INFINITY, f32::min);
+                            ramp((d - margin).max(0.0)).min((1.0 - (d - nearest)).clamp(0.0, 1.0))
+                        };
+                    }
                 }
             }
             // Colour: the input where visible at the reference view, filled behind nearer

@@ -81,7 +81,8 @@ unsafe fn nearest_two_of_popcnt(q: &Descriptor, train: &[Descriptor]) -> [(u32, 
     nearest_two_of(q, train)
 }
 
-/// For each of `query`, the two nearest of `train` (see [`nearest_two_of`]).
+/// For each of `query`, the two nearest of `train` as (distance, index), nearest first, ties
+/// to the lower index; [`NONE`] where `train` has fewer than two.
 pub fn nearest_two(query: &[Descriptor], train: &[Descriptor]) -> Vec<[(u32, u32); 2]> {
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("popcnt") {

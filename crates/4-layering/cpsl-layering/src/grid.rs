@@ -61,7 +61,7 @@ pub fn downsample(
 
 /// Euclidean distance from every pixel to the nearest pixel where `inside` is true (0 on
 /// those pixels, infinite when none is), by the exact separable transform of Felzenszwalb
-/// and Huttenlocher: columns, then rows, each band of [`BAND`] lines in parallel and read a
+/// and Huttenlocher: columns, then rows, each band of `BAND` (16) lines in parallel and read a
 /// cache line at a time (the columns' squared distances are kept transposed in between).
 pub fn distance(inside: &[bool], w: usize, h: usize) -> Vec<f32> {
     use rayon::prelude::*;

@@ -230,66 +230,21 @@ pub fn components(
 mod tests {
     use super::*;
 
-    /// The transform as it was written before the bands (column strides, one line at a time).
+    /// The transform one line at a time in place, columns read with a stride, every line
+    /// through the envelope (as it was written before the bands).
     fn reference_distance(inside: &[bool], w: usize, h: usize) -> Vec<f32> {
         const INF: f32 = 1e20;
         let mut g: Vec<f32> = inside.iter().map(|&b| if b { 0.0 } else { INF }).collect();
-        let mut f = vec![0f32; w.max(h)];
         let mut d = vec![0f32; w.max(h)];
-        let mut v = vec![0usize; w.max(h)];
-        let mut z = vec![0f32; w.max(h) + 1];
-        let mut line =
-            |len: usize, get: &mut dyn FnMut(usize) -> f32, f: &mut [f32], d: &mut [f32]| {
-                for (i, fi) in f.iter_mut().enumerate().take(len) {
-                    *fi = get(i);
-                }
-                let mut k = 0;
-                v[0] = 0;
-                z[0] = f32::NEG_INFINITY;
-                z[1] = f32::INFINITY;
-                for q in 1..len {
-                    loop {
-                        let p = v[k];
-                        let s = ((f[q] + (q * q) as f32) - (f[p] + (p * p) as f32))
-                            / (2 * q - 2 * p) as f32;
-                        if s <= z[k] && k > 0 {
-                            k -= 1;
-                            continue;
-                        }
-                        if s <= z[k] {
-                            // k == 0: replace the first parabola.
-                            v[0] = q;
-                            z[0] = f32::NEG_INFINITY;
-                            z[1] = f32::INFINITY;
-                        } else {
-                            k += 1;
-                            v[k] = q;
-                            z[k] = s;
-                            z[k + 1] = f32::INFINITY;
-                        }
-                        break;
-                    }
-                }
-                k = 0;
-                for (q, dq) in d.iter_mut().enumerate().take(len) {
-                    while z[k + 1] < q as f32 {
-                        k += 1;
-                    }
-                    let p = v[k];
-                    *dq = (q as f32 - p as f32).powi(2) + f[p];
-                }
-            };
+        let mut lower = Lower::new(w.max(h));
         for x in 0..w {
-            line(h, &mut |y| g[y * w + x], &mut f, &mut d);
-            for y in 0..h {
-                g[y * w + x] = d[y];
-            }
+            let f: Vec<f32> = (0..h).map(|y| g[y * w + x]).collect();
+            lower.envelope(&f, &mut d[..h]);
+            (0..h).for_each(|y| g[y * w + x] = d[y]);
         }
-        for y in 0..h {
-            line(w, &mut |x| g[y * w + x], &mut f, &mut d);
-            for x in 0..w {
-                g[y * w + x] = d[x];
-            }
+        for row in g.chunks_exact_mut(w.max(1)) {
+            lower.envelope(row, &mut d[..w]);
+            row.copy_from_slice(&d[..w]);
         }
         g.iter()
             .map(|&s| {

@@ -157,16 +157,32 @@ struct Rect {
 }
 
 impl Rect {
+    /// The whole `w x h` image.
+    fn all(w: usize, h: usize) -> Self {
+        Rect {
+            x0: 0,
+            y0: 0,
+            x1: w,
+            y1: h,
+        }
+    }
+
     /// The bounding box of the pixels where `f` holds, if any.
     fn bounding(w: usize, h: usize, f: impl Fn(usize) -> bool) -> Option<Self> {
+        Self::all(w, h).bounding_in(w, f)
+    }
+
+    /// The bounding box of the pixels of `self` (in an image `w` wide) where `f` holds, if
+    /// any.
+    fn bounding_in(self, w: usize, f: impl Fn(usize) -> bool) -> Option<Self> {
         let mut r = Rect {
-            x0: w,
-            y0: h,
+            x0: self.x1,
+            y0: self.y1,
             x1: 0,
             y1: 0,
         };
-        for y in 0..h {
-            for x in 0..w {
+        for y in self.y0..self.y1 {
+            for x in self.x0..self.x1 {
                 if f(y * w + x) {
                     r = Rect {
                         x0: r.x0.min(x),
@@ -333,35 +349,40 @@ pub fn build_layers(
                     }
                 }
             }
+            // Where alpha can be above zero: everywhere on the back layer, within the box of
+            // the distances elsewhere (and nowhere for a layer without pixels).
+            let reach_box = if back {
+                Some(Rect::all(w, h))
+            } else {
+                dists[i].as_ref().map(|(r, _)| *r)
+            };
             // Colour: the input where visible at the reference view, filled behind nearer
             // layers from the layer's own pixels.
             let mut col = rgb.to_vec();
             let hidden = |p: usize| (owner[p] as usize) < i && alpha[p] > 0.0;
-            if let Some(r) = Rect::bounding(w, h, hidden) {
+            if let Some(r) = reach_box.and_then(|b| b.bounding_in(w, hidden)) {
                 let pad = (margin.ceil() as usize + 2).max(8);
                 let near = r.grow(pad, w, h);
                 if !fill_half(&mut col, w, near, own, hidden) {
                     // No own pixel near: fill from the whole layer.
-                    let all = Rect {
-                        x0: 0,
-                        y0: 0,
-                        x1: w,
-                        y1: h,
-                    };
-                    fill_half(&mut col, w, all, own, hidden);
+                    fill_half(&mut col, w, Rect::all(w, h), own, hidden);
                 }
             }
             let mut data = vec![0u8; w * h * 4];
-            for p in 0..w * h {
-                let a = alpha[p];
-                if a <= 0.0 {
-                    continue;
+            if let Some(r) = reach_box {
+                for y in r.y0..r.y1 {
+                    for p in y * w + r.x0..y * w + r.x1 {
+                        let a = alpha[p];
+                        if a <= 0.0 {
+                            continue;
+                        }
+                        let a8 = (a * 255.0).round() as u8;
+                        for c in 0..3 {
+                            data[p * 4 + c] = cpsl_core::image::premultiply(col[p * 3 + c], a8);
+                        }
+                        data[p * 4 + 3] = a8;
+                    }
                 }
-                let a8 = (a * 255.0).round() as u8;
-                for c in 0..3 {
-                    data[p * 4 + c] = cpsl_core::image::premultiply(col[p * 3 + c], a8);
-                }
-                data[p * 4 + 3] = a8;
             }
             let mut zs = per[i].clone();
             let m = zs.len() / 2;
@@ -372,8 +393,9 @@ pub fn build_layers(
             } else {
                 *zs.select_nth_unstable_by(m, f32::total_cmp).1 as f64
             };
-            let extent =
-                Rect::bounding(w, h, |p| alpha[p] > 0.0).map(|r| [r.x0, r.y0, r.x1 - 1, r.y1 - 1]);
+            let extent = reach_box
+                .and_then(|b| b.bounding_in(w, |p| alpha[p] > 0.0))
+                .map(|r| [r.x0, r.y0, r.x1 - 1, r.y1 - 1]);
             let px = LayerDepth {
                 width: w,
                 height: h,

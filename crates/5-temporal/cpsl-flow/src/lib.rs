@@ -64,13 +64,16 @@ impl Default for FlowConfig {
     }
 }
 
+/// Rec. 709 luma of an RGB byte triple, in [0, 1].
+#[inline]
+fn luma(p: &[u8]) -> f32 {
+    (0.2126 * p[0] as f32 + 0.7152 * p[1] as f32 + 0.0722 * p[2] as f32) / 255.0
+}
+
 impl Grey {
     /// From interleaved RGB bytes (Rec. 709 luma).
     pub fn from_rgb8(rgb: &[u8], width: usize, height: usize) -> Self {
-        let data = rgb
-            .chunks_exact(3)
-            .map(|p| (0.2126 * p[0] as f32 + 0.7152 * p[1] as f32 + 0.0722 * p[2] as f32) / 255.0)
-            .collect();
+        let data = rgb.chunks_exact(3).map(luma).collect();
         Self {
             width,
             height,
@@ -80,11 +83,10 @@ impl Grey {
 
     /// From interleaved RGB bytes, area-averaged down so that the long side is at most `side`.
     pub fn from_rgb8_scaled(rgb: &[u8], width: usize, height: usize, side: usize) -> Self {
-        let full = Self::from_rgb8(rgb, width, height);
         let (w, h) = (width, height);
         let s = (side as f32 / w.max(h) as f32).min(1.0);
         if s >= 1.0 {
-            return full;
+            return Self::from_rgb8(rgb, width, height);
         }
         let (gw, gh) = (
             ((w as f32 * s).round() as usize).max(1),
@@ -95,8 +97,14 @@ impl Grey {
             let (y0, y1) = (y * h / gh, ((y + 1) * h / gh).max(y * h / gh + 1));
             for (x, o) in row.iter_mut().enumerate() {
                 let (x0, x1) = (x * w / gw, ((x + 1) * w / gw).max(x * w / gw + 1));
+                // The luma of each pixel as `from_rgb8` has it, summed in the same order.
                 let sum: f32 = (y0..y1)
-                    .map(|yy| full.data[yy * w + x0..yy * w + x1].iter().sum::<f32>())
+                    .map(|yy| {
+                        rgb[(yy * w + x0) * 3..(yy * w + x1) * 3]
+                            .chunks_exact(3)
+                            .map(luma)
+                            .sum::<f32>()
+                    })
                     .sum();
                 *o = sum / ((y1 - y0) * (x1 - x0)) as f32;
             }

@@ -107,3 +107,37 @@ fn rejects_mismatched_images() {
     };
     assert!(flow(&empty, &empty, &FlowConfig::default()).is_err());
 }
+
+#[test]
+fn a_scaled_grey_image_is_the_area_mean_of_the_full_one() {
+    for (w, h, side) in [(97, 61, 40), (64, 64, 16), (30, 20, 64), (1280, 720, 320)] {
+        let rgb: Vec<u8> = (0..w * h * 3).map(|i| ((i * 7919) % 251) as u8).collect();
+        let full = Grey::from_rgb8(&rgb, w, h);
+        let scaled = Grey::from_rgb8_scaled(&rgb, w, h, side);
+        let s = (side as f32 / w.max(h) as f32).min(1.0);
+        let (gw, gh) = if s >= 1.0 {
+            (w, h)
+        } else {
+            (
+                ((w as f32 * s).round() as usize).max(1),
+                ((h as f32 * s).round() as usize).max(1),
+            )
+        };
+        assert_eq!((scaled.width, scaled.height), (gw, gh));
+        for y in 0..gh {
+            let (y0, y1) = (y * h / gh, ((y + 1) * h / gh).max(y * h / gh + 1));
+            for x in 0..gw {
+                let (x0, x1) = (x * w / gw, ((x + 1) * w / gw).max(x * w / gw + 1));
+                let sum: f32 = (y0..y1)
+                    .map(|yy| full.data[yy * w + x0..yy * w + x1].iter().sum::<f32>())
+                    .sum();
+                let want = sum / ((y1 - y0) * (x1 - x0)) as f32;
+                assert_eq!(
+                    scaled.data[y * gw + x].to_bits(),
+                    want.to_bits(),
+                    "{w}x{h} ({x}, {y})"
+                );
+            }
+        }
+    }
+}

@@ -16,6 +16,9 @@ use rayon::prelude::*;
 pub type Descriptor = [u64; 4];
 
 /// The rows of an OpenCV descriptor matrix (32 bytes each, ORB's).
+///
+/// # Panics
+/// If the rows are not 32 bytes long (not ORB descriptors).
 pub fn descriptors(m: &Mat) -> Result<Vec<Descriptor>> {
     if m.rows() == 0 {
         return Ok(Vec::new());

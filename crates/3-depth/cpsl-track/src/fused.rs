@@ -37,7 +37,8 @@ pub enum DepthFrom {
 }
 
 /// Depth from a tracked clip: each frame asked for gets multi-view depth from up to
-/// [`TrackedDepth::NEIGHBOURS`] nearest placed frames ([`mvs::depth_from_views`]; each
+/// [`TrackedDepth::NEIGHBOURS`] placed frames around it, chosen by how wide an angle they see
+/// the scene under ([`TrackedDepth::RUNG_DEG`]; [`mvs::depth_from_views`]; each
 /// neighbour warped by the plane at the median depth of the frame fused last in its world
 /// where that plane moves more than a shift, [`mvs::warped_flows`]), fused with
 /// its monocular prior ([`mvs::fuse`]) at the tracking resolution and brought back to the
@@ -74,6 +75,12 @@ pub struct TrackedDepth {
 impl TrackedDepth {
     /// Nearest placed frames a frame's depth is triangulated from.
     pub const NEIGHBOURS: usize = 4;
+    /// The rungs of median ray angle (degrees) a frame's neighbours are chosen by: on each
+    /// side of the frame, the nearest frame reaching one rung, then the nearest beyond it
+    /// reaching two, and so on.
+    pub const RUNG_DEG: f64 = 1.5;
+    /// Farthest (in frames) a neighbour is looked for.
+    pub const REACH: usize = 15;
     /// Least confidence of a multi-view pixel kept over the prior.
     pub const MIN_CONFIDENCE: f32 = 0.5;
     /// Frames back the temporal filter reaches for an earlier fused frame.
@@ -160,24 +167,20 @@ impl TrackedDepth {
         let size = (work.width, work.height);
         let why = match (t.motion, t.poses.get(index).copied().flatten()) {
             (CameraMotion::Translating, Some(pose)) => {
-                let seg = t.segment[index];
-                let mut near: Vec<usize> = (0..t.poses.len())
-                    .filter(|&j| j != index && t.poses[j].is_some() && t.segment[j] == seg)
-                    .collect();
-                near.sort_by_key(|&j| j.abs_diff(index));
-                near.truncate(Self::NEIGHBOURS);
-                let poses: Vec<Pose> = near.iter().map(|&j| t.poses[j].expect("placed")).collect();
-                let cfg = MvsConfig::default();
-                let reference = (&self.greys[index], &pose);
-                // The plane the neighbours are warped by where it moves more than a shift:
-                // the median depth of the frame fused last in this world (the same units);
-                // for the first, the median depth of the unwarped views.
+                // The plane the neighbours are warped by where it moves more than a shift,
+                // and at whose depth they are chosen: the median depth of the frame fused
+                // last in this world (the same units); for the first, the median depth of
+                // the unwarped views.
                 let plane = self
                     .recent
                     .iter()
                     .rev()
                     .find(|(j, _)| t.world[*j] == t.world[index])
                     .and_then(|(_, z)| mvs::median_depth(z));
+                let near = self.neighbours(index, &pose, plane);
+                let poses: Vec<Pose> = near.iter().map(|&j| t.poses[j].expect("placed")).collect();
+                let cfg = MvsConfig::default();
+                let reference = (&self.greys[index], &pose);
                 let warped = near
                     .iter()
                     .zip(&poses)
@@ -327,6 +330,75 @@ impl TrackedDepth {
             Some((z, _)) => Ok(Some(scaled(&z.depth, size, (width, height), scale)?)),
             None => Ok(None),
         }
+    }
+
+    /// The neighbours frame `index` (placed at `pose`) is triangulated from: up to
+    /// [`Self::NEIGHBOURS`] placed frames of its segment, alternately before and after it.
+    /// Once the world's depth is known (`plane`, the median depth of the frame fused last),
+    /// each side is walked outwards, at most [`Self::REACH`] frames, and a frame is taken
+    /// when its median ray angle at that depth ([`mvs::ray_angle`]) reaches the next rung of
+    /// [`Self::RUNG_DEG`], twice it, and so on; where the camera moves too little for that,
+    /// the side's farthest frames serve. Without a depth, the nearest frames.
+    fn neighbours(&self, index: usize, pose: &Pose, plane: Option<f64>) -> Vec<usize> {
+        let t = &self.trajectory;
+        let usable = |j: &usize| t.poses[*j].is_some() && t.segment[*j] == t.segment[index];
+        let mut near: Vec<usize> = (0..t.poses.len())
+            .filter(|&j| j != index && usable(&j))
+            .collect();
+        near.sort_by_key(|&j| j.abs_diff(index));
+        let Some(depth) = plane else {
+            near.truncate(Self::NEIGHBOURS);
+            return near;
+        };
+        let end = (index + Self::REACH).min(t.poses.len() - 1);
+        let sides = [
+            (index.saturating_sub(Self::REACH)..index)
+                .rev()
+                .filter(usable)
+                .collect::<Vec<_>>(),
+            (index + 1..=end).filter(usable).collect(),
+        ];
+        let [mut before, mut after] = sides.map(|side| {
+            let mut picks = Vec::new();
+            let mut rung = Self::RUNG_DEG;
+            for &j in &side {
+                if picks.len() == Self::NEIGHBOURS {
+                    break;
+                }
+                let other = t.poses[j].expect("placed");
+                if mvs::ray_angle(&t.camera, pose, &other, depth) >= rung {
+                    picks.push(j);
+                    rung += Self::RUNG_DEG;
+                }
+            }
+            for &j in side.iter().rev() {
+                if picks.len() >= Self::NEIGHBOURS / 2 {
+                    break;
+                }
+                if !picks.contains(&j) {
+                    picks.push(j);
+                }
+            }
+            picks.into_iter()
+        });
+        let mut chosen = Vec::new();
+        loop {
+            match (before.next(), after.next()) {
+                (None, None) => break,
+                (b, a) => chosen.extend(b.into_iter().chain(a)),
+            }
+        }
+        chosen.truncate(Self::NEIGHBOURS);
+        // Near the clip's ends or gaps, the nearest frames make up the number.
+        for j in near {
+            if chosen.len() >= Self::NEIGHBOURS {
+                break;
+            }
+            if !chosen.contains(&j) {
+                chosen.push(j);
+            }
+        }
+        chosen
     }
 
     /// The depth of the frame nearest to `index` among those fused from their own views in

@@ -178,6 +178,27 @@ pub fn plane_distortion(cam: &Camera, reference: &Pose, other: &Pose, plane: f64
         .fold(0.0, f64::max)
 }
 
+/// The median, over a grid of the frame's pixels, of the angle in degrees under which the
+/// cameras at `reference` and `other` (camera-to-world poses) see the pixel's point at depth
+/// `depth` on the reference's ray: how well the pair can triangulate a scene that far away.
+/// Walking forward it is small around the focus of expansion and grows towards the edges.
+pub fn ray_angle(cam: &Camera, reference: &Pose, other: &Pose, depth: f64) -> f64 {
+    const STEPS: u32 = 8;
+    let (c0, c1) = (reference.translation, other.translation);
+    let mut angles: Vec<f64> = (0..=STEPS)
+        .flat_map(|i| (0..=STEPS).map(move |k| (i, k)))
+        .map(|(i, k)| {
+            let x = (cam.width - 1) as f64 * i as f64 / STEPS as f64;
+            let y = (cam.height - 1) as f64 * k as f64 / STEPS as f64;
+            let p = c0 + reference.rotation * cam.unproject(x, y, depth);
+            let cos = (p - c0).normalized().dot((p - c1).normalized());
+            cos.clamp(-1.0, 1.0).acos().to_degrees()
+        })
+        .collect();
+    let m = angles.len() / 2;
+    *angles.select_nth_unstable_by(m, f64::total_cmp).1
+}
+
 /// Depth of `reference` (a working grey image and its camera-to-world pose) from
 /// `neighbours`, all seen by `cam`; see the [module docs](self).
 pub fn depth_from_views(

@@ -170,13 +170,18 @@ impl TrackedDepth {
                 // The plane the neighbours are warped by where it moves more than a shift,
                 // and at whose depth they are chosen: the median depth of the frame fused
                 // last in this world (the same units); for the first, the median depth of
-                // the unwarped views.
-                let plane = self
+                // its unwarped views from the nearest frames.
+                let last = self
                     .recent
                     .iter()
                     .rev()
                     .find(|(j, _)| t.world[*j] == t.world[index])
                     .and_then(|(_, z)| mvs::median_depth(z));
+                let plane = match last {
+                    Some(p) => Some(p),
+                    None => self.nearest_median_depth(index, &pose)?,
+                };
+                let t = &self.trajectory;
                 let near = self.neighbours(index, &pose, plane);
                 let poses: Vec<Pose> = near.iter().map(|&j| t.poses[j].expect("placed")).collect();
                 let cfg = MvsConfig::default();
@@ -399,6 +404,33 @@ impl TrackedDepth {
             }
         }
         chosen
+    }
+
+    /// The median depth of frame `index` (placed at `pose`) seen from its nearest frames
+    /// through unwarped flows (kept for the frames after it): how far away the scene is
+    /// before any frame of its world has been fused, to choose its neighbours by.
+    fn nearest_median_depth(&mut self, index: usize, pose: &Pose) -> Result<Option<f64>> {
+        let near = self.neighbours(index, pose, None);
+        for &j in &near {
+            for pair in [(index, j), (j, index)] {
+                if !self.flows.contains_key(&pair) {
+                    let f = mvs::flow(&self.greys[pair.0], &self.greys[pair.1])?;
+                    self.flows.insert(pair, f);
+                }
+            }
+        }
+        let t = &self.trajectory;
+        let nb: Vec<Neighbour> = near
+            .iter()
+            .map(|&j| Neighbour {
+                pose: t.poses[j].as_ref().expect("placed"),
+                forward: &self.flows[&(index, j)],
+                backward: &self.flows[&(j, index)],
+                plane: None,
+            })
+            .collect();
+        let views = mvs::depth_from_flows(&t.camera, pose, &nb, &MvsConfig::default())?;
+        Ok(mvs::median_depth(&views))
     }
 
     /// The depth of the frame nearest to `index` among those fused from their own views in

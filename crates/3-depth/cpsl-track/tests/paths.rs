@@ -702,12 +702,13 @@ fn aligned_abs_rel(z: &[f32], truth: &[f32]) -> (f64, f64) {
 
 #[test]
 fn tracked_depth_chooses_neighbours_by_ray_angle() {
-    // 25 frames with exact poses at 480x270; frame 10 fused from its nearest frames (no depth
-    // known yet), then frame 12 from frames chosen by their ray angle at frame 10's median
-    // depth. AbsRel over every pixel after a median scale. Measured 2026-11-29 (nearest four
-    // frames before): walking forward 0.68 % with the exact prior (6.8 %) and 5.6 % with the
-    // network-like one (27 %), neighbours 5, 18, 0, 22; the orbit 0.52 % (0.84 %), sideways
-    // 0.43 % (0.57 %), both exact.
+    // 25 frames with exact poses at 480x270; frame 10 fused first (its neighbours chosen at
+    // the median depth its nearest frames see), then frame 12 (chosen at frame 10's). AbsRel
+    // over every pixel after a median scale. Measured 2026-11-29 (the nearest four frames
+    // before), frame 12: walking forward 0.65 % with the exact prior (6.8 %) and 5.2 % with
+    // the network-like one (27 %), neighbours 5, 18, 0, 22; the orbit 0.50 % (0.84 %),
+    // sideways 0.44 % (0.57 %), both exact. Frame 10: forward 1.28 % and 11 % (1.49 and 19 %
+    // from its nearest frames), the orbit 0.46 % (0.79 %), sideways 0.59 % (0.57 %).
     let (w, h) = (480, 270);
     let step = |i: usize, d: Vec3| Pose::from_translation(d * i as f64);
     let orbit: Vec<Pose> = (0..25)

@@ -93,14 +93,24 @@ fn errors(est: &Trajectory, truth: &[Pose]) -> (f64, f64, usize) {
 }
 
 fn sideways() -> Vec<Pose> {
-    (0..12)
+    sideways_of(12)
+}
+
+/// `n` frames moving right, 0.05 a frame.
+fn sideways_of(n: usize) -> Vec<Pose> {
+    (0..n)
         .map(|i| Pose::from_translation(Vec3::new(0.05 * i as f64, 0.0, 0.0)))
         .collect()
 }
 
 /// Around a point 4 units ahead: turn left while moving right, 1.5 degrees a frame.
 fn orbit() -> Vec<Pose> {
-    (0..12)
+    orbit_of(12)
+}
+
+/// [`orbit`] over `n` frames.
+fn orbit_of(n: usize) -> Vec<Pose> {
+    (0..n)
         .map(|i| {
             let a = 1.5 * i as f64;
             let (s, c) = a.to_radians().sin_cos();
@@ -710,28 +720,13 @@ fn tracked_depth_chooses_neighbours_by_ray_angle() {
     // sideways 0.44 % (0.57 %), both exact. Frame 10: forward 1.28 % and 11 % (1.49 and 19 %
     // from its nearest frames), the orbit 0.46 % (0.79 %), sideways 0.59 % (0.57 %).
     let (w, h) = (480, 270);
-    let step = |i: usize, d: Vec3| Pose::from_translation(d * i as f64);
-    let orbit: Vec<Pose> = (0..25)
-        .map(|i| {
-            let a = 1.5 * i as f64;
-            let (s, c) = a.to_radians().sin_cos();
-            let p = Pose::from_euler_deg(Vec3::ZERO, 0.0, -a, 0.0);
-            Pose {
-                rotation: p.rotation,
-                translation: Vec3::new(4.0 * s, 0.0, 4.0 * (1.0 - c)),
-            }
-        })
-        .collect();
     let forward: Vec<Pose> = (0..25)
-        .map(|i| step(i, Vec3::new(0.0, 0.0, 0.05)))
-        .collect();
-    let sideways: Vec<Pose> = (0..25)
-        .map(|i| step(i, Vec3::new(0.05, 0.0, 0.0)))
+        .map(|i| Pose::from_translation(Vec3::new(0.0, 0.0, 0.05 * i as f64)))
         .collect();
     for (name, path, limits) in [
         ("forward", forward, [0.015, 0.09]),
-        ("orbit", orbit, [0.007, f64::INFINITY]),
-        ("sideways", sideways, [0.005, f64::INFINITY]),
+        ("orbit", orbit_of(25), [0.007, f64::INFINITY]),
+        ("sideways", sideways_of(25), [0.005, f64::INFINITY]),
     ] {
         let (scene, frames) = clip_sized(&path, w, h);
         let cam = scene.camera;

@@ -73,7 +73,7 @@ pub struct TrackedDepth {
 }
 
 impl TrackedDepth {
-    /// Nearest placed frames a frame's depth is triangulated from.
+    /// Most placed frames a frame's depth is triangulated from.
     pub const NEIGHBOURS: usize = 4;
     /// The rungs of median ray angle (degrees) a frame's neighbours are chosen by: on each
     /// side of the frame, the nearest frame reaching one rung, then the nearest beyond it

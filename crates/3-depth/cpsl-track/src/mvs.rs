@@ -1059,6 +1059,31 @@ mod tests {
     }
 
     #[test]
+    fn the_ray_angle_grows_with_the_baseline_and_is_small_walking_forward() {
+        use cpsl_core::{Camera, Pose, Vec3};
+        let cam = Camera::from_fov(64, 48, 60.0);
+        let here = Pose::IDENTITY;
+        let angle = |x: f64, z: f64, yaw: f64| {
+            let other = Pose::from_euler_deg(Vec3::new(x, 0.0, z), 0.0, yaw, 0.0);
+            super::ray_angle(&cam, &here, &other, 5.0)
+        };
+        assert_eq!(angle(0.0, 0.0, 0.0), 0.0);
+        // Sideways by 0.1 at depth 5: atan(0.1 / 5) = 1.15 degrees on the axis, a little
+        // less off it, where the points are farther.
+        let side = angle(0.1, 0.0, 0.0);
+        assert!(
+            side > 0.8 && side <= 0.1f64.atan2(5.0).to_degrees() + 1e-9,
+            "{side}"
+        );
+        // Twice the baseline, about twice the angle; the other camera's turn changes nothing.
+        assert!((angle(0.2, 0.0, 0.0) / side - 2.0).abs() < 0.02);
+        assert!((angle(0.1, 0.0, 10.0) - side).abs() < 1e-9);
+        // Walking forward as far, the rays part far less (nothing at the centre).
+        let ahead = angle(0.0, 0.1, 0.0);
+        assert!(ahead > 0.0 && ahead < side / 2.0, "{ahead} against {side}");
+    }
+
+    #[test]
     fn blending_averages_agreeing_confident_depth_only() {
         let view = |depth: Vec<f32>, confidence: Vec<f32>| ViewDepth {
             width: 5,

@@ -40,26 +40,39 @@ pub(crate) fn init() -> Result<(), CodecError> {
     Ok(())
 }
 
-/// Makes every allocation of the C heap start as the same bytes (glibc's `M_PERTURB`: memory
-/// handed out is filled with one byte, memory freed with another). x264 reads bytes of its
-/// own buffers that it never wrote (its lookahead; `asm=0`, `rc-lookahead=0` or `mbtree=0`
-/// hide it), so whatever earlier work of the process left in that memory changed the coded
-/// stream: three runs of the same `cpsl encode` on a 320x240 clip wrote three different
-/// packages, and two packages coded from the same frames in one test process (encoders
-/// running on threads whose heaps other tests had used) differed in three runs of four.
-/// Making only allocations of 64 KiB and more fresh memory (`M_MMAP_THRESHOLD`, the first fix)
-/// served the first case, not the second (nor did 16 KiB). Set by the first encoder a process
-/// opens. Cost (720p `testsrc2`, 60 frames, two rounds interleaved, 2026-11-29): `cpsl encode
-/// --quality 24` 16.7 / 17.6 s against 16.3 / 17.0, `--bitrate 3M` 24.2 / 23.2 s against 20.5
-/// / 19.0, peak memory 1.58 GB against 1.28 (every allocation is written once when it is
-/// handed out); decoders leave it alone. glibc only; elsewhere nothing changes.
+/// Makes every allocation of 64 KiB or more fresh memory (mapped, so zeroed) instead of
+/// memory freed earlier in the process. x264 reads bytes of one of its buffers of 64 to 128
+/// KiB that it never wrote (its lookahead, on small pictures: a test coding 96x64 pictures
+/// four times gave two different streams; `asm=0`, `rc-lookahead=0` or `mbtree=0` hide it),
+/// so what earlier encoders left there changed the coded stream: three runs of the same
+/// `cpsl encode` wrote three different packages. Fresh memory makes them the same. Set by
+/// the first encoder a process opens: encoding costs nothing measurable (720p `cpsl encode
+/// --bitrate 3M`: 10.8 and 11.3 s with it, 10.8 and 10.7 without), but playback would lose
+/// about 6 % (`cpsl bench play`, 720p: 31.5 and 32.6 frames/s against 33.5 and 35.0), so
+/// decoders leave it alone. glibc only; elsewhere nothing changes.
 #[allow(unsafe_code)] // `mallopt` is a C function.
-fn same_bytes_in_every_allocation() {
+fn fresh_large_allocations() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     // SAFETY: `mallopt` only sets glibc's allocation policy, which may change at any time.
     unsafe {
-        libc::mallopt(libc::M_PERTURB, 0x5a);
+        libc::mallopt(libc::M_MMAP_THRESHOLD, 64 * 1024);
     }
+}
+
+/// x264's AVX-512 code reads bytes of its buffers that it never wrote, so on a CPU that has
+/// AVX-512 whatever earlier work of the process left in that memory changed the coded stream:
+/// on a Xeon with AVX-512 two packages coded from the same frames in one test process (the
+/// encoders on threads whose heaps other tests had used) differed in three runs of four, with
+/// or without fresh memory from 64 KiB or 16 KiB up ([`fresh_large_allocations`]); with
+/// x264's AVX2 code (and its 64-byte cache-line routines) in none of eight. Filling every
+/// C-heap allocation with one byte (glibc's `M_PERTURB`, tried first) also served but made
+/// `cpsl encode --bitrate 3M` 15-20 % slower. Elsewhere x264 detects the CPU itself.
+fn x264_asm() -> &'static str {
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx512f") {
+        return ":asm=AVX2,Cache64";
+    }
+    ""
 }
 
 /// Encoder options: one key frame at the start, no scene-cut key frames, a speed preset fit for
@@ -74,7 +87,7 @@ fn options(codec: Codec, crf: f32, frames: usize) -> ffmpeg::Dictionary<'static>
             o.set("crf", &format!("{crf:.1}"));
             o.set(
                 "x264-params",
-                &format!("keyint={n}:min-keyint={n}:scenecut=0"),
+                &format!("keyint={n}:min-keyint={n}:scenecut=0{}", x264_asm()),
             );
         }
         Codec::H265 => {
@@ -291,7 +304,7 @@ impl<T: Sample> StreamEncoder<T> {
     ) -> Result<Self, CodecError> {
         init()?;
         static FRESH: std::sync::Once = std::sync::Once::new();
-        FRESH.call_once(same_bytes_in_every_allocation);
+        FRESH.call_once(fresh_large_allocations);
         let name = encoder_name(codec);
         let enc_codec =
             ffmpeg::encoder::find_by_name(name).ok_or(CodecError::MissingEncoder(name))?;

@@ -124,7 +124,7 @@ fn damaged_fragments_are_errors() {
 
 #[test]
 fn the_same_small_pictures_code_to_the_same_stream_every_time() {
-    // x264 reads memory it never wrote on small pictures (see `same_bytes_in_every_allocation`):
+    // x264 reads memory it never wrote on small pictures (see `fresh_large_allocations`):
     // the encoders before must not change what the next one writes.
     if !has_encoder(Codec::H264) {
         return;

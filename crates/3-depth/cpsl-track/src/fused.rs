@@ -204,32 +204,28 @@ impl TrackedDepth {
                         }
                     }
                 }
-                let nb: Vec<(&Mat, Neighbour)> = near
+                let nb: Vec<Neighbour> = near
                     .iter()
                     .zip(&poses)
                     .zip(&warped)
-                    .map(|((&j, pose), w)| {
-                        let n = match w {
-                            Some((forward, backward)) => Neighbour {
-                                pose,
-                                forward,
-                                backward,
-                                plane,
-                            },
-                            None => Neighbour {
-                                pose,
-                                forward: &self.flows[&(index, j)],
-                                backward: &self.flows[&(j, index)],
-                                plane: None,
-                            },
-                        };
-                        (&self.greys[j], n)
+                    .map(|((&j, pose), w)| match w {
+                        Some((forward, backward)) => Neighbour {
+                            pose,
+                            forward,
+                            backward,
+                            plane,
+                        },
+                        None => Neighbour {
+                            pose,
+                            forward: &self.flows[&(index, j)],
+                            backward: &self.flows[&(j, index)],
+                            plane: None,
+                        },
                     })
                     .collect();
-                let views = match plane {
-                    Some(_) => mvs::depth_from_flows(&work, &pose, &nb_only(&nb), &cfg)?,
-                    None => mvs::depth_with_warps(&work, reference, &nb, &cfg)?,
-                };
+                // Without a plane (the nearest frames' views saw too little for a median
+                // depth) the unwarped views are all there is.
+                let views = mvs::depth_from_flows(&work, &pose, &nb, &cfg)?;
                 // Frames are mostly asked for in order: pairs below every neighbour of this
                 // frame are seldom needed again.
                 let low = near.iter().copied().min().unwrap_or(index).min(index);
@@ -488,11 +484,6 @@ impl TrackedDepth {
         }
         crate::median(&mut self.ratios.clone())
     }
-}
-
-/// The neighbours of `nb` without their images.
-fn nb_only<'a>(nb: &[(&Mat, Neighbour<'a>)]) -> Vec<Neighbour<'a>> {
-    nb.iter().map(|(_, n)| *n).collect()
 }
 
 /// Depth `z` at working size `size` brought to `to` and multiplied by `scale`.

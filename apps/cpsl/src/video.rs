@@ -115,8 +115,9 @@ pub struct VideoLayeringArgs {
     #[arg(long, long_help = crate::util::GEOMETRY_HELP)]
     pub geometry: Option<GeometryMode>,
     /// Where depth comes from: `video` (the default: the video itself; the camera is tracked
-    /// through the whole input first, then each frame's depth is triangulated from its four
-    /// nearest frames and fused with the --depth-model, which fills what the views cannot see;
+    /// through the whole input first, then each frame's depth is triangulated from up to four
+    /// neighbouring frames (chosen so that they see the scene under a wide enough angle) and
+    /// fused with the --depth-model, which fills what the views cannot see;
     /// where the camera does not translate (static, only turning, too little texture) or a
     /// frame could not be placed, that frame takes the model's depth and `video.json` says
     /// why) or `model` (the --depth-model on each frame, without the tracking pass).

@@ -204,7 +204,7 @@ pub fn fox(
 }
 
 /// Depth of every frame from the video itself ([`TrackedDepth`]): tracked poses, multi-view
-/// depth from up to four nearest placed frames, fused with `prior` (per frame, any scale).
+/// depth from up to four placed neighbours chosen by ray angle, fused with `prior` (per frame, any scale).
 /// Returns the depths, a description and the camera centres in the depth's units.
 pub fn video_depth(frames: &[Vec<u8>], camera: Camera, prior: &[Vec<f32>]) -> Result<VideoDepth> {
     let (w, h) = (camera.width, camera.height);

@@ -212,15 +212,7 @@ impl OnnxDepth {
             Some(d) => d,
             None => DepthModelDesc::load(&sidecar_path(model))?,
         };
-        let env = runtime::environment()?;
-        let bad = |reason: String| ModelError::Model {
-            path: model.into(),
-            reason,
-        };
-        let session = Session::builder(env)
-            .map_err(|e| bad(e.to_string()))?
-            .commit_from_file(model)
-            .map_err(|e| bad(e.to_string()))?;
+        let session = runtime::session(model)?;
         if session.inputs().len() != 1 || session.outputs().is_empty() {
             return Err(ModelError::Interface {
                 path: model.into(),

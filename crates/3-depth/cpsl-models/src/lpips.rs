@@ -41,13 +41,7 @@ impl Lpips {
                 ),
             });
         }
-        let env = runtime::environment()?;
-        let session = Session::builder(env)
-            .and_then(|mut b| b.commit_from_file(path))
-            .map_err(|e| ModelError::Model {
-                path: path.into(),
-                reason: e.to_string(),
-            })?;
+        let session = runtime::session(path)?;
         Ok(Self {
             session,
             path: path.into(),

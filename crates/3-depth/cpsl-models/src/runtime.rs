@@ -1,7 +1,8 @@
 //! Locating and loading ONNX Runtime.
 
 use crate::error::ModelError;
-use std::path::PathBuf;
+use ort::session::Session;
+use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
 /// File name of the runtime library that `scripts/setup-models.sh` installs.
@@ -42,6 +43,20 @@ pub fn environment() -> Result<&'static ort::environment::Environment, ModelErro
     })
     .as_ref()
     .map_err(|e| ModelError::Runtime(e.clone()))
+}
+
+/// A session loaded from `path` in the process-wide environment. Its threads block as soon as
+/// a run ends instead of spinning for more work: the layering's own threads need the cores
+/// between two runs (`cpsl layer-video` on the fox: 10 % less CPU time, 3-7 % less wall time).
+pub(crate) fn session(path: &Path) -> Result<Session, ModelError> {
+    let env = environment()?;
+    Session::builder(env)
+        .and_then(|b| Ok(b.with_intra_op_spinning(false)?))
+        .and_then(|mut b| b.commit_from_file(path))
+        .map_err(|e| ModelError::Model {
+            path: path.into(),
+            reason: e.to_string(),
+        })
 }
 
 /// True when the runtime library can be loaded (used by tests to report what they skip).

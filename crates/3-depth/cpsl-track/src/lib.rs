@@ -73,8 +73,8 @@ type Result<T> = std::result::Result<T, TrackError>;
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct TrackConfig {
     /// Longest side the frames are tracked at (they are downscaled to it). 480 by default:
-    /// a 720p clip tracks in 2.0 s instead of 3.5 s for 50 frames at 640, which brings
-    /// `layer-video --depth video` to 5 frames/s; the fox at 540x960 then tracks less well
+    /// a 720p clip of 50 frames tracked in 2.0 s instead of 3.5 s at 640 (on the day it was
+    /// measured; BENCHMARKS.md has today's figures); the fox at 540x960 then tracks less well
     /// (rotation error 0.69 against 0.40 degrees) and its coded novel views score 0.1 dB lower
     /// (EVALUATION.md). `--track-side` on the command line.
     pub work_side: u32,

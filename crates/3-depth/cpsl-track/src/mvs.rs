@@ -871,8 +871,13 @@ struct Curve {
 impl Curve {
     /// The curve's value at `x`.
     fn at(&self, x: f64) -> f64 {
+        let t = &self.knots;
+        self.on_segment(t.partition_point(|&k| k <= x).clamp(1, t.len() - 1) - 1, x)
+    }
+
+    /// The line of segment `j` (knots `j` and `j + 1`) at `x`.
+    fn on_segment(&self, j: usize, x: f64) -> f64 {
         let (t, v) = (&self.knots, &self.values);
-        let j = t.partition_point(|&k| k <= x).clamp(1, t.len() - 1) - 1;
         v[j] + (v[j + 1] - v[j]) * (x - t[j]) / (t[j + 1] - t[j])
     }
 
@@ -917,23 +922,29 @@ impl Curve {
     /// The robust fit with the given knots; `None` when singular.
     fn fit_knots(samples: &[(f64, f64)], knots: Vec<f64>, mut scale: f64) -> Option<(Self, f64)> {
         let m = knots.len();
+        // Each sample's segment, found once: the rounds only change the values.
+        let segment: Vec<usize> = samples
+            .iter()
+            .map(|&(x, _)| knots.partition_point(|&k| k <= x).clamp(1, m - 1) - 1)
+            .collect();
         let mut curve = Self {
             knots,
             values: vec![0.0; m],
         };
+        // Each sample's absolute residual from the last round's curve.
+        let mut e = vec![0.0; samples.len()];
         for round in 0..6 {
             // Normal equations of the hat-function basis (tridiagonal, row-major).
             let mut n = vec![0.0; m * m];
             let mut r = vec![0.0; m];
-            for &(x, y) in samples {
+            let t = &curve.knots;
+            for ((&(x, y), &j), &e) in samples.iter().zip(&segment).zip(&e) {
                 let w = if round == 0 {
                     1.0
                 } else {
-                    let e = (y - curve.at(x)) / scale;
+                    let e = e / scale;
                     1.0 / (1.0 + e * e)
                 };
-                let t = &curve.knots;
-                let j = t.partition_point(|&k| k <= x).clamp(1, m - 1) - 1;
                 let u = (x - t[j]) / (t[j + 1] - t[j]);
                 let (h0, h1) = (1.0 - u, u);
                 n[j * m + j] += w * h0 * h0;
@@ -944,11 +955,11 @@ impl Curve {
                 r[j + 1] += w * h1 * y;
             }
             curve.values = crate::ba::cholesky_solve(&mut n, m, r)?;
-            let mut e: Vec<f64> = samples
-                .iter()
-                .map(|&(x, y)| (y - curve.at(x)).abs())
-                .collect();
-            scale = (1.4826 * crate::median(&mut e)).max(1e-9);
+            for ((&(x, y), &j), e) in samples.iter().zip(&segment).zip(&mut e) {
+                *e = (y - curve.on_segment(j, x)).abs();
+            }
+            let mut sorted = e.clone();
+            scale = (1.4826 * crate::median(&mut sorted)).max(1e-9);
         }
         curve
             .values

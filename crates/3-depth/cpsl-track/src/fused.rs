@@ -6,6 +6,7 @@ use crate::mvs::{self, MvsConfig, Neighbour, ViewDepth};
 use crate::{CameraMotion, Mat, Result, TrackError, Trajectory};
 use cpsl_core::Pose;
 use opencv::prelude::*;
+use rayon::prelude::*;
 use std::collections::HashMap;
 
 /// Where a frame's depth came from.
@@ -186,8 +187,9 @@ impl TrackedDepth {
                 let poses: Vec<Pose> = near.iter().map(|&j| t.poses[j].expect("placed")).collect();
                 let cfg = MvsConfig::default();
                 let reference = (&self.greys[index], &pose);
+                // The neighbours in parallel (OpenCV's flow keeps to one core).
                 let warped = near
-                    .iter()
+                    .par_iter()
                     .zip(&poses)
                     .map(|(&j, nb_pose)| match plane {
                         Some(p) => {
@@ -196,14 +198,13 @@ impl TrackedDepth {
                         None => Ok(None),
                     })
                     .collect::<Result<Vec<_>>>()?;
-                for (&j, w) in near.iter().zip(&warped) {
-                    for pair in [(index, j), (j, index)] {
-                        if w.is_none() && !self.flows.contains_key(&pair) {
-                            let f = mvs::flow(&self.greys[pair.0], &self.greys[pair.1])?;
-                            self.flows.insert(pair, f);
-                        }
-                    }
-                }
+                let unwarped: Vec<usize> = near
+                    .iter()
+                    .zip(&warped)
+                    .filter(|(_, w)| w.is_none())
+                    .map(|(&j, _)| j)
+                    .collect();
+                Self::compute_flows(&self.greys, &mut self.flows, index, &unwarped)?;
                 let nb: Vec<Neighbour> = near
                     .iter()
                     .zip(&poses)
@@ -407,14 +408,7 @@ impl TrackedDepth {
     /// before any frame of its world has been fused, to choose its neighbours by.
     fn nearest_median_depth(&mut self, index: usize, pose: &Pose) -> Result<Option<f64>> {
         let near = self.neighbours(index, pose, None);
-        for &j in &near {
-            for pair in [(index, j), (j, index)] {
-                if !self.flows.contains_key(&pair) {
-                    let f = mvs::flow(&self.greys[pair.0], &self.greys[pair.1])?;
-                    self.flows.insert(pair, f);
-                }
-            }
-        }
+        Self::compute_flows(&self.greys, &mut self.flows, index, &near)?;
         let t = &self.trajectory;
         let nb: Vec<Neighbour> = near
             .iter()
@@ -427,6 +421,27 @@ impl TrackedDepth {
             .collect();
         let views = mvs::depth_from_flows(&t.camera, pose, &nb, &MvsConfig::default())?;
         Ok(mvs::median_depth(&views))
+    }
+
+    /// The flows between frame `index` and each of `others` (both ways) that `flows` does
+    /// not hold yet: computed in parallel (OpenCV's flow keeps to one core) and kept there.
+    fn compute_flows(
+        greys: &[Mat],
+        flows: &mut HashMap<(usize, usize), Mat>,
+        index: usize,
+        others: &[usize],
+    ) -> Result<()> {
+        let missing: Vec<(usize, usize)> = others
+            .iter()
+            .flat_map(|&j| [(index, j), (j, index)])
+            .filter(|pair| !flows.contains_key(pair))
+            .collect();
+        let computed = missing
+            .par_iter()
+            .map(|&(a, b)| mvs::flow(&greys[a], &greys[b]))
+            .collect::<Result<Vec<_>>>()?;
+        flows.extend(missing.into_iter().zip(computed));
+        Ok(())
     }
 
     /// The depth of the frame nearest to `index` among those fused from their own views in

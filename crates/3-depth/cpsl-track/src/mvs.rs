@@ -24,6 +24,7 @@ use cpsl_core::{Camera, Homography, Pose, Vec3};
 use opencv::core::{Mat, Point, Scalar, Size, Vec2f, Vec3f, BORDER_CONSTANT};
 use opencv::prelude::*;
 use opencv::{imgproc, video, ximgproc};
+use rayon::prelude::*;
 
 /// Depth of one frame from its neighbours, at working resolution.
 #[derive(Debug, Clone)]
@@ -314,114 +315,138 @@ pub fn depth_from_flows(
     let (w, h) = (cam.width as usize, cam.height as usize);
     let (p0, c0) = (pose, pose.translation);
     let cos_min = cfg.min_angle_deg.to_radians().cos();
-    // Per pixel, each neighbour's inverse depth and the square of its ray angle (the
-    // inverse of its variance: a flow error of a pixel moves the depth by its share of the
-    // angle).
-    let mut samples: Vec<Vec<(f32, f32)>> = vec![Vec::new(); w * h];
-    // Per pixel, the neighbours that could see it under enough angle (triangulated or not).
-    let mut seen = vec![0u8; w * h];
-    for nb in neighbours {
-        for m in [nb.forward, nb.backward] {
-            let size = m.size()?;
-            if (size.width as usize, size.height as usize) != (w, h) || m.channels() != 2 {
-                return Err(TrackError::Input(format!(
-                    "a {}x{} flow of {} channels for a {w}x{h} camera",
-                    size.width,
-                    size.height,
-                    m.channels()
-                )));
+    // Each neighbour's flows, centre and (where its picture was warped, since its flows end
+    // in the warped picture) the plane that maps them back.
+    let nbs = neighbours
+        .iter()
+        .map(|nb| {
+            for m in [nb.forward, nb.backward] {
+                let size = m.size()?;
+                if (size.width as usize, size.height as usize) != (w, h) || m.channels() != 2 {
+                    return Err(TrackError::Input(format!(
+                        "a {}x{} flow of {} channels for a {w}x{h} camera",
+                        size.width,
+                        size.height,
+                        m.channels()
+                    )));
+                }
             }
+            Ok((
+                nb.forward.data_typed::<Vec2f>()?,
+                nb.backward.data_typed::<Vec2f>()?,
+                nb.pose,
+                nb.plane.map(|d| plane_homography(cam, p0, nb.pose, d)),
+            ))
+        })
+        .collect::<Result<Vec<_>>>()?;
+    let inside =
+        |(u, v): (f32, f32)| u >= 0.0 && v >= 0.0 && u <= (w - 1) as f32 && v <= (h - 1) as f32;
+    // What neighbour `nb` says of pixel (x, y): nothing when it cannot see the pixel under
+    // enough angle; else, when the pixel passes the checks, its inverse depth and the square
+    // of its ray angle (the inverse of its variance: a flow error of a pixel moves the depth
+    // by its share of the angle).
+    let sample = |(fwd, bwd, pose, plane): &(&[Vec2f], &[Vec2f], &Pose, Option<Homography>),
+                  x: usize,
+                  y: usize|
+     -> Option<Option<(f32, f32)>> {
+        let f = fwd[y * w + x];
+        // Where the flow ends (in the warped neighbour's pixels when it is warped), and the
+        // neighbour's pixel there.
+        let end = (x as f32 + f[0], y as f32 + f[1]);
+        if !inside(end) {
+            return None;
         }
-        let (fwd, bwd) = (
-            nb.forward.data_typed::<Vec2f>()?,
-            nb.backward.data_typed::<Vec2f>()?,
-        );
-        let c1 = nb.pose.translation;
-        // A warped neighbour's flows end in the warped picture: its plane maps them back.
-        let plane = nb.plane.map(|d| plane_homography(cam, p0, nb.pose, d));
-        for y in 0..h {
-            for x in 0..w {
-                let f = fwd[y * w + x];
-                // Where the flow ends (in the warped neighbour's pixels when it is warped),
-                // and the neighbour's pixel there.
-                let end = (x as f32 + f[0], y as f32 + f[1]);
-                let inside = |(u, v): (f32, f32)| {
-                    u >= 0.0 && v >= 0.0 && u <= (w - 1) as f32 && v <= (h - 1) as f32
-                };
-                if !inside(end) {
-                    continue;
-                }
-                let (u, v) = match &plane {
-                    None => end,
-                    Some(hom) => match hom.apply(end.0 as f64, end.1 as f64) {
-                        Some((u, v)) if inside((u as f32, v as f32)) => (u as f32, v as f32),
-                        _ => continue,
-                    },
-                };
-                let d0 = p0.rotation * cam.unproject(x as f64, y as f64, 1.0);
-                let d1 = nb.pose.rotation * cam.unproject(u as f64, v as f64, 1.0);
-                let w0 = c0 - c1;
-                let (a, bb, c) = (d0.dot(d0), d0.dot(d1), d1.dot(d1));
-                let (d, e) = (d0.dot(w0), d1.dot(w0));
-                let den = a * c - bb * bb;
-                if den.abs() < 1e-12 {
-                    continue;
-                }
-                // Along d0 (whose camera z is 1, so s is the depth) and along d1.
-                let s = (bb * e - c * d) / den;
-                let t = (a * e - bb * d) / den;
-                if s <= 0.0 || t <= 0.0 {
-                    continue;
-                }
-                let x3: Vec3 = c0 + d0 * s;
-                let (r0, r1) = ((x3 - c0).normalized(), (x3 - c1).normalized());
-                let cos = r0.dot(r1);
-                if cos > cos_min {
-                    continue;
-                }
-                seen[y * w + x] += 1;
-                let b = bwd[(end.1.round() as usize) * w + end.0.round() as usize];
-                if (f[0] + b[0]).hypot(f[1] + b[1]) > cfg.max_fb {
-                    continue;
-                }
-                let Some((pu, pv)) = cam.project(nb.pose.rotation.transpose() * (x3 - c1)) else {
-                    continue;
-                };
-                if (pu - u as f64).hypot(pv - v as f64) > cfg.max_epipolar {
-                    continue;
-                }
-                let angle = cos.clamp(-1.0, 1.0).acos() as f32;
-                samples[y * w + x].push(((1.0 / s) as f32, angle * angle));
-            }
+        let (u, v) = match plane {
+            None => end,
+            Some(hom) => match hom.apply(end.0 as f64, end.1 as f64) {
+                Some((u, v)) if inside((u as f32, v as f32)) => (u as f32, v as f32),
+                _ => return None,
+            },
+        };
+        let c1 = pose.translation;
+        let d0 = p0.rotation * cam.unproject(x as f64, y as f64, 1.0);
+        let d1 = pose.rotation * cam.unproject(u as f64, v as f64, 1.0);
+        let w0 = c0 - c1;
+        let (a, bb, c) = (d0.dot(d0), d0.dot(d1), d1.dot(d1));
+        let (d, e) = (d0.dot(w0), d1.dot(w0));
+        let den = a * c - bb * bb;
+        if den.abs() < 1e-12 {
+            return None;
         }
-    }
+        // Along d0 (whose camera z is 1, so s is the depth) and along d1.
+        let s = (bb * e - c * d) / den;
+        let t = (a * e - bb * d) / den;
+        if s <= 0.0 || t <= 0.0 {
+            return None;
+        }
+        let x3: Vec3 = c0 + d0 * s;
+        let (r0, r1) = ((x3 - c0).normalized(), (x3 - c1).normalized());
+        let cos = r0.dot(r1);
+        if cos > cos_min {
+            return None;
+        }
+        let b = bwd[(end.1.round() as usize) * w + end.0.round() as usize];
+        if (f[0] + b[0]).hypot(f[1] + b[1]) > cfg.max_fb {
+            return Some(None);
+        }
+        let Some((pu, pv)) = cam.project(pose.rotation.transpose() * (x3 - c1)) else {
+            return Some(None);
+        };
+        if (pu - u as f64).hypot(pv - v as f64) > cfg.max_epipolar {
+            return Some(None);
+        }
+        let angle = cos.clamp(-1.0, 1.0).acos() as f32;
+        Some(Some(((1.0 / s) as f32, angle * angle)))
+    };
     let (mut depth, mut confidence) = (vec![f32::NAN; w * h], vec![0.0f32; w * h]);
     // Per pixel the agreeing samples' summed weight (ray angle squared), and where two or
     // more agree, their weighted scatter: an estimate of the flow's angular noise squared.
     let mut precision = vec![0.0f32; w * h];
-    let mut noise: Vec<f32> = Vec::new();
-    for (i, s) in samples.iter_mut().enumerate() {
-        if s.is_empty() {
-            continue;
-        }
-        s.sort_by(|a, b| a.0.total_cmp(&b.0));
-        let m = s[s.len() / 2].0;
-        // The samples that agree with the median, and their mean weighted by their inverse
-        // variance.
-        s.retain(|p| (p.0 - m).abs() <= 0.05 * m);
-        let agree = s.len();
-        let (sum, weight) = s
-            .iter()
-            .fold((0.0, 0.0), |(a, b), p| (a + p.0 * p.1, b + p.1));
-        depth[i] = weight / sum;
-        precision[i] = weight;
-        if agree >= 2 {
-            confidence[i] = agree as f32 / f32::from(seen[i]);
-            let mean = sum / weight;
-            let scatter: f32 = s.iter().map(|p| p.1 * ((p.0 - mean) / mean).powi(2)).sum();
-            noise.push(scatter / (agree - 1) as f32);
-        }
-    }
+    // Rows in parallel; per pixel the neighbours in order.
+    let noise_rows: Vec<Vec<f32>> = depth
+        .par_chunks_mut(w)
+        .zip(confidence.par_chunks_mut(w))
+        .zip(precision.par_chunks_mut(w))
+        .enumerate()
+        .map(|(y, ((depth, confidence), precision))| {
+            let mut noise = Vec::new();
+            let mut s: Vec<(f32, f32)> = Vec::with_capacity(nbs.len());
+            for x in 0..w {
+                s.clear();
+                // The neighbours that could see the pixel under enough angle (triangulated
+                // or not).
+                let mut seen = 0u8;
+                for nb in &nbs {
+                    if let Some(found) = sample(nb, x, y) {
+                        seen += 1;
+                        s.extend(found);
+                    }
+                }
+                if s.is_empty() {
+                    continue;
+                }
+                s.sort_by(|a, b| a.0.total_cmp(&b.0));
+                let m = s[s.len() / 2].0;
+                // The samples that agree with the median, and their mean weighted by their
+                // inverse variance.
+                s.retain(|p| (p.0 - m).abs() <= 0.05 * m);
+                let agree = s.len();
+                let (sum, weight) = s
+                    .iter()
+                    .fold((0.0, 0.0), |(a, b), p| (a + p.0 * p.1, b + p.1));
+                depth[x] = weight / sum;
+                precision[x] = weight;
+                if agree >= 2 {
+                    confidence[x] = agree as f32 / f32::from(seen);
+                    let mean = sum / weight;
+                    let scatter: f32 = s.iter().map(|p| p.1 * ((p.0 - mean) / mean).powi(2)).sum();
+                    noise.push(scatter / (agree - 1) as f32);
+                }
+            }
+            noise
+        })
+        .collect();
+    let mut noise: Vec<f32> = noise_rows.into_iter().flatten().collect();
     noise.sort_by(f32::total_cmp);
     let noise = noise.get(noise.len() / 2).copied().unwrap_or(f32::NAN);
     let variance = precision

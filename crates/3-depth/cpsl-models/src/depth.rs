@@ -20,7 +20,7 @@
 
 use crate::error::ModelError;
 use crate::runtime;
-use cpsl_core::resample::resize_bilinear;
+use cpsl_core::resample::{resize_bilinear, resize_bilinear_unit};
 use ort::session::Session;
 use ort::value::Tensor;
 use serde::{Deserialize, Serialize};
@@ -251,9 +251,8 @@ impl OnnxDepth {
             )));
         }
         let (iw, ih) = self.desc.input_size(width, height);
-        let src: Vec<f32> = rgb.iter().map(|&v| v as f32 / 255.0).collect();
-        let resized = resize_bilinear(
-            &src,
+        let resized = resize_bilinear_unit(
+            rgb,
             width as usize,
             height as usize,
             3,

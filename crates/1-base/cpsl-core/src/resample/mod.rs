@@ -61,6 +61,32 @@ pub fn resize_bilinear(
     dw: usize,
     dh: usize,
 ) -> Vec<f32> {
+    resize_bilinear_of(src, (sw, sh, ch), (dw, dh), |v| v)
+}
+
+/// [`resize_bilinear`] of 8-bit samples read as values in [0, 1] (`v / 255`): the same result
+/// as converting the whole image first, converting only the samples the output reads (a
+/// network's input is a few hundred pixels on a side).
+///
+/// # Panics
+/// If `src` does not hold `sw * sh * ch` values or a size is zero.
+pub fn resize_bilinear_unit(
+    src: &[u8],
+    sw: usize,
+    sh: usize,
+    ch: usize,
+    dw: usize,
+    dh: usize,
+) -> Vec<f32> {
+    resize_bilinear_of(src, (sw, sh, ch), (dw, dh), |v| v as f32 / 255.0)
+}
+
+fn resize_bilinear_of<T: Copy + Sync>(
+    src: &[T],
+    (sw, sh, ch): (usize, usize, usize),
+    (dw, dh): (usize, usize),
+    value: impl Fn(T) -> f32 + Sync,
+) -> Vec<f32> {
     assert_eq!(src.len(), sw * sh * ch, "resize_bilinear: source size");
     assert!(
         sw > 0 && sh > 0 && dw > 0 && dh > 0,
@@ -79,7 +105,7 @@ pub fn resize_bilinear(
             let (y0, y1, fy) = axis(y, dh, sh);
             for (o, &(x0, x1, fx)) in row.chunks_exact_mut(ch).zip(&xs) {
                 for (c, o) in o.iter_mut().enumerate() {
-                    let p = |yy: usize, xx: usize| src[(yy * sw + xx) * ch + c];
+                    let p = |yy: usize, xx: usize| value(src[(yy * sw + xx) * ch + c]);
                     let top = p(y0, x0) * (1.0 - fx) + p(y0, x1) * fx;
                     let bot = p(y1, x0) * (1.0 - fx) + p(y1, x1) * fx;
                     *o = top * (1.0 - fy) + bot * fy;
@@ -115,6 +141,19 @@ pub fn downscale_rgb(rgb: &[u8], w: usize, h: usize, max_w: usize) -> (Vec<u8>, 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn resizing_8_bit_samples_equals_resizing_them_converted() {
+        let (w, h) = (37, 23);
+        let rgb: Vec<u8> = (0..w * h * 3).map(|i| (i * 97 % 251) as u8).collect();
+        let converted: Vec<f32> = rgb.iter().map(|&v| v as f32 / 255.0).collect();
+        for (dw, dh) in [(11, 7), (37, 23), (80, 50)] {
+            let a = resize_bilinear_unit(&rgb, w, h, 3, dw, dh);
+            let b = resize_bilinear(&converted, w, h, 3, dw, dh);
+            assert!(a.iter().zip(&b).all(|(x, y)| x.to_bits() == y.to_bits()));
+            assert_eq!(a.len(), dw * dh * 3);
+        }
+    }
 
     #[test]
     fn bilerp_exact_at_integer_positions_and_midpoint() {

@@ -338,11 +338,39 @@ impl Scene {
         ));
         v
     }
+
+    /// `n` camera poses orbiting a point `distance` ahead of the first: each frame turns
+    /// `step_deg` to the left while moving to the right along the circle (the clips camera
+    /// tracking and multi-view depth are tested and timed on).
+    pub fn orbit_path(n: usize, step_deg: f64, distance: f64) -> Vec<Pose> {
+        (0..n)
+            .map(|i| {
+                let a = step_deg * i as f64;
+                let (s, c) = a.to_radians().sin_cos();
+                let p = Pose::from_euler_deg(Vec3::ZERO, 0.0, -a, 0.0);
+                Pose {
+                    rotation: p.rotation,
+                    translation: Vec3::new(distance * s, 0.0, distance * (1.0 - c)),
+                }
+            })
+            .collect()
+    }
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_orbit_keeps_its_distance_and_looks_at_its_centre() {
+        let centre = Vec3::new(0.0, 0.0, 4.0);
+        for p in Scene::orbit_path(40, 1.5, 4.0) {
+            let to_centre = centre - p.translation;
+            assert!((to_centre.norm() - 4.0).abs() < 1e-9);
+            let forward = p.rotation * Vec3::new(0.0, 0.0, 1.0);
+            assert!((forward.dot(to_centre.normalized()) - 1.0).abs() < 1e-9);
+        }
+    }
 
     #[test]
     fn default_scene_depth_is_exact_at_fronto_objects() {

@@ -5,7 +5,6 @@
 //! in parallel (as `TrackedDepth` runs them).
 #![allow(missing_docs)] // criterion_group! generates undocumented items
 
-use cpsl_core::{Pose, Vec3};
 use cpsl_synth::Scene;
 use cpsl_track::mvs::{depth_from_flows, flow, fuse, MvsConfig, Neighbour};
 use cpsl_track::{work_grey, work_rgb};
@@ -17,17 +16,7 @@ fn bench(c: &mut Criterion) {
     let scene = Scene::default_scene(w, h);
     let cam = scene.camera;
     // Around a point 4 units ahead: turn left while moving right, 1.5 degrees a frame.
-    let path: Vec<Pose> = (0..11)
-        .map(|i| {
-            let a = 1.5 * i as f64;
-            let (s, co) = a.to_radians().sin_cos();
-            let p = Pose::from_euler_deg(Vec3::ZERO, 0.0, -a, 0.0);
-            Pose {
-                rotation: p.rotation,
-                translation: Vec3::new(4.0 * s, 0.0, 4.0 * (1.0 - co)),
-            }
-        })
-        .collect();
+    let path = Scene::orbit_path(11, 1.5, 4.0);
     let rgb: Vec<Vec<u8>> = path
         .iter()
         .map(|p| scene.render(&cam, p, 0.0, 1).rgb)

@@ -110,17 +110,7 @@ fn orbit() -> Vec<Pose> {
 
 /// [`orbit`] over `n` frames.
 fn orbit_of(n: usize) -> Vec<Pose> {
-    (0..n)
-        .map(|i| {
-            let a = 1.5 * i as f64;
-            let (s, c) = a.to_radians().sin_cos();
-            let p = Pose::from_euler_deg(Vec3::ZERO, 0.0, -a, 0.0);
-            Pose {
-                rotation: p.rotation,
-                translation: Vec3::new(4.0 * s, 0.0, 4.0 * (1.0 - c)),
-            }
-        })
-        .collect()
+    Scene::orbit_path(n, 1.5, 4.0)
 }
 
 /// The clip along `path` at the size frames are tracked at (480x270), frame 6's depth from

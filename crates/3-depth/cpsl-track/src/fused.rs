@@ -216,12 +216,7 @@ impl TrackedDepth {
                             backward,
                             plane,
                         },
-                        None => Neighbour {
-                            pose,
-                            forward: &self.flows[&(index, j)],
-                            backward: &self.flows[&(j, index)],
-                            plane: None,
-                        },
+                        None => unwarped_neighbour(&self.flows, index, j, pose),
                     })
                     .collect();
                 // Without a plane (the nearest frames' views saw too little for a median
@@ -412,11 +407,8 @@ impl TrackedDepth {
         let t = &self.trajectory;
         let nb: Vec<Neighbour> = near
             .iter()
-            .map(|&j| Neighbour {
-                pose: t.poses[j].as_ref().expect("placed"),
-                forward: &self.flows[&(index, j)],
-                backward: &self.flows[&(j, index)],
-                plane: None,
+            .map(|&j| {
+                unwarped_neighbour(&self.flows, index, j, t.poses[j].as_ref().expect("placed"))
             })
             .collect();
         let views = mvs::depth_from_flows(&t.camera, pose, &nb, &MvsConfig::default())?;
@@ -499,6 +491,22 @@ impl TrackedDepth {
             return 1.0;
         }
         crate::median(&mut self.ratios.clone())
+    }
+}
+
+/// Neighbour `j` of frame `index`, at `pose`, by its kept unwarped flows
+/// ([`TrackedDepth::compute_flows`]).
+fn unwarped_neighbour<'a>(
+    flows: &'a HashMap<(usize, usize), Mat>,
+    index: usize,
+    j: usize,
+    pose: &'a Pose,
+) -> Neighbour<'a> {
+    Neighbour {
+        pose,
+        forward: &flows[&(index, j)],
+        backward: &flows[&(j, index)],
+        plane: None,
     }
 }
 

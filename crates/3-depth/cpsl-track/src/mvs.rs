@@ -315,8 +315,8 @@ pub fn depth_from_flows(
     let (w, h) = (cam.width as usize, cam.height as usize);
     let (p0, c0) = (pose, pose.translation);
     let cos_min = cfg.min_angle_deg.to_radians().cos();
-    // Each neighbour's flows, centre and (where its picture was warped, since its flows end
-    // in the warped picture) the plane that maps them back.
+    // Each neighbour's flows, pose and (where its picture was warped, since its flows end in
+    // the warped picture) the plane that maps them back.
     let nbs = neighbours
         .iter()
         .map(|nb| {
@@ -341,13 +341,14 @@ pub fn depth_from_flows(
         .collect::<Result<Vec<_>>>()?;
     let inside =
         |(u, v): (f32, f32)| u >= 0.0 && v >= 0.0 && u <= (w - 1) as f32 && v <= (h - 1) as f32;
-    // What neighbour `nb` says of pixel (x, y): nothing when it cannot see the pixel under
-    // enough angle; else, when the pixel passes the checks, its inverse depth and the square
-    // of its ray angle (the inverse of its variance: a flow error of a pixel moves the depth
-    // by its share of the angle).
+    // What neighbour `nb` says of pixel (x, y), whose ray is `d0` (world direction, camera
+    // z 1): nothing when it cannot see the pixel under enough angle; else, when the pixel
+    // passes the checks, its inverse depth and the square of its ray angle (the inverse of
+    // its variance: a flow error of a pixel moves the depth by its share of the angle).
     let sample = |(fwd, bwd, pose, plane): &(&[Vec2f], &[Vec2f], &Pose, Option<Homography>),
                   x: usize,
-                  y: usize|
+                  y: usize,
+                  d0: Vec3|
      -> Option<Option<(f32, f32)>> {
         let f = fwd[y * w + x];
         // Where the flow ends (in the warped neighbour's pixels when it is warped), and the
@@ -364,7 +365,6 @@ pub fn depth_from_flows(
             },
         };
         let c1 = pose.translation;
-        let d0 = p0.rotation * cam.unproject(x as f64, y as f64, 1.0);
         let d1 = pose.rotation * cam.unproject(u as f64, v as f64, 1.0);
         let w0 = c0 - c1;
         let (a, bb, c) = (d0.dot(d0), d0.dot(d1), d1.dot(d1));
@@ -416,8 +416,9 @@ pub fn depth_from_flows(
                 // The neighbours that could see the pixel under enough angle (triangulated
                 // or not).
                 let mut seen = 0u8;
+                let d0 = p0.rotation * cam.unproject(x as f64, y as f64, 1.0);
                 for nb in &nbs {
-                    if let Some(found) = sample(nb, x, y) {
+                    if let Some(found) = sample(nb, x, y, d0) {
                         seen += 1;
                         s.extend(found);
                     }
@@ -956,8 +957,10 @@ impl Curve {
             knots,
             values: vec![0.0; m],
         };
-        // Each sample's absolute residual from the last round's curve.
+        // Each sample's absolute residual from the last round's curve, and a copy to take
+        // their median in.
         let mut e = vec![0.0; samples.len()];
+        let mut sorted = Vec::with_capacity(samples.len());
         for round in 0..6 {
             // Normal equations of the hat-function basis (tridiagonal, row-major).
             let mut n = vec![0.0; m * m];
@@ -983,7 +986,8 @@ impl Curve {
             for ((&(x, y), &j), e) in samples.iter().zip(&segment).zip(&mut e) {
                 *e = (y - curve.on_segment(j, x)).abs();
             }
-            let mut sorted = e.clone();
+            sorted.clear();
+            sorted.extend_from_slice(&e);
             scale = (1.4826 * crate::median(&mut sorted)).max(1e-9);
         }
         curve

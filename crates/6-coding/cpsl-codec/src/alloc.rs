@@ -364,14 +364,31 @@ pub fn weight(saliency: f32, edge_samples: usize, max_edge_samples: usize) -> f3
 /// transmittance of the layers in front of it, so that hidden content (revealed only by
 /// parallax) counts less but not nothing. `front` are the nearer layers.
 pub fn visibility(front: &[&PremulImage], width: u32, height: u32) -> Vec<u8> {
+    /// Pixels taken through all the layers at a time, their products kept in a small buffer.
+    const RUN: usize = 1024;
     let n = (width * height) as usize;
-    let mut t = vec![1f32; n];
-    for l in front {
-        for (i, px) in l.as_bytes().chunks_exact(4).enumerate() {
-            t[i] *= 1.0 - px[3] as f32 / 255.0;
+    let mut out = vec![0u8; n];
+    // What each alpha lets through, as the product takes it.
+    let clear: [f32; 256] = std::array::from_fn(|a| 1.0 - a as f32 / 255.0);
+    let mut t = [0f32; RUN];
+    for (start, out) in (0..n).step_by(RUN).zip(out.chunks_mut(RUN)) {
+        let t = &mut t[..out.len()];
+        t.fill(1.0);
+        for l in front {
+            let px = &l.as_bytes()[4 * start..4 * (start + t.len())];
+            for (t, px) in t.iter_mut().zip(px.chunks_exact(4)) {
+                *t *= clear[px[3] as usize];
+            }
+        }
+        // Rounded half away from zero (`f32::round`, a library call here) for values in
+        // [0, 255]: the fraction after truncation is exact.
+        for (o, &v) in out.iter_mut().zip(t.iter()) {
+            let x = v * 255.0;
+            let i = x as u32;
+            *o = (i + u32::from(x - i as f32 >= 0.5)) as u8;
         }
     }
-    t.into_iter().map(|v| (v * 255.0).round() as u8).collect()
+    out
 }
 
 /// The proxy distortion of one decoded layer against its source: squared error summed over
@@ -379,23 +396,88 @@ pub fn visibility(front: &[&PremulImage], width: u32, height: u32) -> Vec<u8> {
 /// its sum over a stream's sampled frames divided by the same (picture-size) constant for
 /// every stream, so that a small layer weighs its share of the picture.
 pub fn distortion(src: &PremulImage, dec: &PremulImage, vis: &[u8]) -> f64 {
-    // In integers, exactly: the weight is (255 + 4 v) / 1275.
-    let err: u64 = src
-        .as_bytes()
-        .chunks_exact(4)
-        .zip(dec.as_bytes().chunks_exact(4))
-        .zip(vis)
-        .map(|((s, d), &v)| {
-            let e: u32 = (0..4).map(|c| u32::from(s[c].abs_diff(d[c])).pow(2)).sum();
-            u64::from(e * (255 + 4 * u32::from(v)))
+    // In integers, exactly: the weight is (255 + 4 v) / 1275. A pixel's weighted error is
+    // below 2^29, so a block of eight sums in 32 bits; a block alike in both (transparent
+    // there, as most of a layer is) adds nothing.
+    let pixel = |s: &[u8], d: &[u8], v: u8| -> u32 {
+        let e: u32 = (0..4).map(|c| u32::from(s[c].abs_diff(d[c])).pow(2)).sum();
+        e * (255 + 4 * u32::from(v))
+    };
+    let (s, d) = (src.as_bytes(), dec.as_bytes());
+    let blocks = s
+        .chunks_exact(32)
+        .zip(d.chunks_exact(32))
+        .zip(vis.chunks_exact(8));
+    let mut err: u64 = blocks
+        .map(|((s, d), v)| {
+            let (s, d): (&[u8; 32], &[u8; 32]) = (s.try_into().unwrap(), d.try_into().unwrap());
+            if s == d {
+                return 0;
+            }
+            let sq: [u16; 32] = std::array::from_fn(|j| u16::from(s[j].abs_diff(d[j])).pow(2));
+            let e: [u32; 8] = std::array::from_fn(|i| {
+                let e = sq[4 * i..4 * i + 4]
+                    .iter()
+                    .map(|&x| u32::from(x))
+                    .sum::<u32>();
+                e * (255 + 4 * u32::from(v[i]))
+            });
+            u64::from(e.iter().sum::<u32>())
         })
         .sum();
+    let done = vis.len() / 8 * 8;
+    for i in done..vis.len() {
+        err += u64::from(pixel(&s[4 * i..4 * i + 4], &d[4 * i..4 * i + 4], vis[i]));
+    }
     err as f64 / 1275.0
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn visibility_and_distortion_follow_their_formulas() {
+        // Soft, opaque and clear pixels; a size that leaves partial runs and blocks.
+        let (w, h) = (37u32, 29u32);
+        let layer = |seed: u32| {
+            let data: Vec<u8> = (0..w * h)
+                .flat_map(|i| {
+                    let a = match (i.wrapping_mul(2654435761) ^ seed) % 5 {
+                        0 | 1 => 0,
+                        2 => ((i * 7 + seed) % 256) as u8,
+                        _ => 255,
+                    };
+                    [a / 2, a / 3, ((i + seed) % 256) as u8 % (a / 4 + 1), a]
+                })
+                .collect();
+            PremulImage::from_premul(w, h, data).unwrap()
+        };
+        let layers: Vec<PremulImage> = (0..4).map(layer).collect();
+        let front: Vec<&PremulImage> = layers[..3].iter().collect();
+        let vis = visibility(&front, w, h);
+        for (i, &v) in vis.iter().enumerate() {
+            let t = front.iter().fold(1f32, |t, l| {
+                t * (1.0 - l.as_bytes()[4 * i + 3] as f32 / 255.0)
+            });
+            assert_eq!(v, (t * 255.0).round() as u8, "pixel {i}");
+        }
+        let (s, d) = (layers[3].as_bytes(), layers[0].as_bytes());
+        let expected: f64 = (0..vis.len())
+            .map(|i| {
+                let e: f64 = (0..4)
+                    .map(|c| (s[4 * i + c] as f64 - d[4 * i + c] as f64).powi(2))
+                    .sum();
+                e * (0.2 + 0.8 * vis[i] as f64 / 255.0)
+            })
+            .sum();
+        let got = distortion(&layers[3], &layers[0], &vis);
+        assert!(
+            (got - expected).abs() <= 1e-9 * expected,
+            "{got} against {expected}"
+        );
+        assert_eq!(distortion(&layers[3], &layers[3], &vis), 0.0);
+    }
 
     fn trial(q: f32, intra: f64, inter: f64, distortion: f64) -> Trial {
         Trial {

@@ -39,26 +39,32 @@ pub fn downscale(img: &PremulImage, factor: u32) -> PremulImage {
     let f = factor as usize;
     let src = img.as_bytes();
     let mut out = vec![0u8; sw as usize * sh as usize * 4];
-    for oy in 0..sh as usize {
-        let ys = oy * f..((oy + 1) * f).min(h);
-        for ox in 0..sw as usize {
-            let xs = ox * f..((ox + 1) * f).min(w);
-            let mut acc = [0u32; 4];
+    out.par_chunks_mut(sw as usize * 4)
+        .enumerate()
+        .for_each(|(oy, dst)| {
+            // The block sums of the output row, its source rows added in turn.
+            let ys = oy * f..((oy + 1) * f).min(h);
+            let mut acc = vec![0u32; dst.len()];
             for y in ys.clone() {
-                for x in xs.clone() {
-                    let o = (y * w + x) * 4;
-                    for c in 0..4 {
-                        acc[c] += src[o + c] as u32;
+                let row = &src[y * w * 4..][..w * 4];
+                for (a, block) in acc.chunks_exact_mut(4).zip(row.chunks(4 * f)) {
+                    for px in block.chunks_exact(4) {
+                        for c in 0..4 {
+                            a[c] += px[c] as u32;
+                        }
                     }
                 }
             }
-            let n = (ys.len() * xs.len()) as u32;
-            let o = (oy * sw as usize + ox) * 4;
-            for c in 0..4 {
-                out[o + c] = ((acc[c] + n / 2) / n) as u8;
+            for (ox, (d, a)) in dst.chunks_exact_mut(4).zip(acc.chunks_exact(4)).enumerate() {
+                let n = (ys.len() * (((ox + 1) * f).min(w) - ox * f)) as u32;
+                // Whole blocks hold a power of two of pixels: a shift, not a division.
+                let shift = n.is_power_of_two().then(|| n.trailing_zeros());
+                for c in 0..4 {
+                    let v = a[c] + n / 2;
+                    d[c] = shift.map_or(v / n, |s| v >> s) as u8;
+                }
             }
-        }
-    }
+        });
     PremulImage::from_premul(sw, sh, out).expect("means of premultiplied pixels")
 }
 
@@ -117,6 +123,36 @@ pub fn upscale(img: PremulImage, width: u32, height: u32, factor: u32) -> Premul
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn downscaling_takes_the_rounded_mean_of_each_clipped_block() {
+        let (w, h) = (75u32, 41u32);
+        let data: Vec<u8> = (0..w * h)
+            .flat_map(|i| {
+                let a = ((i * 53) % 256) as u8;
+                [a / 2, ((i * 13) % 256) as u8 % (a / 2 + 1), a / 5, a]
+            })
+            .collect();
+        let img = PremulImage::from_premul(w, h, data).unwrap();
+        for f in [2u32, 3, 4, 8] {
+            let small = downscale(&img, f);
+            assert_eq!((small.width(), small.height()), scaled_size(w, h, f));
+            for (i, px) in small.as_bytes().chunks_exact(4).enumerate() {
+                let (ox, oy) = (i as u32 % small.width(), i as u32 / small.width());
+                let xs = ox * f..((ox + 1) * f).min(w);
+                let ys = oy * f..((oy + 1) * f).min(h);
+                let n = xs.len() * ys.len();
+                for c in 0..4 {
+                    let sum: usize = ys
+                        .clone()
+                        .flat_map(|y| xs.clone().map(move |x| (x, y)))
+                        .map(|(x, y)| img.as_bytes()[((y * w + x) * 4) as usize + c] as usize)
+                        .sum();
+                    assert_eq!(px[c] as usize, (sum + n / 2) / n, "factor {f} at {ox},{oy}");
+                }
+            }
+        }
+    }
 
     #[test]
     fn fixed_point_upscaling_matches_the_float_formula() {

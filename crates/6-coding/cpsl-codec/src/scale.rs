@@ -142,13 +142,13 @@ mod tests {
                 let xs = ox * f..((ox + 1) * f).min(w);
                 let ys = oy * f..((oy + 1) * f).min(h);
                 let n = xs.len() * ys.len();
-                for c in 0..4 {
+                for (c, &v) in px.iter().enumerate() {
                     let sum: usize = ys
                         .clone()
                         .flat_map(|y| xs.clone().map(move |x| (x, y)))
                         .map(|(x, y)| img.as_bytes()[((y * w + x) * 4) as usize + c] as usize)
                         .sum();
-                    assert_eq!(px[c] as usize, (sum + n / 2) / n, "factor {f} at {ox},{oy}");
+                    assert_eq!(v as usize, (sum + n / 2) / n, "factor {f} at {ox},{oy}");
                 }
             }
         }

@@ -5,6 +5,7 @@ use crate::layer::{CameraArgs, StereoArgs};
 use crate::progress::Bars;
 use anyhow::Result;
 use clap::{Args, ValueEnum};
+use cpsl_flow::FlowMethod;
 use cpsl_layering::GeometryMode;
 use cpsl_pipeline::sources::{layering_config, open_depth_model, StereoDepth, VideoDepth};
 use cpsl_pipeline::track::VideoTrackedDepth;
@@ -51,6 +52,24 @@ impl From<MotionArg> for MotionSource {
         match a {
             MotionArg::Auto => MotionSource::Auto,
             MotionArg::Flow => MotionSource::Flow,
+        }
+    }
+}
+
+/// The optical flow of P-frames.
+#[derive(ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
+pub enum FlowArg {
+    /// OpenCV's Dense Inverse Search.
+    Dis,
+    /// The Lucas-Kanade of `cpsl-flow` (the flow before 2026-11-29).
+    LucasKanade,
+}
+
+impl From<FlowArg> for FlowMethod {
+    fn from(a: FlowArg) -> Self {
+        match a {
+            FlowArg::Dis => FlowMethod::Dis,
+            FlowArg::LucasKanade => FlowMethod::LucasKanade,
         }
     }
 }
@@ -156,6 +175,9 @@ pub struct VideoLayeringArgs {
     /// Motion source for P-frames.
     #[arg(long, value_enum, default_value_t = MotionArg::Auto)]
     pub motion: MotionArg,
+    /// The optical flow P-frames take where the decoder gives no motion.
+    #[arg(long, value_enum, default_value_t = FlowArg::Dis)]
+    pub flow: FlowArg,
     /// Stop after this many frames.
     #[arg(long)]
     pub max_frames: Option<usize>,
@@ -200,7 +222,10 @@ impl VideoLayeringArgs {
                 self.layers,
                 Some(self.geometry.unwrap_or(GeometryMode::VIDEO_DEFAULT)),
             )?,
-            gop: self.temporal.config(self.gop as usize),
+            gop: GopConfig {
+                flow: self.flow.into(),
+                ..self.temporal.config(self.gop as usize)
+            },
             motion: self.motion.into(),
             p_depth: self.p_depth.into(),
             max_frames: self.max_frames,

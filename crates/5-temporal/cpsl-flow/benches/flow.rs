@@ -1,7 +1,8 @@
-//! Criterion benchmark of dense flow at the working resolution of a 1280x720 frame.
+//! Criterion benchmark of dense flow at the working resolution of a 1280x720 frame, by both
+//! methods.
 #![allow(missing_docs)] // criterion_group! generates undocumented items
 
-use cpsl_flow::{flow, FlowConfig, Grey};
+use cpsl_flow::{flow, FlowConfig, FlowMethod, Grey};
 use criterion::{criterion_group, criterion_main, Criterion};
 
 fn bench(c: &mut Criterion) {
@@ -17,9 +18,17 @@ fn bench(c: &mut Criterion) {
             .collect(),
     };
     let (a, b) = (img(0.0), img(3.0));
-    c.bench_function("flow_320x180", |bch| {
-        bch.iter(|| flow(&a, &b, &FlowConfig::default()).unwrap())
-    });
+    // DIS (the default) and Lucas-Kanade side by side.
+    for (name, method) in [
+        ("flow_320x180", FlowMethod::Dis),
+        ("flow_320x180_lucas_kanade", FlowMethod::LucasKanade),
+    ] {
+        let cfg = FlowConfig {
+            method,
+            ..FlowConfig::default()
+        };
+        c.bench_function(name, |bch| bch.iter(|| flow(&a, &b, &cfg).unwrap()));
+    }
 }
 
 criterion_group!(benches, bench);

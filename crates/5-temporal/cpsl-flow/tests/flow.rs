@@ -1,6 +1,6 @@
 //! Flow recovers known motions of procedural textures.
 
-use cpsl_flow::{flow, FlowConfig, FlowError, Grey};
+use cpsl_flow::{flow, FlowConfig, FlowError, FlowMethod, Grey};
 
 /// A smooth, richly textured pattern (sum of sines at several scales and angles).
 fn texture(x: f32, y: f32) -> f32 {
@@ -40,14 +40,52 @@ fn epe(f: &cpsl_flow::Flow, truth: impl Fn(usize, usize) -> (f32, f32), margin: 
 
 #[test]
 fn recovers_global_translations_small_and_large() {
-    for (u, v) in [(0.0f32, 0.0f32), (1.3, -0.6), (6.5, 3.25), (-11.0, 4.0)] {
-        let a = image(160, 120, texture);
-        let b = image(160, 120, |x, y| texture(x - u, y - v));
-        let f = flow(&a, &b, &FlowConfig::default()).unwrap();
-        let e = epe(&f, |_, _| (u, v), 16);
-        eprintln!("({u}, {v}): EPE {e:.3} px");
-        assert!(e < 0.15, "({u}, {v}): EPE {e:.3}");
+    // DIS at the video layering's flow grid (its coarsest level, an eighth of that, sets its
+    // reach), Lucas-Kanade also on a smaller image (its pyramid goes down to 8 pixels).
+    let cases = [
+        (FlowMethod::Dis, (320, 180), 0.15),
+        (FlowMethod::LucasKanade, (320, 180), 0.15),
+        (FlowMethod::LucasKanade, (160, 120), 0.15),
+    ];
+    for (method, (w, h), max) in cases {
+        let cfg = FlowConfig {
+            method,
+            ..FlowConfig::default()
+        };
+        for (u, v) in [
+            (0.0f32, 0.0f32),
+            (1.3, -0.6),
+            (6.5, 3.25),
+            (-11.0, 4.0),
+            (-20.0, 8.0),
+        ] {
+            if (w, u) == (160, -20.0) {
+                continue;
+            }
+            let a = image(w, h, texture);
+            let b = image(w, h, |x, y| texture(x - u, y - v));
+            let f = flow(&a, &b, &cfg).unwrap();
+            let e = epe(&f, |_, _| (u, v), 16);
+            eprintln!("{method:?} {w}x{h} ({u}, {v}): EPE {e:.3} px");
+            assert!(e < max, "{method:?} {w}x{h} ({u}, {v}): EPE {e:.3}");
+        }
     }
+}
+
+#[test]
+fn small_images_take_lucas_kanade() {
+    // Under DIS's smallest side the default method gives Lucas-Kanade's flow.
+    let (u, v) = (1.5f32, -0.5f32);
+    let a = image(40, 12, texture);
+    let b = image(40, 12, |x, y| texture(x - u, y - v));
+    let lk = FlowConfig {
+        method: FlowMethod::LucasKanade,
+        ..FlowConfig::default()
+    };
+    assert_eq!(
+        flow(&a, &b, &FlowConfig::default()).unwrap(),
+        flow(&a, &b, &lk).unwrap()
+    );
 }
 
 #[test]

@@ -42,7 +42,7 @@
 //! ([`cpsl_core::LayerMeta::track`]) survives refreshes even when depth order changes its index.
 
 use cpsl_core::{Camera, LayerSet, LayeredFrame, Limits, NoProgress, PremulImage, RefreshReason};
-use cpsl_flow::{Flow, FlowConfig, Grey};
+use cpsl_flow::{Flow, FlowConfig, FlowMethod, Grey};
 use cpsl_layering::geometry::{fit_geometry, fit_grid, LayerDepth};
 use cpsl_layering::matte::edge_depth_cache_from;
 use cpsl_layering::{layer_frame, GeometryMode, LayeringConfig, LayeringError};
@@ -89,6 +89,14 @@ pub enum VideoError {
     /// Rebuilding a layer set failed.
     #[error(transparent)]
     Core(#[from] cpsl_core::CoreError),
+    /// The optical flow of a P-frame failed.
+    #[error("motion of frame {frame}: {source}")]
+    Flow {
+        /// Frame index.
+        frame: usize,
+        /// What failed.
+        source: cpsl_flow::FlowError,
+    },
 }
 
 /// Temporal organisation. The defaults are the full pipeline; [`GopConfig::frame_wise`] and
@@ -100,6 +108,9 @@ pub struct GopConfig {
     pub gop: usize,
     /// Long side of the grid the flow runs on.
     pub flow_side: usize,
+    /// The optical flow of P-frames whose motion is not given: OpenCV's DIS (the default) or
+    /// the Lucas-Kanade of `cpsl-flow` (before 2026-11-29).
+    pub flow: FlowMethod,
     /// Refinement: colour refresh of unoccluded opaque pixels, moving average of layer depths.
     pub refine: bool,
     /// Adaptive I-frame refresh from temporal confidence and crack rate.
@@ -144,6 +155,7 @@ impl Default for GopConfig {
         Self {
             gop: 30,
             flow_side: 320,
+            flow: FlowMethod::default(),
             refine: true,
             adaptive_refresh: true,
             depth_ema: 0.7,
@@ -293,7 +305,10 @@ impl VideoLayerer {
             camera,
             layering,
             gop,
-            flow: FlowConfig::default(),
+            flow: FlowConfig {
+                method: gop.flow,
+                ..FlowConfig::default()
+            },
             state: None,
             next_track: 0,
             frames: 0,
@@ -368,7 +383,12 @@ impl VideoLayerer {
             None => self
                 .state
                 .as_ref()
-                .map(|s| cpsl_flow::flow(&grey, &s.grey, &self.flow).expect("same-size grids")),
+                .map(|s| cpsl_flow::flow(&grey, &s.grey, &self.flow))
+                .transpose()
+                .map_err(|source| VideoError::Flow {
+                    frame: index,
+                    source,
+                })?,
         };
         let motion = grid.map(|grid| FrameMotion { grid, full: given });
         if motion.is_some() {

@@ -19,7 +19,7 @@
 
 use crate::metrics::ssim;
 use cpsl_core::LayerSet;
-use cpsl_flow::{flow, Flow, FlowConfig, Grey};
+use cpsl_flow::{flow, Flow, FlowConfig, FlowMethod, Grey};
 use cpsl_layering::grid::distance;
 
 /// Input motion between consecutive frames.
@@ -49,7 +49,12 @@ impl ClipMotion {
                 Grey::from_rgb8_scaled(f, w, h, 320)
             })
             .collect();
-        let cfg = FlowConfig::default();
+        // The metrics' motion stays the Lucas-Kanade flow of the earlier tables, whatever the
+        // layerer's default.
+        let cfg = FlowConfig {
+            method: FlowMethod::LucasKanade,
+            ..FlowConfig::default()
+        };
         let (mut back, mut valid) = (Vec::new(), Vec::new());
         for pair in greys.windows(2) {
             let b = flow(&pair[1], &pair[0], &cfg)

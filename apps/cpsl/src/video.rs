@@ -59,7 +59,7 @@ impl From<MotionArg> for MotionSource {
 /// The optical flow of P-frames.
 #[derive(ValueEnum, Clone, Copy, Debug, PartialEq, Eq)]
 pub enum FlowArg {
-    /// OpenCV's Dense Inverse Search.
+    /// OpenCV's Dense Inverse Search, polished by two Lucas-Kanade steps.
     Dis,
     /// The Lucas-Kanade of `cpsl-flow` (the flow before 2026-11-29).
     LucasKanade,

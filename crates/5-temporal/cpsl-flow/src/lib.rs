@@ -3,8 +3,9 @@
 //!
 //! - **DIS** (the default): OpenCV's Dense Inverse Search (Kroeger et al. 2016) at its fast
 //!   preset, down to full resolution, without its variational refinement, on the images
-//!   rounded to 8 bits (the settings `cpsl-track` takes for its multi-view depth). Images
-//!   whose smaller side is under [`DIS_MIN_SIDE`] take Lucas-Kanade.
+//!   rounded to 8 bits (the settings `cpsl-track` takes for its multi-view depth), then
+//!   [`POLISH_STEPS`] Lucas-Kanade steps on the full-precision images. Images whose smaller
+//!   side is under [`DIS_MIN_SIDE`] take Lucas-Kanade.
 //! - **Lucas-Kanade**, the crate's own: at every level of a factor-2 pyramid (coarsest first,
 //!   the flow of the level above doubled as the start), a few Gauss-Newton steps of dense
 //!   Lucas-Kanade: the second image is warped by the current flow, and each pixel solves the
@@ -15,8 +16,9 @@
 //!   eighth of a 320x180 grid, so it follows 20 pixels of motion there, not 30.
 //!
 //! On eight pairs of fox frames at the video layering's flow grid (180x320), DIS's flows
-//! leave a smaller photometric residual than Lucas-Kanade's on seven, at a fifth of the time
-//! (BENCHMARKS.md and EVALUATION.md, "Optical flow").
+//! (before the polish) leave a smaller photometric residual than Lucas-Kanade's on seven; with
+//! the polish a flow there takes 17.5 ms against Lucas-Kanade's 28.6, and the fox's coded
+//! novel views gain up to 0.5 dB (BENCHMARKS.md and EVALUATION.md, "Optical flow").
 //!
 //! Convention: `flow(a, b)` returns `u` with `a(x) ~ b(x + u(x))` (per pixel `(dx, dy)`), i.e. the
 //! position in `b` of what `a` shows at `x`: sampling anything attached to `b` at `x + u(x)`
@@ -38,6 +40,11 @@ pub struct Grey {
 }
 
 pub use cpsl_core::Flow;
+
+/// Lucas-Kanade steps (at the finest level, with the configuration's window) that polish a
+/// DIS flow: on the synthetic 1080p clip of `cpsl eval-rd` DIS alone lost 0.3-0.4 dB against
+/// Lucas-Kanade, one step 0.1, two none; the fox keeps DIS's gain with them.
+pub const POLISH_STEPS: usize = 2;
 
 /// Smallest side of an image DIS takes (two of its 8-pixel patches); smaller images take
 /// Lucas-Kanade.
@@ -69,7 +76,8 @@ impl From<opencv::Error> for FlowError {
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum FlowMethod {
-    /// OpenCV's Dense Inverse Search (see the crate documentation).
+    /// OpenCV's Dense Inverse Search, polished by Lucas-Kanade (see the crate
+    /// documentation).
     #[default]
     Dis,
     /// The crate's coarse-to-fine Lucas-Kanade, set by the rest of [`FlowConfig`].
@@ -211,17 +219,22 @@ fn box_sum(src: &[f32], w: usize, h: usize, r: usize) -> Vec<f32> {
             }
         }
     });
+    // Down the columns, a row at a time (each column's sums in the same order as walking
+    // it; -0.0 starts them as `Sum` does).
     let mut out = vec![0f32; w * h];
-    for x in 0..w {
-        let mut acc: f32 = (0..(r + 1).min(h)).map(|y| tmp[y * w + x]).sum();
-        for y in 0..h {
-            out[y * w + x] = acc;
-            if y + r + 1 < h {
-                acc += tmp[(y + r + 1) * w + x];
-            }
-            if y >= r {
-                acc -= tmp[(y - r) * w + x];
-            }
+    let mut acc = vec![-0.0f32; w];
+    for row in tmp.chunks_exact(w).take((r + 1).min(h)) {
+        acc.iter_mut().zip(row).for_each(|(a, &t)| *a += t);
+    }
+    for (y, o) in out.chunks_exact_mut(w).enumerate() {
+        o.copy_from_slice(&acc);
+        if y + r + 1 < h {
+            let add = &tmp[(y + r + 1) * w..][..w];
+            acc.iter_mut().zip(add).for_each(|(a, &t)| *a += t);
+        }
+        if y >= r {
+            let sub = &tmp[(y - r) * w..][..w];
+            acc.iter_mut().zip(sub).for_each(|(a, &t)| *a -= t);
         }
     }
     out
@@ -240,11 +253,57 @@ fn median3(flow: &mut [f32], w: usize, h: usize, c: usize) {
                     n += 1;
                 }
             }
-            let v = &mut v[..n];
-            v.sort_unstable_by(f32::total_cmp);
-            row[x * 2 + c] = v[n / 2];
+            row[x * 2 + c] = match n {
+                9 => median9(v),
+                _ => {
+                    let v = &mut v[..n];
+                    v.sort_unstable_by(f32::total_cmp);
+                    v[n / 2]
+                }
+            };
         }
     });
+}
+
+/// The median of nine values in [`f32::total_cmp`]'s order (what sorting them and taking the
+/// middle one gives), by a network of 19 compare-exchanges (Paeth's, as in Devillard's
+/// `opt_med9`) on integer keys of that order.
+fn median9(v: [f32; 9]) -> f32 {
+    // The key orders as `total_cmp` does: negative values' magnitude bits flipped.
+    let key = |f: f32| {
+        let b = f.to_bits() as i32;
+        b ^ (((b >> 31) as u32) >> 1) as i32
+    };
+    let mut p = v.map(key);
+    let mut s = |a: usize, b: usize| {
+        let (lo, hi) = (p[a].min(p[b]), p[a].max(p[b]));
+        (p[a], p[b]) = (lo, hi);
+    };
+    for (a, b) in [
+        (1, 2),
+        (4, 5),
+        (7, 8),
+        (0, 1),
+        (3, 4),
+        (6, 7),
+        (1, 2),
+        (4, 5),
+        (7, 8),
+        (0, 3),
+        (5, 8),
+        (4, 7),
+        (3, 6),
+        (1, 4),
+        (2, 5),
+        (4, 7),
+        (4, 2),
+        (6, 4),
+        (4, 2),
+    ] {
+        s(a, b);
+    }
+    // The key is its own inverse.
+    f32::from_bits(key(f32::from_bits(p[4] as u32)) as u32)
 }
 
 /// One level: Gauss-Newton steps from `flow`.
@@ -347,7 +406,17 @@ pub fn flow(a: &Grey, b: &Grey, cfg: &FlowConfig) -> Result<Flow, FlowError> {
         });
     }
     match cfg.method {
-        FlowMethod::Dis if a.width.min(a.height) >= DIS_MIN_SIDE => dis(a, b),
+        FlowMethod::Dis if a.width.min(a.height) >= DIS_MIN_SIDE => {
+            let mut f = dis(a, b)?;
+            // DIS sees the pictures in 8 bits: Lucas-Kanade steps on the full-precision
+            // images polish its flow.
+            let polish = FlowConfig {
+                iterations: POLISH_STEPS,
+                ..*cfg
+            };
+            refine(a, b, &mut f.data, &polish);
+            Ok(f)
+        }
         _ => Ok(lucas_kanade(a, b, cfg)),
     }
 }
@@ -410,4 +479,40 @@ fn lucas_kanade(a: &Grey, b: &Grey, cfg: &FlowConfig) -> Flow {
         });
     }
     f.expect("at least one level")
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_median_network_picks_what_sorting_picks() {
+        // Signed zeros, duplicates, infinities and ordinary values, in many orders.
+        let pool = [
+            -0.0f32,
+            0.0,
+            1.5,
+            -1.5,
+            1.5,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+            3.25,
+            -7.0,
+            1e-30,
+            -1e-30,
+            2.0,
+        ];
+        let mut state = 12345u64;
+        for _ in 0..20000 {
+            let v: [f32; 9] = std::array::from_fn(|_| {
+                state = state
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                pool[(state >> 33) as usize % pool.len()]
+            });
+            let mut sorted = v;
+            sorted.sort_unstable_by(f32::total_cmp);
+            assert_eq!(median9(v).to_bits(), sorted[4].to_bits(), "{v:?}");
+        }
+    }
 }

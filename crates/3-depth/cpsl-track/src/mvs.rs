@@ -897,8 +897,12 @@ struct Curve {
 impl Curve {
     /// The curve's value at `x`.
     fn at(&self, x: f64) -> f64 {
-        let t = &self.knots;
-        self.on_segment(t.partition_point(|&k| k <= x).clamp(1, t.len() - 1) - 1, x)
+        self.on_segment(Self::segment(&self.knots, x), x)
+    }
+
+    /// The segment of `knots` (at least two) that holds `x`, or the end segment nearer it.
+    fn segment(knots: &[f64], x: f64) -> usize {
+        knots.partition_point(|&k| k <= x).clamp(1, knots.len() - 1) - 1
     }
 
     /// The line of segment `j` (knots `j` and `j + 1`) at `x`.
@@ -951,7 +955,7 @@ impl Curve {
         // Each sample's segment, found once: the rounds only change the values.
         let segment: Vec<usize> = samples
             .iter()
-            .map(|&(x, _)| knots.partition_point(|&k| k <= x).clamp(1, m - 1) - 1)
+            .map(|&(x, _)| Self::segment(&knots, x))
             .collect();
         let mut curve = Self {
             knots,

@@ -26,13 +26,33 @@ pub fn premultiply(c: u8, a: u8) -> u8 {
 /// Recovers a straight-alpha channel value from a premultiplied one (0 when alpha is 0).
 /// `premultiply(unpremultiply(p, a), a) == p` for every valid `p <= a`.
 #[inline]
-pub fn unpremultiply(p: u8, a: u8) -> u8 {
+pub const fn unpremultiply(p: u8, a: u8) -> u8 {
     if a == 0 {
-        0
+        return 0;
+    }
+    let v = (p as u32 * 255 + a as u32 / 2) / a as u32;
+    if v > 255 {
+        255
     } else {
-        ((p as u32 * 255 + a as u32 / 2) / a as u32).min(255) as u8
+        v as u8
     }
 }
+
+/// [`unpremultiply`] of every value (inner index) under every alpha (outer index): a table
+/// lookup instead of a division per channel when a layer set is written.
+static UNPREMULTIPLIED: [[u8; 256]; 256] = {
+    let mut t = [[0u8; 256]; 256];
+    let mut a = 0;
+    while a < 256 {
+        let mut p = 0;
+        while p < 256 {
+            t[a][p] = unpremultiply(p as u8, a as u8);
+            p += 1;
+        }
+        a += 1;
+    }
+    t
+};
 
 /// Checks that a buffer holds `width * height * channels` values.
 fn check_len(
@@ -147,9 +167,13 @@ impl PremulImage {
     pub fn to_straight(&self) -> Vec<u8> {
         let mut out = self.data.clone();
         for px in out.chunks_exact_mut(4) {
+            // Opaque pixels stay as they are (`unpremultiply(p, 255) == p`).
             let a = px[3];
-            for c in &mut px[..3] {
-                *c = unpremultiply(*c, a);
+            if a != 255 {
+                let t = &UNPREMULTIPLIED[a as usize];
+                for c in &mut px[..3] {
+                    *c = t[*c as usize];
+                }
             }
         }
         out
@@ -316,6 +340,29 @@ mod tests {
         full.set_pixel(1, 0, [4, 5, 6, 255]);
         assert_eq!(full.over_fill(), full.over_background([9, 9, 9]));
         assert_eq!(PremulImage::new(2, 2).over_fill(), vec![0; 12]);
+    }
+
+    #[test]
+    fn straight_alpha_follows_the_division_for_every_value_and_alpha() {
+        // Every (value, alpha) pair once, in each colour channel at a different place.
+        let mut img = PremulImage::new(256, 256);
+        for a in 0..=255u32 {
+            for p in 0..=255u32 {
+                let q = (p + 85) % 256;
+                img.set_pixel(p, a, [p as u8, q as u8, (255 - p) as u8, a as u8]);
+            }
+        }
+        let out = img.to_straight();
+        let div = |p: u32, a: u32| match a {
+            0 => 0,
+            _ => ((p * 255 + a / 2) / a).min(255),
+        };
+        for (i, px) in out.chunks_exact(4).enumerate() {
+            let (p, a) = ((i % 256) as u32, (i / 256) as u32);
+            let q = (p + 85) % 256;
+            let want = [div(p, a), div(q, a), div(255 - p, a), a].map(|v| v as u8);
+            assert_eq!(px, want, "p={p} a={a}");
+        }
     }
 
     #[test]

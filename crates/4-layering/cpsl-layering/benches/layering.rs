@@ -19,6 +19,15 @@ fn bench(c: &mut Criterion) {
     c.bench_function("fusion_720p_k6", |b| {
         b.iter(|| fuse(&cues.work, cfg.layers, &cfg.fusion, false))
     });
+    // A layer's region as the distance transforms of the matting see it: the pixels nearer
+    // than the median depth, in the whole frame.
+    let mut sorted = view.depth.clone();
+    sorted.sort_by(f32::total_cmp);
+    let median = sorted[sorted.len() / 2];
+    let inside: Vec<bool> = view.depth.iter().map(|&z| z < median).collect();
+    c.bench_function("distance_720p", |b| {
+        b.iter(|| cpsl_layering::grid::distance(&inside, 1280, 720))
+    });
     c.bench_function("layer_cues_720p_k6", |b| {
         b.iter(|| layer_cues(&cues, &view.rgb, scene.camera, &cfg, &NoProgress).unwrap())
     });

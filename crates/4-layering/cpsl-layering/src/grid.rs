@@ -61,50 +61,54 @@ pub fn downsample(
 
 /// Euclidean distance from every pixel to the nearest pixel where `inside` is true (0 on
 /// those pixels, infinite when none is), by the exact separable transform of Felzenszwalb
-/// and Huttenlocher: columns, then rows, each band of `BAND` (16) lines in parallel and read a
-/// cache line at a time (the columns' squared distances are kept transposed in between).
+/// and Huttenlocher. Along the columns the input is binary, so the squared distance to the
+/// nearest pixel inside is found by one sweep down and one up, row after row (what the lower
+/// envelope of parabolas at 0 and "infinity" gives, without its divisions or a transposed
+/// copy); along the rows the envelope runs on bands of `BAND` (16) rows in parallel.
 pub fn distance(inside: &[bool], w: usize, h: usize) -> Vec<f32> {
     use rayon::prelude::*;
     const INF: f32 = 1e20;
     if w == 0 || h == 0 {
         return Vec::new();
     }
-    // Squared distance along each column, column-major.
-    let mut cols = vec![0f32; w * h];
-    cols.par_chunks_mut(h * BAND)
+    // Squared distance along each column, row-major: from the nearest pixel inside above
+    // (sweeping down), then from the nearest below where that is nearer (sweeping up).
+    let mut cols = vec![INF; w * h];
+    let mut near = vec![usize::MAX; w];
+    for (y, (row, g)) in inside
+        .chunks_exact(w)
+        .zip(cols.chunks_exact_mut(w))
         .enumerate()
-        .for_each(|(band, out)| {
-            let x0 = band * BAND;
-            let n = out.len() / h;
-            let mut f = vec![0f32; h * n];
-            for y in 0..h {
-                for (j, &b) in inside[y * w + x0..y * w + x0 + n].iter().enumerate() {
-                    f[j * h + y] = if b { 0.0 } else { INF };
-                }
+    {
+        for ((&b, n), g) in row.iter().zip(&mut near).zip(g) {
+            if b {
+                *n = y;
             }
-            let mut scratch = Lower::new(h);
-            for (f, d) in f.chunks_exact(h).zip(out.chunks_exact_mut(h)) {
-                if f.iter().all(|&v| v == INF) {
-                    // No pixel inside (the margins of a grown box): the envelope of
-                    // parabolas at INF is INF, as f32 rounds it.
-                    d.fill(INF);
-                } else {
-                    scratch.envelope(f, d);
-                }
+            if *n != usize::MAX {
+                *g = ((y - *n) * (y - *n)) as f32;
             }
-        });
+        }
+    }
+    near.fill(usize::MAX);
+    for (y, (row, g)) in inside
+        .chunks_exact(w)
+        .zip(cols.chunks_exact_mut(w))
+        .enumerate()
+        .rev()
+    {
+        for ((&b, n), g) in row.iter().zip(&mut near).zip(g) {
+            if b {
+                *n = y;
+            }
+            if *n != usize::MAX {
+                *g = g.min(((*n - y) * (*n - y)) as f32);
+            }
+        }
+    }
     let mut out = vec![0f32; w * h];
     out.par_chunks_mut(w * BAND)
-        .enumerate()
-        .for_each(|(band, out)| {
-            let y0 = band * BAND;
-            let n = out.len() / w;
-            let mut f = vec![0f32; w * n];
-            for x in 0..w {
-                for (j, &v) in cols[x * h + y0..x * h + y0 + n].iter().enumerate() {
-                    f[j * w + x] = v;
-                }
-            }
+        .zip(cols.par_chunks(w * BAND))
+        .for_each(|(out, f)| {
             let mut scratch = Lower::new(w);
             for (f, d) in f.chunks_exact(w).zip(out.chunks_exact_mut(w)) {
                 scratch.envelope(f, d);
@@ -270,6 +274,33 @@ mod tests {
             // margins of a grown box), and for (1, 1) none at all.
             let inside: Vec<bool> = (0..w * h)
                 .map(|i| (i * 7919 + w) % m == 1 && i % w >= 3 && i % w + 3 < w)
+                .collect();
+            let (a, b) = (distance(&inside, w, h), reference_distance(&inside, w, h));
+            assert!(
+                a.iter().zip(&b).all(|(x, y)| x.to_bits() == y.to_bits()),
+                "{w}x{h}"
+            );
+        }
+        // Regions as layers have them: discs of pseudo-random centres and radii, over
+        // frames as wide and as tall as 4K.
+        for (w, h, discs) in [(320, 180, 3), (97, 301, 7), (3840, 24, 5), (24, 2160, 5)] {
+            let mut seed = 12345u64 + w as u64;
+            let mut next = |n: usize| {
+                seed = seed
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                (seed >> 33) as usize % n
+            };
+            let discs: Vec<(usize, usize, usize)> = (0..discs)
+                .map(|_| (next(w), next(h), 1 + next(w.min(h))))
+                .collect();
+            let inside: Vec<bool> = (0..w * h)
+                .map(|i| {
+                    let (x, y) = (i % w, i / w);
+                    discs
+                        .iter()
+                        .any(|&(cx, cy, r)| x.abs_diff(cx).pow(2) + y.abs_diff(cy).pow(2) <= r * r)
+                })
                 .collect();
             let (a, b) = (distance(&inside, w, h), reference_distance(&inside, w, h));
             assert!(

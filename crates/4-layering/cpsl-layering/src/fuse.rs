@@ -100,6 +100,9 @@ struct Problem<'a> {
     down: Vec<f32>,
     w_d: Vec<f32>,
     w_s: Vec<f32>,
+    /// Each pixel's [`centred`] position, where the labels' planes are evaluated (computed
+    /// once: the divisions cost the energy's every term more than the term itself).
+    uv: Vec<(f32, f32)>,
 }
 
 impl Problem<'_> {
@@ -107,10 +110,16 @@ impl Problem<'_> {
         ((r / self.cfg.sigma).powi(2)).min(self.cfg.truncation)
     }
 
+    /// `plane`'s inverse depth at pixel `p`.
+    fn at(&self, plane: &Plane, p: usize) -> f32 {
+        let (u, v) = self.uv[p];
+        plane.at_uv(u, v)
+    }
+
     fn unary(&self, p: usize, plane: &Plane, label: usize, inst_label: &[usize]) -> f32 {
         let w = self.work;
         let d = w.disparity[p];
-        let rep = plane.at(p, w.width, w.height);
+        let rep = self.at(plane, p);
         let mut e = self.w_d[p] * self.rho(d - rep);
         if self.w_s[p] > 0.0 {
             e += self.cfg.saliency_weight
@@ -138,11 +147,6 @@ struct Plane {
 impl Plane {
     fn flat(c: f32) -> Self {
         Self { a: 0.0, b: 0.0, c }
-    }
-
-    fn at(&self, p: usize, w: usize, h: usize) -> f32 {
-        let (u, v) = centred(p, w, h);
-        self.at_uv(u, v)
     }
 
     fn at_uv(&self, u: f32, v: f32) -> f32 {
@@ -286,6 +290,7 @@ pub fn fuse(work: &Work, labels: usize, cfg: &FusionConfig, slanted: bool) -> Fu
             .iter()
             .map(|s| 1.0 / (1.0 + (-10.0 * (s - 0.5)).exp()))
             .collect(),
+        uv: (0..n).map(|p| centred(p, w, h)).collect(),
     };
 
     // Initial labelling: nearest representative.
@@ -364,13 +369,12 @@ pub fn fuse(work: &Work, labels: usize, cfg: &FusionConfig, slanted: bool) -> Fu
 
 /// The label of least depth cost over each instance.
 fn instance_labels(prob: &Problem, reps: &[Plane], n_inst: usize) -> Vec<usize> {
-    let (w, h) = (prob.work.width, prob.work.height);
     let mut cost = vec![0f64; n_inst * reps.len()];
     for (p, &id) in prob.work.instances.ids.iter().enumerate() {
         if id > 0 {
             for (l, r) in reps.iter().enumerate() {
                 cost[(id as usize - 1) * reps.len() + l] +=
-                    (prob.w_d[p] * prob.rho(prob.work.disparity[p] - r.at(p, w, h))) as f64;
+                    (prob.w_d[p] * prob.rho(prob.work.disparity[p] - prob.at(r, p))) as f64;
             }
         }
     }
@@ -386,13 +390,17 @@ fn instance_labels(prob: &Problem, reps: &[Plane], n_inst: usize) -> Vec<usize> 
 fn total_energy(prob: &Problem, lab: &[u8], reps: &[Plane], inst_label: &[usize]) -> f64 {
     let w = prob.work.width;
     let mut e = 0f64;
-    for (p, &l) in lab.iter().enumerate() {
-        e += prob.unary(p, &reps[l as usize], l as usize, inst_label) as f64;
-        if (p + 1) % w != 0 && lab[p + 1] != l {
-            e += prob.right[p] as f64;
-        }
-        if p + w < lab.len() && lab[p + w] != l {
-            e += prob.down[p] as f64;
+    // Row by row, so that the right neighbour needs no division to exist.
+    for (y, row) in lab.chunks_exact(w).enumerate() {
+        for (x, &l) in row.iter().enumerate() {
+            let p = y * w + x;
+            e += prob.unary(p, &reps[l as usize], l as usize, inst_label) as f64;
+            if x + 1 < w && row[x + 1] != l {
+                e += prob.right[p] as f64;
+            }
+            if p + w < lab.len() && lab[p + w] != l {
+                e += prob.down[p] as f64;
+            }
         }
     }
     e
@@ -435,12 +443,15 @@ fn expand(
         e1[q] += d - c;
         g.add_edge(p, q, (b + c - a - d).max(0.0), 0.0);
     };
-    for p in 0..n {
-        if (p + 1) % w != 0 {
-            add_pair(&mut g, &mut e1, p, p + 1, prob.right[p]);
-        }
-        if p + w < n {
-            add_pair(&mut g, &mut e1, p, p + w, prob.down[p]);
+    for y in 0..n / w {
+        for x in 0..w {
+            let p = y * w + x;
+            if x + 1 < w {
+                add_pair(&mut g, &mut e1, p, p + 1, prob.right[p]);
+            }
+            if p + w < n {
+                add_pair(&mut g, &mut e1, p, p + w, prob.down[p]);
+            }
         }
     }
     for p in 0..n {
@@ -493,6 +504,9 @@ mod tests {
             down: (0..n).map(|p| 0.2 + (p % 3) as f32 * 0.7).collect(),
             w_d: work.confidence.clone(),
             w_s: work.saliency.clone(),
+            uv: (0..n)
+                .map(|p| centred(p, work.width, work.height))
+                .collect(),
         }
     }
 

@@ -23,7 +23,8 @@ pub fn box_blur(src: &[f32], w: usize, h: usize, r: usize) -> Vec<f32> {
     pass(&horizontal, h, w, &|x, y| y * w + x)
 }
 
-/// Area-averaging downscale of a `channels`-interleaved map to `nw x nh`.
+/// Area-averaging downscale of a `channels`-interleaved map to `nw x nh` (output rows in
+/// parallel).
 pub fn downsample(
     src: &[f32],
     w: usize,
@@ -32,30 +33,36 @@ pub fn downsample(
     nw: usize,
     nh: usize,
 ) -> Vec<f32> {
+    use rayon::prelude::*;
     let mut out = vec![0f32; nw * nh * channels];
+    if out.is_empty() {
+        return out;
+    }
     let (sx, sy) = (w as f64 / nw as f64, h as f64 / nh as f64);
-    for y in 0..nh {
-        let (y0, y1) = (
-            (y as f64 * sy) as usize,
-            (((y + 1) as f64 * sy).ceil() as usize).min(h),
-        );
-        for x in 0..nw {
-            let (x0, x1) = (
-                (x as f64 * sx) as usize,
-                (((x + 1) as f64 * sx).ceil() as usize).min(w),
+    out.par_chunks_mut(nw * channels)
+        .enumerate()
+        .for_each(|(y, out)| {
+            let (y0, y1) = (
+                (y as f64 * sy) as usize,
+                (((y + 1) as f64 * sy).ceil() as usize).min(h),
             );
-            let o = &mut out[(y * nw + x) * channels..(y * nw + x + 1) * channels];
-            for yy in y0..y1 {
-                for xx in x0..x1 {
-                    for (c, v) in o.iter_mut().enumerate() {
-                        *v += src[(yy * w + xx) * channels + c];
+            for (x, o) in out.chunks_exact_mut(channels).enumerate() {
+                let (x0, x1) = (
+                    (x as f64 * sx) as usize,
+                    (((x + 1) as f64 * sx).ceil() as usize).min(w),
+                );
+                for yy in y0..y1 {
+                    let row = &src[(yy * w + x0) * channels..(yy * w + x1) * channels];
+                    for px in row.chunks_exact(channels) {
+                        for (v, &s) in o.iter_mut().zip(px) {
+                            *v += s;
+                        }
                     }
                 }
+                let n = ((y1 - y0) * (x1 - x0)) as f32;
+                o.iter_mut().for_each(|v| *v /= n);
             }
-            let n = ((y1 - y0) * (x1 - x0)) as f32;
-            o.iter_mut().for_each(|v| *v /= n);
-        }
-    }
+        });
     out
 }
 

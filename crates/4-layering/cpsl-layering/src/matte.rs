@@ -251,7 +251,9 @@ fn fill_half(
     for y in rect.y0..rect.y1 {
         let sy = ((y - rect.y0) as f32 + 0.5) / 2.0 - 0.5;
         let sy = sy.clamp(0.0, (hh - 1) as f32);
-        let (ya, fy) = (sy.floor() as usize, sy.fract());
+        // Non-negative: truncation is the floor, and the fraction after it exact.
+        let ya = sy as usize;
+        let fy = sy - ya as f32;
         let yb = (ya + 1).min(hh - 1);
         for x in rect.x0..rect.x1 {
             let p = y * w + x;
@@ -259,13 +261,14 @@ fn fill_half(
                 continue;
             }
             let sx = (((x - rect.x0) as f32 + 0.5) / 2.0 - 0.5).clamp(0.0, (hw - 1) as f32);
-            let (xa, fx) = (sx.floor() as usize, sx.fract());
+            let xa = sx as usize;
+            let fx = sx - xa as f32;
             let xb = (xa + 1).min(hw - 1);
             for c in 0..3 {
                 let s = |yy: usize, xx: usize| sub[(yy * hw + xx) * 3 + c];
                 let v = (s(ya, xa) * (1.0 - fx) + s(ya, xb) * fx) * (1.0 - fy)
                     + (s(yb, xa) * (1.0 - fx) + s(yb, xb) * fx) * fy;
-                col[p * 3 + c] = v.round().clamp(0.0, 255.0) as u8;
+                col[p * 3 + c] = cpsl_core::image::round_to_u8(v);
             }
         }
     }
@@ -376,7 +379,7 @@ pub fn build_layers(
                         if a <= 0.0 {
                             continue;
                         }
-                        let a8 = (a * 255.0).round() as u8;
+                        let a8 = cpsl_core::image::round_to_u8(a * 255.0);
                         for c in 0..3 {
                             data[p * 4 + c] = cpsl_core::image::premultiply(col[p * 3 + c], a8);
                         }

@@ -235,7 +235,7 @@ pub fn slice_by_depth(
             push_pull(&mut col, &wt, w, h, 3);
             for p in 0..n {
                 for c in 0..3 {
-                    data[p * 4 + c] = col[p * 3 + c].round().clamp(0.0, 255.0) as u8;
+                    data[p * 4 + c] = cpsl_core::image::round_to_u8(col[p * 3 + c]);
                 }
                 data[p * 4 + 3] = 255;
             }

@@ -381,7 +381,8 @@ pub fn visibility(front: &[&PremulImage], width: u32, height: u32) -> Vec<u8> {
             }
         }
         // Rounded half away from zero (`f32::round`, a library call here) for values in
-        // [0, 255]: the fraction after truncation is exact.
+        // [0, 255]: the fraction after truncation is exact (`cpsl_core::image::round_to_u8`
+        // without its clamp, which costs this loop a tenth of its time).
         for (o, &v) in out.iter_mut().zip(t.iter()) {
             let x = v * 255.0;
             let i = x as u32;

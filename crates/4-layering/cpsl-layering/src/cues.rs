@@ -567,13 +567,7 @@ mod tests {
 
     #[test]
     fn dilation_is_the_maximum_over_each_window() {
-        let mut seed = 7u64;
-        let mut next = || {
-            seed = seed
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (seed >> 40) as f32 / (1u64 << 24) as f32
-        };
+        let mut lcg = crate::lcg::Lcg(7);
         for (w, h, r) in [
             (1, 1, 2),
             (4, 3, 2),
@@ -582,7 +576,7 @@ mod tests {
             (37, 11, 2),
             (40, 9, 5),
         ] {
-            let v: Vec<f32> = (0..w * h).map(|_| next()).collect();
+            let v: Vec<f32> = (0..w * h).map(|_| lcg.unit()).collect();
             let d = dilate(&v, w, h, r);
             for y in 0..h {
                 for x in 0..w {

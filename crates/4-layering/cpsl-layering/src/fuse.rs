@@ -472,13 +472,8 @@ mod tests {
     use crate::cues::{InstanceSource, Instances};
 
     fn work(w: usize, h: usize, seed: u64) -> Work {
-        let mut s = seed;
-        let mut rnd = move || {
-            s = s
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            ((s >> 40) as f32) / (1u64 << 24) as f32
-        };
+        let mut lcg = crate::lcg::Lcg(seed);
+        let mut rnd = move || lcg.unit();
         let n = w * h;
         Work {
             width: w,

@@ -291,13 +291,8 @@ mod tests {
         // Regions as layers have them: discs of pseudo-random centres and radii, over
         // frames as wide and as tall as 4K.
         for (w, h, discs) in [(320, 180, 3), (97, 301, 7), (3840, 24, 5), (24, 2160, 5)] {
-            let mut seed = 12345u64 + w as u64;
-            let mut next = |n: usize| {
-                seed = seed
-                    .wrapping_mul(6364136223846793005)
-                    .wrapping_add(1442695040888963407);
-                (seed >> 33) as usize % n
-            };
+            let mut lcg = crate::lcg::Lcg(12345 + w as u64);
+            let mut next = |n: usize| lcg.index() % n;
             let discs: Vec<(usize, usize, usize)> = (0..discs)
                 .map(|_| (next(w), next(h), 1 + next(w.min(h))))
                 .collect();

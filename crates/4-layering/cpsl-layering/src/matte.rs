@@ -596,13 +596,8 @@ mod tests {
             .map(|i| Layer::new(PremulImage::new(w as u32, h as u32), 1.0 + i as f64))
             .collect();
         let set = LayerSet::new(camera, layers, &Limits::default()).unwrap();
-        let mut seed = 3u64;
-        let mut next = move || {
-            seed = seed
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            (seed >> 33) as usize
-        };
+        let mut lcg = crate::lcg::Lcg(3);
+        let mut next = move || lcg.index();
         let depth: Vec<f32> = (0..w * h)
             .map(|_| 1.0 + (next() % 400) as f32 / 100.0)
             .collect();

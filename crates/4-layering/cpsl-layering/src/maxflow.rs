@@ -301,17 +301,7 @@ impl Graph {
 mod tests {
     use super::*;
 
-    /// A tiny deterministic generator.
-    struct Lcg(u64);
-    impl Lcg {
-        fn next(&mut self) -> f32 {
-            self.0 = self
-                .0
-                .wrapping_mul(6364136223846793005)
-                .wrapping_add(1442695040888963407);
-            ((self.0 >> 40) as f32) / (1u64 << 24) as f32
-        }
-    }
+    use crate::lcg::Lcg;
 
     #[test]
     fn matches_brute_force_min_cut_on_random_graphs() {
@@ -323,19 +313,19 @@ mod tests {
             for (p, t) in tw.iter_mut().enumerate() {
                 // Integer-valued costs keep float sums exact; some negative.
                 *t = (
-                    (r.next() * 10.0).floor() - 3.0,
-                    (r.next() * 10.0).floor() - 3.0,
+                    (r.unit() * 10.0).floor() - 3.0,
+                    (r.unit() * 10.0).floor() - 3.0,
                 );
                 g.add_tweights(p, t.0, t.1);
             }
             let mut edges = Vec::new();
             for _ in 0..(n * 2) {
-                let p = (r.next() * n as f32) as usize % n;
-                let q = (r.next() * n as f32) as usize % n;
+                let p = (r.unit() * n as f32) as usize % n;
+                let q = (r.unit() * n as f32) as usize % n;
                 if p == q {
                     continue;
                 }
-                let (c, rc) = ((r.next() * 6.0).floor(), (r.next() * 6.0).floor());
+                let (c, rc) = ((r.unit() * 6.0).floor(), (r.unit() * 6.0).floor());
                 g.add_edge(p, q, c, rc);
                 edges.push((p, q, c, rc));
             }

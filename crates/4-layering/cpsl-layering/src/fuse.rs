@@ -187,7 +187,6 @@ const MAX_TILT: f64 = 4.0;
 /// from `start`; `None` when the pixels do not fix one (too few, or on a line: singular, or
 /// tilted beyond [`MAX_TILT`]).
 fn fit_plane(pixels: &[usize], prob: &Problem, start: Plane) -> Option<Plane> {
-    let (w, h) = (prob.work.width, prob.work.height);
     if pixels.len() < 16 {
         return None;
     }
@@ -198,7 +197,7 @@ fn fit_plane(pixels: &[usize], prob: &Problem, start: Plane) -> Option<Plane> {
         let mut m = [[0f64; 3]; 3];
         let mut r = [0f64; 3];
         for &p in pixels {
-            let (u, v) = centred(p, w, h);
+            let (u, v) = prob.uv[p];
             let d = prob.work.disparity[p] as f64;
             let e = d - plane.at_uv(u, v) as f64;
             let wt = prob.w_d[p] as f64 / (1.0 + (e / sigma).powi(2));
@@ -344,7 +343,7 @@ pub fn fuse(work: &Work, labels: usize, cfg: &FusionConfig, slanted: bool) -> Fu
     // its pixels) by decreasing inverse depth.
     let mut centroid = vec![(0f64, 0f64, 0f64); reps.len()];
     for (p, &l) in lab.iter().enumerate() {
-        let (u, v) = centred(p, w, h);
+        let (u, v) = prob.uv[p];
         let c = &mut centroid[l as usize];
         *c = (c.0 + u as f64, c.1 + v as f64, c.2 + 1.0);
     }

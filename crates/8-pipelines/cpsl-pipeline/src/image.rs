@@ -128,7 +128,7 @@ pub fn layer_image(
 /// 8-bit preview of a map in `[0, 1]`.
 fn grey(v: &[f32]) -> Vec<u8> {
     v.iter()
-        .map(|x| (x.clamp(0.0, 1.0) * 255.0).round() as u8)
+        .map(|&x| cpsl_core::image::round_to_u8(x * 255.0))
         .collect()
 }
 

@@ -13,15 +13,17 @@
 //! (P-frames predicted from the previous frame only); callers fall back to optical flow
 //! otherwise.
 //!
-//! Modules: `sequence` (image folders), `video` (FFmpeg decoding and colour conversion), `hdr`
+//! Modules: `ahead` (decoding on a thread of its own), `sequence` (image folders), `video` (FFmpeg decoding and colour conversion), `hdr`
 //! (PQ/HLG to SDR), `orient` (display rotation), `motion` (decoder motion vectors).
 
+mod ahead;
 mod hdr;
 mod motion;
 mod orient;
 mod sequence;
 mod video;
 
+pub use ahead::{open_ahead, ReadAhead};
 pub use motion::motion_from_vectors;
 pub use orient::{rotate, rotate_motion, rotation_of};
 pub use sequence::ImageSequence;

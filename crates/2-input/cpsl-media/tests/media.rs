@@ -1,6 +1,6 @@
 //! Decoding real files written by the `ffmpeg` command line tool, and image sequences.
 
-use cpsl_media::{open, open_with, FrameSource, MediaError};
+use cpsl_media::{open, open_ahead, open_with, FrameSource, MediaError};
 use std::path::Path;
 use std::process::Command;
 
@@ -450,4 +450,46 @@ fn a_size_change_mid_stream_is_an_error() {
         matches!(&err, MediaError::Decode { frames: 3, reason, .. } if reason.contains("mid-stream")),
         "{err}"
     );
+    // Read ahead: the same three frames, then the same error.
+    let mut ahead = open_ahead(&joined, true, 2).unwrap();
+    for _ in 0..3 {
+        assert!(ahead.next_frame().unwrap().is_some());
+    }
+    assert_eq!(ahead.next_frame().unwrap_err().to_string(), err.to_string());
+    assert!(ahead.next_frame().unwrap().is_none());
+}
+
+#[test]
+fn reading_ahead_gives_the_same_frames_errors_and_info() {
+    let dir = tempfile::tempdir().unwrap();
+    let h264 = encode(dir.path(), "clip.mp4", 12, H264_WITH_MOTION);
+    let direct = drain(open(&h264).unwrap().as_mut()).unwrap();
+    for ahead in [0, 1, 3, 50] {
+        let mut src = open_ahead(&h264, true, ahead).unwrap();
+        assert_eq!(src.info(), open(&h264).unwrap().info());
+        let frames = drain(&mut src).unwrap();
+        assert_eq!(frames.len(), direct.len());
+        for (a, b) in frames.iter().zip(&direct) {
+            assert_eq!((a.index, &a.rgb), (b.index, &b.rgb));
+            assert_eq!(
+                a.motion.as_ref().map(|m| &m.data),
+                b.motion.as_ref().map(|m| &m.data)
+            );
+        }
+        // After the end, the end again.
+        assert!(src.next_frame().unwrap().is_none());
+    }
+    // Dropped part-way, with frames waiting to be handed on: no hang.
+    let mut src = open_ahead(&h264, false, 2).unwrap();
+    assert!(src.next_frame().unwrap().is_some());
+    drop(src);
+    // Opening errors come back from the opening call; decoding errors in their place.
+    assert!(matches!(
+        open_ahead(&dir.path().join("missing.mp4"), true, 2),
+        Err(MediaError::Unreadable { .. })
+    ));
+    let frames = dir.path().join("frames");
+    std::fs::create_dir(&frames).unwrap();
+    let err = open_ahead(&frames, true, 2).err().expect("an empty folder");
+    assert_eq!(err.to_string(), open(&frames).err().unwrap().to_string());
 }

@@ -7,6 +7,7 @@
 use crate::error::{Context, PipelineError};
 use crate::sources::CameraChoice;
 use cpsl_core::{Camera, DepthSource, Progress, ProgressEvent};
+use cpsl_media::FrameSource;
 use cpsl_track::{DepthFrom, Mat, TrackedDepth, Tracker, Trajectory};
 
 pub use cpsl_track::TrackConfig;
@@ -48,7 +49,7 @@ fn track_frames(
     keep: Option<usize>,
 ) -> Result<(Trajectory, Camera, Vec<String>, Vec<Mat>), PipelineError> {
     // Tracking needs the pictures alone, not the decoder's motion vectors.
-    let mut src = cpsl_media::open_with(input, false)
+    let mut src = cpsl_media::open_ahead(input, false, 2)
         .context_with(|| format!("opening {}", input.display()))?;
     let info = src.info().clone();
     let cam = camera.camera(info.width, info.height)?;

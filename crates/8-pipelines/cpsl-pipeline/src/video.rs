@@ -7,6 +7,7 @@ use crate::error::{Context, PipelineError};
 use crate::sources::{CameraChoice, VideoDepth};
 use cpsl_core::{LayeredFrame, Progress, ProgressEvent, RefreshReason};
 use cpsl_layering::LayeringConfig;
+use cpsl_media::FrameSource;
 use cpsl_stereo::StereoLayout;
 use cpsl_temporal::{GopConfig, VideoLayerer};
 use serde::{Deserialize, Serialize};
@@ -99,8 +100,9 @@ pub fn layer_video(
     mut sink: impl FnMut(FrameRecord) -> Result<(), PipelineError>,
 ) -> Result<cpsl_media::Info, PipelineError> {
     let input = &job.input;
-    let mut src =
-        cpsl_media::open(input).context_with(|| format!("opening {}", input.display()))?;
+    // Decoding overlaps the layering of the frame before.
+    let mut src = cpsl_media::open_ahead(input, true, 2)
+        .context_with(|| format!("opening {}", input.display()))?;
     let mut info = src.info().clone();
     if let Some(layout) = job.stereo {
         (info.width, info.height) = layout

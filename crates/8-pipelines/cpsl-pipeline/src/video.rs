@@ -5,13 +5,14 @@
 
 use crate::error::{Context, PipelineError};
 use crate::sources::{CameraChoice, VideoDepth};
-use cpsl_core::{LayeredFrame, Progress, ProgressEvent, RefreshReason};
+use cpsl_core::{LayerSet, LayeredFrame, Progress, ProgressEvent, RefreshReason};
 use cpsl_layering::LayeringConfig;
 use cpsl_media::FrameSource;
 use cpsl_stereo::StereoLayout;
 use cpsl_temporal::{GopConfig, VideoLayerer};
 use serde::{Deserialize, Serialize};
 use std::path::{Path, PathBuf};
+use std::sync::mpsc::sync_channel;
 use std::time::Instant;
 
 /// Where P-frame motion comes from.
@@ -370,16 +371,31 @@ pub fn write_layered_video(
     // On an error the staged folder is removed when `staged` is dropped.
     let staged = cpsl_io::Staged::folder(output, is_layered_video)?;
     let mut frames = Vec::new();
-    let info = layer_video(job, depth, progress, |r| {
-        let dir = format!("frame_{:06}", r.frame.index);
-        let edc = r.frame.edc.encode();
-        cpsl_io::write_layer_set(
-            &staged.path().join(&dir),
-            &r.frame.set,
-            &[(cpsl_io::EDC_FILE, edc.as_slice())],
-        )?;
-        frames.push(VideoFrameEntry::new(&r, dir));
-        Ok(())
+    // Each frame's layer set is written on a thread of its own while the next is layered.
+    let (to_writer, written) = sync_channel::<(String, LayerSet, Vec<u8>)>(1);
+    let info = std::thread::scope(|s| {
+        let writer = s.spawn(|| -> Result<(), PipelineError> {
+            for (dir, set, edc) in written {
+                let files = [(cpsl_io::EDC_FILE, edc.as_slice())];
+                cpsl_io::write_layer_set(&staged.path().join(&dir), &set, &files)?;
+            }
+            Ok(())
+        });
+        let layered = layer_video(job, depth, progress, |r| {
+            let dir = format!("frame_{:06}", r.frame.index);
+            frames.push(VideoFrameEntry::new(&r, dir.clone()));
+            let edc = r.frame.edc.encode();
+            // A failed send means the writer stopped on an error, which it returns below.
+            to_writer
+                .send((dir, r.frame.set, edc))
+                .map_err(|_| PipelineError::Invalid("writing the layer sets stopped".into()))
+        });
+        drop(to_writer);
+        match writer.join() {
+            Err(panic) => std::panic::resume_unwind(panic),
+            Ok(Err(e)) => Err(e),
+            Ok(Ok(())) => layered,
+        }
     })?;
     let manifest = VideoManifest {
         format: VIDEO_FORMAT.into(),

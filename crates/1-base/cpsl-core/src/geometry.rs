@@ -21,6 +21,7 @@ use crate::homography::{Homography, MIN_PLANE_DISTANCE};
 use crate::math::{Mat3, Vec3};
 use crate::pose::Pose;
 use serde::{Deserialize, Serialize};
+use std::ops::Range;
 use std::sync::Arc;
 
 /// A layer's surface in the reference camera; see the [module docs](self).
@@ -165,12 +166,23 @@ impl DepthGrid {
     /// `width x height` image), one pixel wider on each side for bilinear taps; cell
     /// `(ci, cj)` at `cj * (cols - 1) + ci`.
     pub fn occupied(&self, width: u32, height: u32, covered: impl Fn(usize) -> bool) -> Vec<bool> {
+        self.occupied_in(width, height, (0..width, 0..height), covered)
+    }
+
+    /// [`Self::occupied`] where `covered` holds nowhere outside columns `xs` and rows `ys`.
+    pub fn occupied_in(
+        &self,
+        width: u32,
+        height: u32,
+        (xs, ys): (Range<u32>, Range<u32>),
+        covered: impl Fn(usize) -> bool,
+    ) -> Vec<bool> {
         let (cw, ch) = (self.cols - 1, self.rows - 1);
         let mut cells = vec![false; (cw * ch) as usize];
         let s = self.step;
-        for y in 0..height {
+        for y in ys.start..ys.end.min(height) {
             let (j0, j1) = (y.saturating_sub(1) / s, ((y + 1) / s).min(ch - 1));
-            for x in 0..width {
+            for x in xs.start..xs.end.min(width) {
                 if !covered((y * width + x) as usize) {
                     continue;
                 }

@@ -4,7 +4,8 @@
 
 use cpsl_core::{NoProgress, Pose};
 use cpsl_layering::fuse::fuse;
-use cpsl_layering::{layer_cues, Cues, LayeringConfig};
+use cpsl_layering::geometry::{fit_geometry, LayerDepth, FINEST_MESH_STEP};
+use cpsl_layering::{layer_cues, Cues, GeometryMode, LayeringConfig};
 use cpsl_synth::Scene;
 use criterion::{criterion_group, criterion_main, Criterion};
 
@@ -28,6 +29,54 @@ fn bench(c: &mut Criterion) {
     c.bench_function("distance_720p", |b| {
         b.iter(|| cpsl_layering::grid::distance(&inside, 1280, 720))
     });
+    // A layer's surface as a mesh (auto step, refined down to the finest where that helps):
+    // the pixels between the 60th and 80th percentiles of depth (the floor and walls across
+    // the frame), looked for in their box and in the whole frame.
+    let (near, far) = (sorted[sorted.len() * 3 / 5], sorted[sorted.len() * 4 / 5]);
+    let own: Vec<bool> = view
+        .depth
+        .iter()
+        .map(|z| (near..=far).contains(z))
+        .collect();
+    let (xs, ys): (Vec<usize>, Vec<usize>) = (0..1280 * 720)
+        .filter(|&p| own[p])
+        .map(|p| (p % 1280, p / 1280))
+        .unzip();
+    let extent = [
+        *xs.iter().min().unwrap(),
+        *ys.iter().min().unwrap(),
+        *xs.iter().max().unwrap(),
+        *ys.iter().max().unwrap(),
+    ];
+    let step = cpsl_layering::geometry::auto_mesh_step(1280, 720);
+    for (name, bounds) in [
+        ("mesh_fit_720p", Some(extent)),
+        ("mesh_fit_720p_unbounded", None),
+    ] {
+        let px = LayerDepth {
+            width: 1280,
+            height: 720,
+            depth: &view.depth,
+            confidence: None,
+            own: &own,
+            covered: &own,
+            bounds,
+        };
+        c.bench_function(name, |b| {
+            b.iter(|| {
+                let g = fit_geometry(
+                    GeometryMode::Mesh,
+                    &scene.camera,
+                    &px,
+                    near as f64,
+                    Some(extent),
+                    step,
+                    FINEST_MESH_STEP,
+                );
+                assert!(matches!(g, cpsl_core::Geometry::Mesh(_)));
+            })
+        });
+    }
     c.bench_function("layer_cues_720p_k6", |b| {
         b.iter(|| layer_cues(&cues, &view.rgb, scene.camera, &cfg, &NoProgress).unwrap())
     });

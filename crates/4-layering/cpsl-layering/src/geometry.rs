@@ -111,10 +111,23 @@ pub struct LayerDepth<'a> {
     pub depth: &'a [f32],
     /// Confidence per pixel in `[0, 1]` (`None`: all 1).
     pub confidence: Option<&'a [f32]>,
-    /// Whether pixel `p` is the layer's own.
-    pub own: &'a (dyn Fn(usize) -> bool + Sync),
-    /// Whether the layer has alpha above zero at pixel `p`.
-    pub covered: &'a (dyn Fn(usize) -> bool + Sync),
+    /// Per pixel, whether it is the layer's own.
+    pub own: &'a [bool],
+    /// Per pixel, whether the layer has alpha above zero there.
+    pub covered: &'a [bool],
+    /// An inclusive box `[x0, y0, x1, y1]` that holds every pixel that is the layer's own or
+    /// covered (`None`: the whole frame): the fits look no further.
+    pub bounds: Option<[usize; 4]>,
+}
+
+impl LayerDepth<'_> {
+    /// [`Self::bounds`], or the whole frame: the columns and the rows to look at.
+    fn span(&self) -> (std::ops::Range<usize>, std::ops::Range<usize>) {
+        match self.bounds {
+            Some([x0, y0, x1, y1]) => (x0..(x1 + 1).min(self.width), y0..(y1 + 1).min(self.height)),
+            None => (0..self.width, 0..self.height),
+        }
+    }
 }
 
 /// Mean truncated `|ln z_fit - ln z|` over `samples` (`x_n, y_n, 1/z, w`) of a surface whose
@@ -161,7 +174,11 @@ pub fn fit_geometry(
     };
     let (w, h) = (px.width, px.height);
     // A regular subset of the layer's own pixels.
-    let count = (0..w * h).filter(|&p| (px.own)(p)).count();
+    let (xs, ys) = px.span();
+    let count = ys
+        .flat_map(|y| xs.clone().map(move |x| y * w + x))
+        .filter(|&p| px.own[p])
+        .count();
     if count < 64 {
         return Geometry::Plane;
     }
@@ -173,7 +190,7 @@ pub fn fit_geometry(
         for x in (0..w).step_by(stride) {
             let p = y * w + x;
             let z = px.depth[p] as f64;
-            if !((px.own)(p) && z.is_finite() && z > 0.0) {
+            if !(px.own[p] && z.is_finite() && z > 0.0) {
                 continue;
             }
             let c = px.confidence.map_or(1.0, |c| c[p] as f64).max(0.05);
@@ -259,18 +276,25 @@ pub fn fit_grid(cam: &Camera, px: &LayerDepth<'_>, step: u32, depth: f64) -> Opt
     let mut wsum = vec![0f32; cw * ch];
     let s = step as f32 * w as f32 / cam.width as f32;
     let t = step as f32 * h as f32 / cam.height as f32;
-    for y in 0..h {
+    let (xs, ys) = px.span();
+    // Per column: its cell and position across it.
+    let columns: Vec<(usize, f32)> = xs
+        .clone()
+        .map(|x| {
+            let gx = (x as f32 + 0.5) / s;
+            (gx.floor() as usize, gx.fract())
+        })
+        .collect();
+    for y in ys {
         let gy = (y as f32 + 0.5) / t;
         let (j, fy) = (gy.floor() as usize, gy.fract());
-        for x in 0..w {
+        for (x, &(i, fx)) in xs.clone().zip(&columns) {
             let p = y * w + x;
             let z = px.depth[p];
-            if !((px.own)(p) && z.is_finite() && z > 0.0) {
+            if !(px.own[p] && z.is_finite() && z > 0.0) {
                 continue;
             }
             let c = px.confidence.map_or(1.0, |c| c[p]).max(0.05);
-            let gx = (x as f32 + 0.5) / s;
-            let (i, fx) = (gx.floor() as usize, gx.fract());
             for (di, dj, wt) in [
                 (0, 0, (1.0 - fx) * (1.0 - fy)),
                 (1, 0, fx * (1.0 - fy)),
@@ -299,7 +323,12 @@ pub fn fit_grid(cam: &Camera, px: &LayerDepth<'_>, step: u32, depth: f64) -> Opt
         rows,
         inverse_depth: inv,
     };
-    let occupied = grid.occupied(w as u32, h as u32, px.covered);
+    let (xs, ys) = px.span();
+    let (xs, ys) = (
+        xs.start as u32..xs.end as u32,
+        ys.start as u32..ys.end as u32,
+    );
+    let occupied = grid.occupied_in(w as u32, h as u32, (xs, ys), |p| px.covered[p]);
     grid.settle_unused(&occupied, (1.0 / depth) as f32);
     grid.check(cam.width, cam.height).ok().map(|()| grid)
 }
@@ -318,7 +347,7 @@ mod tests {
                 (1.0 / g.inverse_depth_at(1.0, &cam, (p % 64) as f64, (p / 64) as f64)) as f32
             })
             .collect();
-        let own = |_p: usize| true;
+        let own = vec![true; 64 * 48];
         let px = LayerDepth {
             width: 64,
             height: 48,
@@ -326,6 +355,7 @@ mod tests {
             confidence: None,
             own: &own,
             covered: &own,
+            bounds: None,
         };
         let g = fit_geometry(
             GeometryMode::Slanted,
@@ -376,7 +406,7 @@ mod tests {
         let depth: Vec<f32> = (0..64 * 48)
             .map(|p| (1.0 / g.inverse_depth_at(1.0, &cam, (p % 64) as f64, (p / 64) as f64)) as f32)
             .collect();
-        let own = |p: usize| p / 64 >= 24;
+        let own: Vec<bool> = (0..64 * 48).map(|p| p / 64 >= 24).collect();
         let px = LayerDepth {
             width: 64,
             height: 48,
@@ -384,6 +414,7 @@ mod tests {
             confidence: None,
             own: &own,
             covered: &own,
+            bounds: None,
         };
         assert!(!fit_geometry(
             GeometryMode::Slanted,
@@ -414,7 +445,7 @@ mod tests {
         let depth: Vec<f32> = (0..128 * 96)
             .map(|p| (1.0 / inv((p % 128) as f64, (p / 128) as f64)) as f32)
             .collect();
-        let own = |_p: usize| true;
+        let own = vec![true; 128 * 96];
         let px = LayerDepth {
             width: 128,
             height: 96,
@@ -422,6 +453,7 @@ mod tests {
             confidence: None,
             own: &own,
             covered: &own,
+            bounds: None,
         };
         let extent = Some([0, 0, 127, 95]);
         match fit_geometry(GeometryMode::Mesh, &cam, &px, 1.0, extent, 16, finest) {

@@ -399,13 +399,17 @@ pub fn build_layers(
             let extent = reach_box
                 .and_then(|b| b.bounding_in(w, |p| alpha[p] > 0.0))
                 .map(|r| [r.x0, r.y0, r.x1 - 1, r.y1 - 1]);
+            let own_mask: Vec<bool> = owner.iter().map(|&o| o as usize == i).collect();
+            let covered: Vec<bool> = alpha.iter().map(|&a| a >= 0.5 / 255.0).collect();
             let px = LayerDepth {
                 width: w,
                 height: h,
                 depth: &cues.depth,
                 confidence: Some(&cues.confidence),
-                own: &own,
-                covered: &|p: usize| alpha[p] >= 0.5 / 255.0,
+                own: &own_mask,
+                covered: &covered,
+                // Own pixels have alpha 1, so the extent of the alpha holds them.
+                bounds: extent,
             };
             let (step, finest) = match cfg.mesh_step {
                 0 => (

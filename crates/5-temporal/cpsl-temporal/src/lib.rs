@@ -617,9 +617,13 @@ impl VideoLayerer {
             .enumerate()
             .filter(|(_, l)| !l.geometry.is_plane())
             .for_each(|(l, layer)| {
-                let own = |p: usize| owner[p] as usize == l;
-                let bytes = layer.image.as_bytes();
-                let covered = |p: usize| bytes[p * 4 + 3] != 0;
+                let own: Vec<bool> = owner.iter().map(|&o| o as usize == l).collect();
+                let covered: Vec<bool> = layer
+                    .image
+                    .as_bytes()
+                    .chunks_exact(4)
+                    .map(|px| px[3] != 0)
+                    .collect();
                 let px = LayerDepth {
                     width: w,
                     height: h,
@@ -627,6 +631,7 @@ impl VideoLayerer {
                     confidence: None,
                     own: &own,
                     covered: &covered,
+                    bounds: None,
                 };
                 let bounds = layer.extent();
                 let extent = bounds.map(|e| e.map(|v| v as usize));

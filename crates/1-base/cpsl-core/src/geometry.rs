@@ -180,17 +180,34 @@ impl DepthGrid {
         let (cw, ch) = (self.cols - 1, self.rows - 1);
         let mut cells = vec![false; (cw * ch) as usize];
         let s = self.step;
+        let x_end = xs.end.min(width);
+        // A pixel in column x marks the cell columns (x - 1) / s ..= (x + 1) / s (at most the
+        // last), so cell column i is marked by columns i * s - 1 ..= (i + 1) * s: per row,
+        // each cell column's range is looked at until its first covered pixel.
+        let ranges: Vec<(u32, u32)> = (0..cw)
+            .map(|i| {
+                (
+                    (i * s).saturating_sub(1).max(xs.start),
+                    ((i + 1) * s + 1).min(x_end),
+                )
+            })
+            .collect();
+        let mut marked = vec![false; cw as usize];
         for y in ys.start..ys.end.min(height) {
+            let row = y * width;
+            let mut any = false;
+            for (m, &(lo, hi)) in marked.iter_mut().zip(&ranges) {
+                *m = (lo..hi).any(|x| covered((row + x) as usize));
+                any |= *m;
+            }
+            if !any {
+                continue;
+            }
             let (j0, j1) = (y.saturating_sub(1) / s, ((y + 1) / s).min(ch - 1));
-            for x in xs.start..xs.end.min(width) {
-                if !covered((y * width + x) as usize) {
-                    continue;
-                }
-                let (i0, i1) = (x.saturating_sub(1) / s, ((x + 1) / s).min(cw - 1));
-                for j in j0..=j1 {
-                    for i in i0..=i1 {
-                        cells[(j * cw + i) as usize] = true;
-                    }
+            for j in j0..=j1 {
+                let cells = &mut cells[(j * cw) as usize..((j + 1) * cw) as usize];
+                for (c, &m) in cells.iter_mut().zip(&marked) {
+                    *c |= m;
                 }
             }
         }
@@ -497,6 +514,63 @@ pub fn fit_plane(samples: &[[f64; 4]], iterations: usize) -> Option<Vec3> {
 
 #[cfg(test)]
 mod tests {
+    #[test]
+    fn occupied_cells_are_those_next_to_a_covered_pixel() {
+        // The definition, pixel by pixel: each covered pixel marks the cells its bilinear taps
+        // reach.
+        let reference = |g: &DepthGrid, w: u32, h: u32, covered: &[bool]| {
+            let (cw, ch) = (g.cols - 1, g.rows - 1);
+            let mut cells = vec![false; (cw * ch) as usize];
+            for y in 0..h {
+                for x in 0..w {
+                    if !covered[(y * w + x) as usize] {
+                        continue;
+                    }
+                    let s = g.step;
+                    for j in y.saturating_sub(1) / s..=((y + 1) / s).min(ch - 1) {
+                        for i in x.saturating_sub(1) / s..=((x + 1) / s).min(cw - 1) {
+                            cells[(j * cw + i) as usize] = true;
+                        }
+                    }
+                }
+            }
+            cells
+        };
+        let mut seed = 7u32;
+        let mut next = || {
+            seed = seed.wrapping_mul(1_664_525).wrapping_add(1_013_904_223);
+            seed >> 8
+        };
+        for (w, h) in [(1, 1), (5, 3), (37, 29), (64, 48), (130, 71)] {
+            for step in [1, 2, 3, 4, 8, 16] {
+                let (cols, rows) = DepthGrid::dims(w, h, step);
+                let g = DepthGrid {
+                    step,
+                    cols,
+                    rows,
+                    inverse_depth: vec![1.0; (cols * rows) as usize],
+                };
+                for density in [0, 1, 20, 200, 256] {
+                    let covered: Vec<bool> = (0..w * h).map(|_| next() % 256 < density).collect();
+                    let want = reference(&g, w, h, &covered);
+                    assert_eq!(
+                        g.occupied(w, h, |p| covered[p]),
+                        want,
+                        "{w}x{h} step {step}"
+                    );
+                    // A box that holds every covered pixel gives the same cells.
+                    let (mut x0, mut y0, mut x1, mut y1) = (w, h, 0, 0);
+                    for p in (0..w * h).filter(|&p| covered[p as usize]) {
+                        (x0, y0) = (x0.min(p % w), y0.min(p / w));
+                        (x1, y1) = (x1.max(p % w + 1), y1.max(p / w + 1));
+                    }
+                    let boxed = g.occupied_in(w, h, (x0..x1, y0..y1), |p| covered[p]);
+                    assert_eq!(boxed, want, "{w}x{h} step {step} in a box");
+                }
+            }
+        }
+    }
+
     use super::*;
 
     fn cam() -> Camera {

@@ -277,32 +277,33 @@ pub fn fit_grid(cam: &Camera, px: &LayerDepth<'_>, step: u32, depth: f64) -> Opt
     let s = step as f32 * w as f32 / cam.width as f32;
     let t = step as f32 * h as f32 / cam.height as f32;
     let (xs, ys) = px.span();
-    // Per column: its cell and position across it.
-    let columns: Vec<(usize, f32)> = xs
+    // Per column: its cell's left and right vertex columns and its position across it.
+    let columns: Vec<(usize, usize, f32)> = xs
         .clone()
         .map(|x| {
             let gx = (x as f32 + 0.5) / s;
-            (gx.floor() as usize, gx.fract())
+            let i = gx.floor() as usize;
+            (i.min(cw - 1), (i + 1).min(cw - 1), gx.fract())
         })
         .collect();
     for y in ys {
         let gy = (y as f32 + 0.5) / t;
         let (j, fy) = (gy.floor() as usize, gy.fract());
-        for (x, &(i, fx)) in xs.clone().zip(&columns) {
+        // The cell's upper and lower vertex rows.
+        let (r0, r1) = (j.min(ch - 1) * cw, (j + 1).min(ch - 1) * cw);
+        for (x, &(i0, i1, fx)) in xs.clone().zip(&columns) {
             let p = y * w + x;
             let z = px.depth[p];
             if !(px.own[p] && z.is_finite() && z > 0.0) {
                 continue;
             }
             let c = px.confidence.map_or(1.0, |c| c[p]).max(0.05);
-            for (di, dj, wt) in [
-                (0, 0, (1.0 - fx) * (1.0 - fy)),
-                (1, 0, fx * (1.0 - fy)),
-                (0, 1, (1.0 - fx) * fy),
-                (1, 1, fx * fy),
+            for (q, wt) in [
+                (r0 + i0, (1.0 - fx) * (1.0 - fy)),
+                (r0 + i1, fx * (1.0 - fy)),
+                (r1 + i0, (1.0 - fx) * fy),
+                (r1 + i1, fx * fy),
             ] {
-                let (ii, jj) = ((i + di).min(cw - 1), (j + dj).min(ch - 1));
-                let q = jj * cw + ii;
                 sum[q] += wt * c / z;
                 wsum[q] += wt * c;
             }

@@ -610,6 +610,12 @@ impl VideoLayerer {
         // keeps the previous frame's value unless it moved by more than `GRID_HOLD` in log
         // depth: steadier geometry, and a side stream of mostly zeros.
         let cam = *s.key.camera();
+        // A layer's own pixels and those it covers, gathered only where a fit needs them.
+        let masks = |l: usize, layer: &cpsl_core::Layer| -> (Vec<bool>, Vec<bool>) {
+            let own = owner.iter().map(|&o| o as usize == l).collect();
+            let alpha = layer.image.as_bytes().chunks_exact(4);
+            (own, alpha.map(|px| px[3] != 0).collect())
+        };
         let previous = &s.geometries;
         let key_layers = s.key.layers();
         layers
@@ -617,22 +623,6 @@ impl VideoLayerer {
             .enumerate()
             .filter(|(_, l)| !l.geometry.is_plane())
             .for_each(|(l, layer)| {
-                let own: Vec<bool> = owner.iter().map(|&o| o as usize == l).collect();
-                let covered: Vec<bool> = layer
-                    .image
-                    .as_bytes()
-                    .chunks_exact(4)
-                    .map(|px| px[3] != 0)
-                    .collect();
-                let px = LayerDepth {
-                    width: w,
-                    height: h,
-                    depth: &depth,
-                    confidence: None,
-                    own: &own,
-                    covered: &covered,
-                    bounds: None,
-                };
                 let bounds = layer.extent();
                 let extent = bounds.map(|e| e.map(|v| v as usize));
                 // With depth carried along the motion: the I-frame's surface carried along the
@@ -650,7 +640,11 @@ impl VideoLayerer {
                         Some(cpsl_core::Geometry::Mesh(g)) => {
                             Some(std::sync::Arc::unwrap_or_clone(g))
                         }
-                        _ => fit_grid(&cam, &px, key.step, layer.depth),
+                        _ => {
+                            let (own, covered) = masks(l, layer);
+                            let px = layer_depth(&depth, (w, h), &own, &covered);
+                            fit_grid(&cam, &px, key.step, layer.depth)
+                        }
                     };
                     let Some(mut grid) = fitted else {
                         return; // no pixel left: the grid carries over
@@ -666,6 +660,8 @@ impl VideoLayerer {
                     }
                     layer.geometry = cpsl_core::Geometry::Mesh(std::sync::Arc::new(grid));
                 } else {
+                    let (own, covered) = masks(l, layer);
+                    let px = layer_depth(&depth, (w, h), &own, &covered);
                     layer.geometry =
                         fit_geometry(GeometryMode::Slanted, &cam, &px, layer.depth, extent, 0, 0);
                 }
@@ -785,6 +781,24 @@ fn with_tracks(set: LayerSet, tracks: &[u32]) -> Result<LayerSet, VideoError> {
         l.meta.track = Some(t);
     }
     Ok(LayerSet::new(camera, layers, &Limits::default())?)
+}
+
+/// A layer's pixels as the surface fits see them: the frame's `depth` and the layer's masks.
+fn layer_depth<'a>(
+    depth: &'a [f32],
+    (width, height): (usize, usize),
+    own: &'a [bool],
+    covered: &'a [bool],
+) -> LayerDepth<'a> {
+    LayerDepth {
+        width,
+        height,
+        depth,
+        confidence: None,
+        own,
+        covered,
+        bounds: None,
+    }
 }
 
 #[cfg(test)]

@@ -22,7 +22,8 @@ pub struct ReadAhead {
 /// same order (`Info::damaged` counts the packets skipped up to the last frame handed on).
 pub fn open_ahead(path: &Path, motion: bool, ahead: usize) -> Result<ReadAhead, MediaError> {
     let (opened_tx, opened) = sync_channel::<Result<Info, MediaError>>(1);
-    let (frames_tx, frames) = sync_channel::<Message>(ahead.max(1));
+    // The thread decodes the next frame while the channel holds the rest.
+    let (frames_tx, frames) = sync_channel::<Message>(ahead.max(1) - 1);
     let owned = path.to_path_buf();
     let thread = std::thread::Builder::new()
         .name("cpsl-decode".into())

@@ -49,7 +49,7 @@ fn track_frames(
     keep: Option<usize>,
 ) -> Result<(Trajectory, Camera, Vec<String>, Vec<Mat>), PipelineError> {
     // Tracking needs the pictures alone, not the decoder's motion vectors.
-    let mut src = cpsl_media::open_ahead(input, false, 2)
+    let mut src = cpsl_media::open_ahead(input, false, 1)
         .context_with(|| format!("opening {}", input.display()))?;
     let info = src.info().clone();
     let cam = camera.camera(info.width, info.height)?;

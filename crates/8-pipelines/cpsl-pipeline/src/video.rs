@@ -102,7 +102,7 @@ pub fn layer_video(
 ) -> Result<cpsl_media::Info, PipelineError> {
     let input = &job.input;
     // Decoding overlaps the layering of the frame before.
-    let mut src = cpsl_media::open_ahead(input, true, 2)
+    let mut src = cpsl_media::open_ahead(input, true, 1)
         .context_with(|| format!("opening {}", input.display()))?;
     let mut info = src.info().clone();
     if let Some(layout) = job.stereo {

@@ -514,6 +514,8 @@ pub fn fit_plane(samples: &[[f64; 4]], iterations: usize) -> Option<Vec3> {
 
 #[cfg(test)]
 mod tests {
+    use super::*;
+
     #[test]
     fn occupied_cells_are_those_next_to_a_covered_pixel() {
         // The definition, pixel by pixel: each covered pixel marks the cells its bilinear taps
@@ -570,8 +572,6 @@ mod tests {
             }
         }
     }
-
-    use super::*;
 
     fn cam() -> Camera {
         Camera::from_fov(320, 240, 70.0)

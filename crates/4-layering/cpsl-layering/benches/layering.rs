@@ -33,13 +33,14 @@ fn bench(c: &mut Criterion) {
     // the pixels between the 60th and 80th percentiles of depth (the floor and walls across
     // the frame), looked for in their box and in the whole frame.
     let (near, far) = (sorted[sorted.len() * 3 / 5], sorted[sorted.len() * 4 / 5]);
-    let own: Vec<bool> = view
+    let owner: Vec<u8> = view
         .depth
         .iter()
-        .map(|z| (near..=far).contains(z))
+        .map(|z| u8::from((near..=far).contains(z)))
         .collect();
+    let own = |p: usize| owner[p] == 1;
     let (xs, ys): (Vec<usize>, Vec<usize>) = (0..1280 * 720)
-        .filter(|&p| own[p])
+        .filter(|&p| own(p))
         .map(|p| (p % 1280, p / 1280))
         .unzip();
     let extent = [
@@ -58,7 +59,8 @@ fn bench(c: &mut Criterion) {
             height: 720,
             depth: &view.depth,
             confidence: None,
-            own: &own,
+            owner: &owner,
+            label: 1,
             covered: &own,
             bounds,
         };

@@ -111,16 +111,23 @@ pub struct LayerDepth<'a> {
     pub depth: &'a [f32],
     /// Confidence per pixel in `[0, 1]` (`None`: all 1).
     pub confidence: Option<&'a [f32]>,
-    /// Per pixel, whether it is the layer's own.
-    pub own: &'a [bool],
-    /// Per pixel, whether the layer has alpha above zero there.
-    pub covered: &'a [bool],
+    /// Per pixel, the layer that owns it.
+    pub owner: &'a [u8],
+    /// This layer's index in `owner`: its own pixels are those that carry it.
+    pub label: u8,
+    /// Whether the layer has alpha above zero at pixel `p` (read by the mesh fits only).
+    pub covered: &'a (dyn Fn(usize) -> bool + Sync),
     /// An inclusive box `[x0, y0, x1, y1]` that holds every pixel that is the layer's own or
     /// covered (`None`: the whole frame): the fits look no further.
     pub bounds: Option<[usize; 4]>,
 }
 
 impl LayerDepth<'_> {
+    /// Whether pixel `p` is the layer's own.
+    fn own(&self, p: usize) -> bool {
+        self.owner[p] == self.label
+    }
+
     /// [`Self::bounds`], or the whole frame: the columns and the rows to look at.
     fn span(&self) -> (std::ops::Range<usize>, std::ops::Range<usize>) {
         match self.bounds {
@@ -177,7 +184,7 @@ pub fn fit_geometry(
     let (xs, ys) = px.span();
     let count = ys
         .flat_map(|y| xs.clone().map(move |x| y * w + x))
-        .filter(|&p| px.own[p])
+        .filter(|&p| px.own(p))
         .count();
     if count < 64 {
         return Geometry::Plane;
@@ -190,7 +197,7 @@ pub fn fit_geometry(
         for x in (0..w).step_by(stride) {
             let p = y * w + x;
             let z = px.depth[p] as f64;
-            if !(px.own[p] && z.is_finite() && z > 0.0) {
+            if !(px.own(p) && z.is_finite() && z > 0.0) {
                 continue;
             }
             let c = px.confidence.map_or(1.0, |c| c[p] as f64).max(0.05);
@@ -294,7 +301,7 @@ pub fn fit_grid(cam: &Camera, px: &LayerDepth<'_>, step: u32, depth: f64) -> Opt
         for (x, &(i0, i1, fx)) in xs.clone().zip(&columns) {
             let p = y * w + x;
             let z = px.depth[p];
-            if !(px.own[p] && z.is_finite() && z > 0.0) {
+            if !(px.own(p) && z.is_finite() && z > 0.0) {
                 continue;
             }
             let c = px.confidence.map_or(1.0, |c| c[p]).max(0.05);
@@ -329,7 +336,7 @@ pub fn fit_grid(cam: &Camera, px: &LayerDepth<'_>, step: u32, depth: f64) -> Opt
         xs.start as u32..xs.end as u32,
         ys.start as u32..ys.end as u32,
     );
-    let occupied = grid.occupied_in(w as u32, h as u32, (xs, ys), |p| px.covered[p]);
+    let occupied = grid.occupied_in(w as u32, h as u32, (xs, ys), px.covered);
     grid.settle_unused(&occupied, (1.0 / depth) as f32);
     grid.check(cam.width, cam.height).ok().map(|()| grid)
 }
@@ -348,14 +355,15 @@ mod tests {
                 (1.0 / g.inverse_depth_at(1.0, &cam, (p % 64) as f64, (p / 64) as f64)) as f32
             })
             .collect();
-        let own = vec![true; 64 * 48];
+        let owner = vec![0; 64 * 48];
         let px = LayerDepth {
             width: 64,
             height: 48,
             depth: &floor,
             confidence: None,
-            own: &own,
-            covered: &own,
+            owner: &owner,
+            label: 0,
+            covered: &|_| true,
             bounds: None,
         };
         let g = fit_geometry(
@@ -407,14 +415,16 @@ mod tests {
         let depth: Vec<f32> = (0..64 * 48)
             .map(|p| (1.0 / g.inverse_depth_at(1.0, &cam, (p % 64) as f64, (p / 64) as f64)) as f32)
             .collect();
-        let own: Vec<bool> = (0..64 * 48).map(|p| p / 64 >= 24).collect();
+        // The lower half is the layer's (label 1).
+        let owner: Vec<u8> = (0..64 * 48).map(|p| u8::from(p / 64 >= 24)).collect();
         let px = LayerDepth {
             width: 64,
             height: 48,
             depth: &depth,
             confidence: None,
-            own: &own,
-            covered: &own,
+            owner: &owner,
+            label: 1,
+            covered: &|p| p / 64 >= 24,
             bounds: None,
         };
         assert!(!fit_geometry(
@@ -446,14 +456,15 @@ mod tests {
         let depth: Vec<f32> = (0..128 * 96)
             .map(|p| (1.0 / inv((p % 128) as f64, (p / 128) as f64)) as f32)
             .collect();
-        let own = vec![true; 128 * 96];
+        let owner = vec![0; 128 * 96];
         let px = LayerDepth {
             width: 128,
             height: 96,
             depth: &depth,
             confidence: None,
-            own: &own,
-            covered: &own,
+            owner: &owner,
+            label: 0,
+            covered: &|_| true,
             bounds: None,
         };
         let extent = Some([0, 0, 127, 95]);

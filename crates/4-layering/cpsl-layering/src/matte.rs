@@ -399,15 +399,14 @@ pub fn build_layers(
             let extent = reach_box
                 .and_then(|b| b.bounding_in(w, |p| alpha[p] > 0.0))
                 .map(|r| [r.x0, r.y0, r.x1 - 1, r.y1 - 1]);
-            let own_mask: Vec<bool> = owner.iter().map(|&o| o as usize == i).collect();
-            let covered: Vec<bool> = alpha.iter().map(|&a| a >= 0.5 / 255.0).collect();
             let px = LayerDepth {
                 width: w,
                 height: h,
                 depth: &cues.depth,
                 confidence: Some(&cues.confidence),
-                own: &own_mask,
-                covered: &covered,
+                owner,
+                label: i as u8,
+                covered: &|p: usize| alpha[p] >= 0.5 / 255.0,
                 // Own pixels have alpha 1, so the extent of the alpha holds them.
                 bounds: extent,
             };

@@ -610,12 +610,6 @@ impl VideoLayerer {
         // keeps the previous frame's value unless it moved by more than `GRID_HOLD` in log
         // depth: steadier geometry, and a side stream of mostly zeros.
         let cam = *s.key.camera();
-        // A layer's own pixels and those it covers, gathered only where a fit needs them.
-        let masks = |l: usize, layer: &cpsl_core::Layer| -> (Vec<bool>, Vec<bool>) {
-            let own = owner.iter().map(|&o| o as usize == l).collect();
-            let alpha = layer.image.as_bytes().chunks_exact(4);
-            (own, alpha.map(|px| px[3] != 0).collect())
-        };
         let previous = &s.geometries;
         let key_layers = s.key.layers();
         layers
@@ -623,6 +617,18 @@ impl VideoLayerer {
             .enumerate()
             .filter(|(_, l)| !l.geometry.is_plane())
             .for_each(|(l, layer)| {
+                let bytes = layer.image.as_bytes();
+                let covered = |p: usize| bytes[p * 4 + 3] != 0;
+                let px = LayerDepth {
+                    width: w,
+                    height: h,
+                    depth: &depth,
+                    confidence: None,
+                    owner: &owner,
+                    label: l as u8,
+                    covered: &covered,
+                    bounds: None,
+                };
                 let bounds = layer.extent();
                 let extent = bounds.map(|e| e.map(|v| v as usize));
                 // With depth carried along the motion: the I-frame's surface carried along the
@@ -640,11 +646,7 @@ impl VideoLayerer {
                         Some(cpsl_core::Geometry::Mesh(g)) => {
                             Some(std::sync::Arc::unwrap_or_clone(g))
                         }
-                        _ => {
-                            let (own, covered) = masks(l, layer);
-                            let px = layer_depth(&depth, (w, h), &own, &covered);
-                            fit_grid(&cam, &px, key.step, layer.depth)
-                        }
+                        _ => fit_grid(&cam, &px, key.step, layer.depth),
                     };
                     let Some(mut grid) = fitted else {
                         return; // no pixel left: the grid carries over
@@ -660,8 +662,6 @@ impl VideoLayerer {
                     }
                     layer.geometry = cpsl_core::Geometry::Mesh(std::sync::Arc::new(grid));
                 } else {
-                    let (own, covered) = masks(l, layer);
-                    let px = layer_depth(&depth, (w, h), &own, &covered);
                     layer.geometry =
                         fit_geometry(GeometryMode::Slanted, &cam, &px, layer.depth, extent, 0, 0);
                 }
@@ -781,24 +781,6 @@ fn with_tracks(set: LayerSet, tracks: &[u32]) -> Result<LayerSet, VideoError> {
         l.meta.track = Some(t);
     }
     Ok(LayerSet::new(camera, layers, &Limits::default())?)
-}
-
-/// A layer's pixels as the surface fits see them: the frame's `depth` and the layer's masks.
-fn layer_depth<'a>(
-    depth: &'a [f32],
-    (width, height): (usize, usize),
-    own: &'a [bool],
-    covered: &'a [bool],
-) -> LayerDepth<'a> {
-    LayerDepth {
-        width,
-        height,
-        depth,
-        confidence: None,
-        own,
-        covered,
-        bounds: None,
-    }
 }
 
 #[cfg(test)]

@@ -51,6 +51,37 @@ pub struct DepthGrid {
     pub inverse_depth: Vec<f32>,
 }
 
+/// A grid's values at pixel centres ([`DepthGrid::pixels`]).
+#[derive(Debug, Clone)]
+pub struct GridPixels {
+    grid: DepthGrid,
+    /// Per pixel column: the cell's column and the position across it.
+    xs: Vec<(u32, f32)>,
+    /// Per pixel row: the cell's row and the position across it.
+    ys: Vec<(u32, f32)>,
+}
+
+impl GridPixels {
+    /// The value at pixel `(x, y)`: affine over the triangle that holds its centre.
+    #[inline]
+    pub fn at(&self, x: usize, y: usize) -> f32 {
+        let ((ci, fx), (cj, fy)) = (self.xs[x], self.ys[y]);
+        let g = &self.grid;
+        let at = |i: u32, j: u32| g.inverse_depth[(j * g.cols + i) as usize];
+        let (a, b, c, d) = (
+            at(ci, cj),
+            at(ci + 1, cj),
+            at(ci, cj + 1),
+            at(ci + 1, cj + 1),
+        );
+        if fx >= fy {
+            a + (b - a) * fx + (d - b) * fy
+        } else {
+            a + (c - a) * fy + (d - c) * fx
+        }
+    }
+}
+
 /// Why a depth grid does not fit its layer.
 #[derive(Debug, Clone, PartialEq)]
 pub enum GridError {
@@ -301,33 +332,30 @@ impl DepthGrid {
     /// Inverse depth at every pixel of a `width x height` image, row by row (as
     /// [`DepthGrid::inverse_depth_at`] gives at pixel centres).
     pub fn inverse_depth_map(&self, width: u32, height: u32) -> Vec<f32> {
+        let at = self.clone().pixels(width, height);
+        let mut out = Vec::with_capacity(width as usize * height as usize);
+        for y in 0..height as usize {
+            out.extend((0..width as usize).map(|x| at.at(x, y)));
+        }
+        out
+    }
+
+    /// The grid's values at the pixels of a `width x height` image, each asked for alone:
+    /// [`DepthGrid::inverse_depth_map`] without the map (for a grid of other values per vertex,
+    /// such as their logarithms, the same interpolation of those).
+    pub fn pixels(self, width: u32, height: u32) -> GridPixels {
         let s = self.step;
-        // Per column: cell and position across it.
+        // Per column (row): cell and position across it.
         let along = |n: u32, v: u32| {
             let c = ((v + 1) / s).min(n.div_ceil(s) - 1);
             let (a, b) = ((c * s) as f32, ((c + 1) * s).min(n) as f32);
             (c, (v as f32 + 0.5 - a) / (b - a))
         };
-        let cols: Vec<(u32, f32)> = (0..width).map(|x| along(width, x)).collect();
-        let mut out = Vec::with_capacity(width as usize * height as usize);
-        for y in 0..height {
-            let (cj, fy) = along(height, y);
-            for &(ci, fx) in &cols {
-                let at = |i: u32, j: u32| self.inverse_depth[(j * self.cols + i) as usize];
-                let (a, b, c, d) = (
-                    at(ci, cj),
-                    at(ci + 1, cj),
-                    at(ci, cj + 1),
-                    at(ci + 1, cj + 1),
-                );
-                out.push(if fx >= fy {
-                    a + (b - a) * fx + (d - b) * fy
-                } else {
-                    a + (c - a) * fy + (d - c) * fx
-                });
-            }
+        GridPixels {
+            xs: (0..width).map(|x| along(width, x)).collect(),
+            ys: (0..height).map(|y| along(height, y)).collect(),
+            grid: self,
         }
-        out
     }
 
     /// Inverse depth at reference pixel `(u, v)`: affine over the triangle that holds it.

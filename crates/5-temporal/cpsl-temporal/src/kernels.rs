@@ -736,8 +736,9 @@ enum Surface {
     /// (the agreement test asks at a layer's own pixels and around its boundary: a full map per
     /// layer cost a P-frame more than the test itself).
     Plane([f64; 3]),
-    /// A mesh's log depth per pixel, row after row `width` long.
-    Map { log: Vec<f32>, width: usize },
+    /// A mesh's log depth, interpolated where asked for (a full map per layer cost a mesh's
+    /// P-frame more than the test itself).
+    Mesh(cpsl_core::geometry::GridPixels),
 }
 
 impl LogDepth {
@@ -762,10 +763,7 @@ impl LogDepth {
                         log.inverse_depth
                             .iter_mut()
                             .for_each(|v| *v = -v.max(1e-12).ln());
-                        Surface::Map {
-                            log: log.inverse_depth_map(w, h),
-                            width: w as usize,
-                        }
+                        Surface::Mesh(log.pixels(w, h))
                     }
                 },
             })
@@ -785,7 +783,7 @@ impl LogDepth {
             Surface::Plane([a, b, c]) => {
                 -((a * x as f64 + b * y as f64 + c).max(1e-12) as f32).ln()
             }
-            Surface::Map { log, width } => log[y * width + x],
+            Surface::Mesh(log) => log.at(x, y),
         }
     }
 }

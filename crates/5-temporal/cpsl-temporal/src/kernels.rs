@@ -464,14 +464,31 @@ pub(crate) fn agreements(
 ) -> Vec<(f32, f32)> {
     let k = lz.len();
     let fits = |p: usize, l: usize| (ln[p] - lz[l].at(p % w, p / w)).abs() <= tolerance;
-    // Whether p lies on the boundary of the region whose depth fits layer l (4-neighbourhood).
-    let depth_edge = |l: usize, p: usize| {
-        let (x, y) = (p % w, p / w);
-        let me = fits(p, l);
-        (x > 0 && fits(p - 1, l) != me)
-            || (x + 1 < w && fits(p + 1, l) != me)
-            || (y > 0 && fits(p - w, l) != me)
-            || (y + 1 < h && fits(p + w, l) != me)
+    // Whether a pixel of the 3x3 block around (x, y) lies on the boundary of the region whose
+    // depth fits layer l (4-neighbourhood). Each pixel's fit is found at most once: `memo`
+    // holds those of the 5x5 block around (x, y) (0 not yet known, 1 no, 2 yes).
+    let near_depth_edge = |l: usize, x: usize, y: usize| {
+        let mut memo = [[0u8; 5]; 5];
+        let mut fit = |xx: usize, yy: usize| {
+            let m = &mut memo[yy + 2 - y][xx + 2 - x];
+            if *m == 0 {
+                *m = 1 + fits(yy * w + xx, l) as u8;
+            }
+            *m == 2
+        };
+        for yy in y.saturating_sub(1)..(y + 2).min(h) {
+            for xx in x.saturating_sub(1)..(x + 2).min(w) {
+                let me = fit(xx, yy);
+                if (xx > 0 && fit(xx - 1, yy) != me)
+                    || (xx + 1 < w && fit(xx + 1, yy) != me)
+                    || (yy > 0 && fit(xx, yy - 1) != me)
+                    || (yy + 1 < h && fit(xx, yy + 1) != me)
+                {
+                    return true;
+                }
+            }
+        }
+        false
     };
     // Per layer: area, depth agreement, boundary pixels, boundary pixels near a depth edge.
     let sums = (0..h)
@@ -503,11 +520,7 @@ pub(crate) fn agreements(
                         || down[x] != o;
                     if across {
                         s[2] += 1;
-                        let hit = (y.saturating_sub(1)..(y + 2).min(h)).any(|yy| {
-                            (x.saturating_sub(1)..(x + 2).min(w))
-                                .any(|xx| depth_edge(l, yy * w + xx))
-                        });
-                        s[3] += hit as u32;
+                        s[3] += near_depth_edge(l, x, y) as u32;
                     }
                 }
                 acc

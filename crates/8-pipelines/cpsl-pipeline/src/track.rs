@@ -300,9 +300,7 @@ impl VideoTrackedDepth {
             return Ok(None);
         }
         let (w, h) = (cam.width, cam.height);
-        let tq = std::time::Instant::now();
         let prior = self.prior.depth(rgb, w, h)?;
-        eprintln!("TIMING prior {:.1}", tq.elapsed().as_secs_f64() * 1e3);
         Ok(tracked.carry_depth(from, from_depth, index, rgb, &prior, (w, h))?)
     }
 

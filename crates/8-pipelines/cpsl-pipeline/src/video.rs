@@ -168,25 +168,15 @@ pub fn layer_video(
             };
             (carried, None)
         };
-        let t_depth = t.elapsed().as_secs_f64() * 1e3;
         let depth_carried = !intra && job.p_depth == PFrameDepth::Poses && z.is_some();
         let given = match job.motion {
             MotionSource::Auto if job.stereo.is_none() => frame.motion,
             _ => None,
         };
         let decoder_motion = given.is_some() && !intra;
-        let tp = Instant::now();
         let out = layerer
             .push_with_motion(&rgb, z.as_deref(), given)
             .context_with(|| format!("frame {}", frame.index))?;
-        let st: f64 = out.timings.iter().map(|x| x.1).sum();
-        eprintln!(
-            "TIMING {} depth {:.1} push {:.1} stages {:.1}",
-            intra,
-            t_depth,
-            tp.elapsed().as_secs_f64() * 1e3,
-            st
-        );
         sink(FrameRecord {
             frame: out,
             decoder_motion,

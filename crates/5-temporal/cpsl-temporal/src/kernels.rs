@@ -194,52 +194,60 @@ pub(crate) fn warp_layer(
         .par_chunks_mut(w * 4)
         .zip(hidden.par_chunks_mut(w))
         .enumerate()
-        .for_each(|(y, (row, hid))| {
-            let (g0, g1, fy) = rows[y];
-            let live = &live[g0];
-            if !live.iter().any(|&v| v) {
-                return;
-            }
-            let (a, b) = (&map[g0 * gw * 2..][..gw * 2], &map[g1 * gw * 2..][..gw * 2]);
-            let lerp = |c: usize| a[c] + (b[c] - a[c]) * fy;
-            let lx: Vec<f32> = (0..gw).map(|g| lerp(g * 2)).collect();
-            let ly: Vec<f32> = (0..gw).map(|g| lerp(g * 2 + 1)).collect();
-            let (mut xs, mut ys) = (vec![0i32; w], vec![0i32; w]);
-            for (&group, _) in groups.iter().zip(live).filter(|(_, &v)| v) {
-                // Positions (1/256 px, rounded) of the group's pixels, stepped in 16.16
-                // fixed point along each segment.
-                let (gx0, gx1) = (group[0].x0, group[group.len() - 1].x1);
-                for seg in group {
-                    // 16.16 fixed point (truncated: no libm call on the baseline target),
-                    // clamped so that no step overflows; positions clamped that far out
-                    // fail the range test anyway.
-                    let pos =
-                        |v: f32| (v * 65536.0).clamp(-(1 << 29) as f32, (1 << 29) as f32) as i32;
-                    let step =
-                        |v: f32| (v * 65536.0).clamp(-(1 << 24) as f32, (1 << 24) as f32) as i32;
-                    let (dx, dy) = (lx[seg.c1] - lx[seg.c0], ly[seg.c1] - ly[seg.c0]);
-                    let mut x = pos(lx[seg.c0] + dx * seg.f0) + 128;
-                    let mut y = pos(ly[seg.c0] + dy * seg.f0) + 128;
-                    let (sx, sy) = (step(dx * seg.df), step(dy * seg.df));
-                    for (a, b) in xs[seg.x0..seg.x1].iter_mut().zip(&mut ys[seg.x0..seg.x1]) {
-                        *a = x >> 8;
-                        *b = y >> 8;
-                        x += sx;
-                        y += sy;
-                    }
+        // Each task's rows share their buffers: a live group's positions are all written
+        // before they are read (a group's segments cover its pixels without gaps).
+        .for_each_init(
+            || (Vec::new(), Vec::new(), vec![0i32; w], vec![0i32; w]),
+            |(lx, ly, xs, ys), (y, (row, hid))| {
+                let (g0, g1, fy) = rows[y];
+                let live = &live[g0];
+                if !live.iter().any(|&v| v) {
+                    return;
                 }
-                let (xs, ys) = (&xs[gx0..gx1], &ys[gx0..gx1]);
-                sample_span(
-                    key,
-                    xs,
-                    ys,
-                    &mut row[gx0 * 4..gx1 * 4],
-                    &mut hid[gx0..gx1],
-                    owner,
-                    l,
-                );
-            }
-        });
+                let (a, b) = (&map[g0 * gw * 2..][..gw * 2], &map[g1 * gw * 2..][..gw * 2]);
+                let lerp = |c: usize| a[c] + (b[c] - a[c]) * fy;
+                lx.clear();
+                lx.extend((0..gw).map(|g| lerp(g * 2)));
+                ly.clear();
+                ly.extend((0..gw).map(|g| lerp(g * 2 + 1)));
+                for (&group, _) in groups.iter().zip(live).filter(|(_, &v)| v) {
+                    // Positions (1/256 px, rounded) of the group's pixels, stepped in 16.16
+                    // fixed point along each segment.
+                    let (gx0, gx1) = (group[0].x0, group[group.len() - 1].x1);
+                    for seg in group {
+                        // 16.16 fixed point (truncated: no libm call on the baseline target),
+                        // clamped so that no step overflows; positions clamped that far out
+                        // fail the range test anyway.
+                        let pos = |v: f32| {
+                            (v * 65536.0).clamp(-(1 << 29) as f32, (1 << 29) as f32) as i32
+                        };
+                        let step = |v: f32| {
+                            (v * 65536.0).clamp(-(1 << 24) as f32, (1 << 24) as f32) as i32
+                        };
+                        let (dx, dy) = (lx[seg.c1] - lx[seg.c0], ly[seg.c1] - ly[seg.c0]);
+                        let mut x = pos(lx[seg.c0] + dx * seg.f0) + 128;
+                        let mut y = pos(ly[seg.c0] + dy * seg.f0) + 128;
+                        let (sx, sy) = (step(dx * seg.df), step(dy * seg.df));
+                        for (a, b) in xs[seg.x0..seg.x1].iter_mut().zip(&mut ys[seg.x0..seg.x1]) {
+                            *a = x >> 8;
+                            *b = y >> 8;
+                            x += sx;
+                            y += sy;
+                        }
+                    }
+                    let (xs, ys) = (&xs[gx0..gx1], &ys[gx0..gx1]);
+                    sample_span(
+                        key,
+                        xs,
+                        ys,
+                        &mut row[gx0 * 4..gx1 * 4],
+                        &mut hid[gx0..gx1],
+                        owner,
+                        l,
+                    );
+                }
+            },
+        );
     (out, hidden)
 }
 

@@ -329,20 +329,9 @@ impl DepthGrid {
         grid.check(width, height).ok().map(|()| grid)
     }
 
-    /// Inverse depth at every pixel of a `width x height` image, row by row (as
-    /// [`DepthGrid::inverse_depth_at`] gives at pixel centres).
-    pub fn inverse_depth_map(&self, width: u32, height: u32) -> Vec<f32> {
-        let at = self.clone().pixels(width, height);
-        let mut out = Vec::with_capacity(width as usize * height as usize);
-        for y in 0..height as usize {
-            out.extend((0..width as usize).map(|x| at.at(x, y)));
-        }
-        out
-    }
-
-    /// The grid's values at the pixels of a `width x height` image, each asked for alone:
-    /// [`DepthGrid::inverse_depth_map`] without the map (for a grid of other values per vertex,
-    /// such as their logarithms, the same interpolation of those).
+    /// The grid's values at the pixels of a `width x height` image, each asked for alone (as
+    /// [`DepthGrid::inverse_depth_at`] gives at pixel centres; for a grid of other values per
+    /// vertex, such as their logarithms, the same interpolation of those).
     pub fn pixels(self, width: u32, height: u32) -> GridPixels {
         let s = self.step;
         // Per column (row): cell and position across it.
@@ -703,13 +692,13 @@ mod tests {
         };
         grid.check(c.width, c.height).unwrap();
         assert!(grid.check(c.width + 40, c.height).is_err());
-        let map = grid.inverse_depth_map(c.width, c.height);
+        let pixels = grid.clone().pixels(c.width, c.height);
         for (ci, cj, t) in [(0, 0, 0), (3, 2, 1), (8, 6, 0), (8, 6, 1)] {
             let m = grid.triangle_plane(&c, ci, cj, t).unwrap();
             for (i, j) in DepthGrid::triangle(ci, cj, t) {
                 assert!((m.dot(grid.point(&c, i, j)) - 1.0).abs() < 1e-9);
             }
-            // Inside the triangle the plane and the map agree.
+            // Inside the triangle the plane and the pixels' interpolation agree.
             let (x0, y0) = grid.vertex(ci, cj, c.width, c.height);
             let (u, v) = if t == 0 {
                 (x0 + 20.5, y0 + 8.5)
@@ -718,7 +707,7 @@ mod tests {
             };
             let on_plane = Geometry::Slanted(m).inverse_depth_at(1.0, &c, u, v);
             let at = grid.inverse_depth_at(&c, u, v);
-            let px = map[(v as usize) * c.width as usize + u as usize] as f64;
+            let px = pixels.at(u as usize, v as usize) as f64;
             assert!(
                 (on_plane - at).abs() < 1e-6 && (at - px).abs() < 1e-5,
                 "{on_plane} {at} {px}"

@@ -13,8 +13,9 @@
 //! (P-frames predicted from the previous frame only); callers fall back to optical flow
 //! otherwise.
 //!
-//! Modules: `ahead` (decoding on a thread of its own), `sequence` (image folders), `video` (FFmpeg decoding and colour conversion), `hdr`
-//! (PQ/HLG to SDR), `orient` (display rotation), `motion` (decoder motion vectors).
+//! Modules: `ahead` (decoding on a thread of its own), `sequence` (image folders), `video`
+//! (FFmpeg decoding and colour conversion), `hdr` (PQ/HLG to SDR), `orient` (display
+//! rotation), `motion` (decoder motion vectors).
 
 mod ahead;
 mod hdr;

@@ -1,4 +1,4 @@
-//! Any bytes given to the layer-set manifest reader (versions 1 and 2, with layer geometry):
+//! Any bytes given to the layer-set manifest reader (versions 1 to 3, with layer geometry and grid files):
 //! an error or a checked manifest, never a panic; a manifest that parses re-serialises to one
 //! that parses to the same value.
 #![no_main]
@@ -11,6 +11,7 @@ fuzz_target!(|data: &[u8]| {
         for (a, b) in again.layers.iter().zip(&m.layers) {
             assert_eq!(a.file, b.file);
             assert_eq!(a.geometry.is_plane(), b.geometry.is_plane());
+            assert_eq!(a.grid, b.grid);
         }
     }
 });

@@ -6,7 +6,6 @@ use crate::video::VideoLayeringArgs;
 use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
 use cpsl_codec::{Container, RateControl, SegmentReport};
-use cpsl_core::Geometry;
 use cpsl_package::{Codec, Package};
 use cpsl_pipeline::encode::{encode, EncodeJob, EncodeTarget};
 use std::path::{Path, PathBuf};
@@ -291,117 +290,6 @@ pub fn pack(a: PackArgs) -> Result<()> {
         a.output.display(),
         bytes as f64 / 1e3
     );
-    Ok(())
-}
-
-/// Runs `cpsl info`.
-pub fn info(a: PackageArgs) -> Result<()> {
-    let pkg = Package::open(&a.package)?;
-    let m = pkg.manifest();
-    let c = &m.camera;
-    println!("{}: {} v{}", a.package.display(), m.format, m.version);
-    println!(
-        "  {}x{} at {:.3} fps, {} frames ({:.2} s), camera fx {:.1} fy {:.1} cx {:.1} cy {:.1}",
-        c.width,
-        c.height,
-        m.frame_rate,
-        m.frames,
-        m.frames as f64 / m.frame_rate,
-        c.fx,
-        c.fy,
-        c.cx,
-        c.cy
-    );
-    println!(
-        "  codec {} ({}), {} {}x{} pictures, {} {} range, target K {}",
-        m.codec.name(),
-        m.codec.mime_codec(),
-        m.layout.kind,
-        m.layout.coded_width,
-        2 * m.layout.coded_height,
-        m.layout.matrix,
-        m.layout.range,
-        m.layers
-    );
-    println!(
-        "  {:.1} kB, {:.0} kbit/s{}",
-        m.payload_bytes() as f64 / 1e3,
-        m.bitrate() / 1e3,
-        match m.budget {
-            Some(b) => format!(" (budget {:.0} kbit/s)", b as f64 / 1e3),
-            None => " (constant quality)".into(),
-        }
-    );
-    if !m.depth.is_empty() {
-        println!("  depth (where the frames' depth came from):");
-        for r in &m.depth {
-            println!("    frames {:>5}-{:<5} {}", r.first, r.last, r.note);
-        }
-    }
-    let shared = m.segments.iter().any(|s| s.fragment.is_some());
-    match m.inits.len() {
-        0 => println!("  streams: self-contained MP4 files"),
-        n => println!(
-            "  streams: {}; {n} init segments ({:.1} kB, fetched once)",
-            match shared {
-                true => "one movie fragment per segment, a track run per stream",
-                false => "a movie fragment per stream and segment",
-            },
-            m.inits.iter().map(|f| f.bytes).sum::<u64>() as f64 / 1e3
-        ),
-    }
-    println!("  segment  frames      streams  kbit/s  quality per stream (/2, /4, /8: coded at half, quarter, eighth size)");
-    for (i, s) in m.segments.iter().enumerate() {
-        let kbps: f64 = s.streams.iter().map(|t| t.bitrate as f64).sum::<f64>() / 1e3;
-        let q: Vec<String> = s
-            .streams
-            .iter()
-            .map(|t| match t.scale {
-                1 => format!("{:.0}", t.quality),
-                f => format!("{:.0}/{f}", t.quality),
-            })
-            .collect();
-        println!(
-            "  {i:>7}  {:>5}-{:<5}  {:>7}  {kbps:>6.0}  {}",
-            s.start,
-            s.start + s.frames - 1,
-            s.streams.len(),
-            q.join(" ")
-        );
-    }
-    // Each layer's surface in every segment's first frame, and what the side stream spends
-    // on the segment's geometry.
-    println!(
-        "  segment  layers of its first frame (geometry, depth, stream kbit/s); geometry kbit/s"
-    );
-    for (i, s) in m.segments.iter().enumerate() {
-        let side = pkg.side_stream(i)?;
-        let layers: Vec<String> = side.frames[0]
-            .layers
-            .iter()
-            .map(|l| {
-                let kbps = s.streams.get(l.stream as usize).map_or(0, |t| t.bitrate) as f64 / 1e3;
-                let g = match &l.geometry {
-                    Geometry::Plane => "plane".to_string(),
-                    Geometry::Slanted(m) => {
-                        // The plane's tilt from fronto-parallel.
-                        let tilt = (m.x().hypot(m.y()) / m.z().abs()).atan().to_degrees();
-                        format!("slanted {tilt:.0}deg")
-                    }
-                    Geometry::Mesh(g) => format!("mesh {}px", g.step),
-                };
-                format!("{g} z {:.2} {kbps:.0}", l.depth)
-            })
-            .collect();
-        // The side stream's size against the same stream with every layer fronto-parallel.
-        let mut flat = side.clone();
-        for l in flat.frames.iter_mut().flat_map(|f| &mut f.layers) {
-            l.geometry = Geometry::Plane;
-        }
-        let bytes = side.encode().len().saturating_sub(flat.encode().len());
-        let kbps = bytes as f64 * 8.0 * m.frame_rate / s.frames as f64 / 1e3;
-        println!("  {i:>7}  {} ; {kbps:.1}", layers.join(" | "));
-    }
     Ok(())
 }
 

@@ -12,6 +12,7 @@ mod encode;
 mod eval;
 mod eval_rd;
 mod eval_video;
+mod info;
 mod layer;
 mod progress;
 mod render;
@@ -47,8 +48,9 @@ enum Command {
     /// The whole pipeline from a video to a package: depth, layering, propagation, per-layer
     /// bitrate allocation and coding (H.264, H.265, AV1 or VP9), segmented by GOP.
     Encode(encode::EncodeArgs),
-    /// Summarise a package.
-    Info(encode::PackageArgs),
+    /// Summarise a package, a layer-set folder or a layered video (each layer's surface and
+    /// its bits).
+    Info(info::InfoArgs),
     /// Check every checksum and reference of a package.
     Verify(encode::PackageArgs),
     /// Write a package folder as one archive file (an uncompressed tar that every command
@@ -143,7 +145,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Layer(a) => layer::run(a),
         Command::LayerVideo(a) => video::run(a),
         Command::Encode(a) => encode::run(a),
-        Command::Info(a) => encode::info(a),
+        Command::Info(a) => info::run(a),
         Command::Verify(a) => encode::verify(a),
         Command::Pack(a) => encode::pack(a),
         Command::Slice(a) => synth::run_slice(a),

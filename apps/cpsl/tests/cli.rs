@@ -678,3 +678,41 @@ fn eval_rd_small() {
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("--qualities 99"));
 }
+
+#[test]
+fn info_summarises_a_layer_set_with_its_grid_files() {
+    let d = tempfile::tempdir().unwrap();
+    let scene = d.path().join("scene");
+    let layers = d.path().join("layers");
+    ok(&["synth", "-o", s(&scene), "--width", "96", "--height", "72"]);
+    ok(&[
+        "layer",
+        s(&scene.join("input.png")),
+        "--depth",
+        s(&scene.join("depth.pfm")),
+        "--camera",
+        s(&scene.join("camera.json")),
+        "--geometry",
+        "mesh",
+        "--layers",
+        "4",
+        "-o",
+        s(&layers),
+    ]);
+    // The scene's floor and walls bend across layers: meshes, each grid in its own file.
+    let grids: Vec<_> = std::fs::read_dir(&layers)
+        .unwrap()
+        .filter_map(|e| e.ok())
+        .filter(|e| e.path().extension().is_some_and(|x| x == "grid"))
+        .collect();
+    assert!(!grids.is_empty(), "no mesh layer");
+    let manifest = std::fs::read_to_string(layers.join("manifest.json")).unwrap();
+    assert!(manifest.contains("\"version\": 3") && !manifest.contains("inverse_depth"));
+    let info = ok(&["info", s(&layers)]);
+    assert!(info.contains("cpsl-layerset v3, 96x72"), "{info}");
+    assert_eq!(info.matches("mesh ").count(), grids.len(), "{info}");
+    assert!(info.contains("edge-depth cache"), "{info}");
+    // A folder that is neither a package nor layers says what it expected.
+    std::fs::write(layers.join("manifest.json"), b"{\"format\": \"other\"}").unwrap();
+    fails(&["info", s(&layers)], "manifest.json");
+}

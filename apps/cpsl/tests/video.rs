@@ -47,6 +47,16 @@ fn layers_a_clip_and_refuses_bad_input() {
     ]);
     // Running again replaces its own output.
     ok(&["layer-video", s(&clip), "-o", s(&out), "--max-frames", "2"]);
+    // `cpsl info` summarises the output.
+    let info = ok(&["info", s(&out)]);
+    for part in [
+        "cpsl-video-layers",
+        "2 frames (1 I, 1 P)",
+        "I-frames: 0 (first)",
+        "first frame",
+    ] {
+        assert!(info.contains(part), "{info} lacks {part}");
+    }
     // Bad input: clear errors, nothing written.
     let junk = dir.path().join("junk.mp4");
     std::fs::write(&junk, b"not a video").unwrap();

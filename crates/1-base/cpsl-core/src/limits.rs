@@ -12,7 +12,8 @@ pub struct Limits {
     pub max_pixels: u64,
     /// Largest accepted number of layers in one layer set (default 64).
     pub max_layers: usize,
-    /// Largest accepted manifest file, in bytes (default 16 MiB: mesh layers' grids are inline).
+    /// Largest accepted manifest file, in bytes (default 16 MiB: version 2 manifests hold mesh
+    /// layers' grids inline).
     pub max_manifest_bytes: u64,
     /// Largest accepted single file (an encoded layer image), in bytes (default 512 MiB).
     pub max_file_bytes: u64,

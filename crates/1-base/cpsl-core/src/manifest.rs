@@ -12,8 +12,12 @@
 //! }
 //! ```
 //! Version 2 adds each layer's `geometry` when it is not the fronto-parallel plane, e.g.
-//! `"geometry": { "slanted": [0.0, 0.12, 0.2] }` (the plane `m` of [`crate::Geometry`]);
-//! writers use version 1 when every layer is fronto-parallel, so older readers still read it.
+//! `"geometry": { "slanted": [0.0, 0.12, 0.2] }` (the plane `m` of [`crate::Geometry`]) or a
+//! mesh's grid inline (`"geometry": { "mesh": { "step": 8, "cols": .., "rows": ..,
+//! "inverse_depth": [..] } }`). Version 3 adds `"grid": "layer_00.grid"`: a mesh layer's grid
+//! in a binary side file next to the manifest (`cpsl_io::grid`), the layer then without a
+//! `geometry` field. Writers use the oldest version that holds the layers (1 when every layer
+//! is fronto-parallel, 3 when a layer has a mesh), so older readers still read what they can.
 //! Layers are listed nearest first; each file is an RGBA PNG (straight alpha, 8 bits) of the
 //! camera's size next to the manifest. Unknown fields are rejected so that typos are caught.
 
@@ -26,7 +30,7 @@ use thiserror::Error;
 /// Format name written in every manifest.
 pub const FORMAT_NAME: &str = "cpsl-layerset";
 /// Newest manifest version this build reads and writes.
-pub const FORMAT_VERSION: u32 = 2;
+pub const FORMAT_VERSION: u32 = 3;
 
 /// Camera as written in a manifest (same fields as [`Camera`]).
 pub type CameraSpec = Camera;
@@ -42,6 +46,10 @@ pub struct LayerEntry {
     /// The layer's surface (version 2; absent for the fronto-parallel plane).
     #[serde(default, skip_serializing_if = "Geometry::is_plane")]
     pub geometry: Geometry,
+    /// The side file holding the layer's mesh grid (version 3), a plain file name next to the
+    /// manifest; `geometry` is then absent.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub grid: Option<String>,
     /// Optional metadata.
     #[serde(default, skip_serializing_if = "is_default_meta")]
     pub meta: LayerMeta,
@@ -134,13 +142,26 @@ pub enum ManifestError {
         /// The manifest's version.
         version: u32,
     },
+    /// A layer has both a `geometry` and a `grid` file.
+    #[error("field `layers[{0}].grid`: a layer with a grid file has no `geometry` field")]
+    GridAndGeometry(usize),
     /// A layer file name is unsafe or duplicated.
     #[error("field `layers[{index}].file`: {reason}, found \"{file}\"")]
     FileName {
         /// Layer index.
         index: usize,
         /// The file name.
-        file: String,
+        file: Box<str>,
+        /// What is wrong with it.
+        reason: &'static str,
+    },
+    /// A grid file name is unsafe or duplicated.
+    #[error("field `layers[{index}].grid`: {reason}, found \"{file}\"")]
+    GridName {
+        /// Layer index.
+        index: usize,
+        /// The file name.
+        file: Box<str>,
         /// What is wrong with it.
         reason: &'static str,
     },
@@ -155,27 +176,41 @@ impl Manifest {
             serde_json::from_slice(bytes).map_err(|e| ManifestError::Json(e.to_string()))?;
         let mut seen = std::collections::HashSet::new();
         for (index, l) in m.layers.iter().enumerate() {
+            let newer = |field, needs| ManifestError::NewerField {
+                index,
+                field,
+                needs,
+                version: m.version,
+            };
             if m.version < 2 && !l.geometry.is_plane() {
-                return Err(ManifestError::NewerField {
-                    index,
-                    field: "geometry",
-                    needs: 2,
-                    version: m.version,
-                });
+                return Err(newer("geometry", 2));
             }
-            if let Some(reason) = unsafe_file_name(&l.file) {
-                return Err(ManifestError::FileName {
-                    index,
-                    file: l.file.clone(),
-                    reason,
-                });
+            if m.version < 3 && l.grid.is_some() {
+                return Err(newer("grid", 3));
             }
-            if !seen.insert(l.file.as_str()) {
-                return Err(ManifestError::FileName {
-                    index,
-                    file: l.file.clone(),
-                    reason: "file is used by an earlier layer",
+            if l.grid.is_some() && !l.geometry.is_plane() {
+                return Err(ManifestError::GridAndGeometry(index));
+            }
+            let grid = l.grid.iter().map(|g| (true, g));
+            for (is_grid, file) in std::iter::once((false, &l.file)).chain(grid) {
+                let reason = unsafe_file_name(file).or_else(|| {
+                    (!seen.insert(file.as_str())).then_some("file name used twice in the manifest")
                 });
+                if let Some(reason) = reason {
+                    let file = file.as_str().into();
+                    return Err(match is_grid {
+                        false => ManifestError::FileName {
+                            index,
+                            file,
+                            reason,
+                        },
+                        true => ManifestError::GridName {
+                            index,
+                            file,
+                            reason,
+                        },
+                    });
+                }
             }
         }
         Ok(m)
@@ -183,7 +218,9 @@ impl Manifest {
 
     /// The oldest version that holds every layer's fields.
     pub fn needed_version(layers: &[LayerEntry]) -> u32 {
-        if layers.iter().all(|l| l.geometry.is_plane()) {
+        if layers.iter().any(|l| l.grid.is_some()) {
+            3
+        } else if layers.iter().all(|l| l.geometry.is_plane()) {
             1
         } else {
             2
@@ -267,10 +304,47 @@ mod tests {
     }
 
     #[test]
+    fn grid_files_need_version_3_and_safe_names() {
+        let grid = |v: u32, grid: &str| {
+            doc(v, "a.png").replace(
+                "\"depth\":1.5",
+                &format!("\"depth\":1.5,\"grid\":\"{grid}\""),
+            )
+        };
+        let m = Manifest::parse(grid(3, "a.grid").as_bytes()).unwrap();
+        assert_eq!(m.layers[0].grid.as_deref(), Some("a.grid"));
+        assert_eq!(Manifest::needed_version(&m.layers), 3);
+        assert_eq!(Manifest::parse(m.to_json().as_bytes()).unwrap(), m);
+        assert!(matches!(
+            Manifest::parse(grid(2, "a.grid").as_bytes()),
+            Err(ManifestError::NewerField {
+                field: "grid",
+                needs: 3,
+                ..
+            })
+        ));
+        for bad in ["../a.grid", "a.png", ".a"] {
+            assert!(
+                matches!(
+                    Manifest::parse(grid(3, bad).as_bytes()),
+                    Err(ManifestError::GridName { .. })
+                ),
+                "{bad}"
+            );
+        }
+        let both = grid(3, "a.grid").replace(
+            "\"depth\":1.5",
+            "\"depth\":1.5,\"geometry\":{\"slanted\":[0.0,0.1,0.6]}",
+        );
+        let e = Manifest::parse(both.as_bytes()).unwrap_err().to_string();
+        assert!(e.contains("layers[0].grid"), "{e}");
+    }
+
+    #[test]
     fn rejects_bad_headers_and_names() {
         assert_eq!(
-            Manifest::parse(doc(3, "a.png").as_bytes()),
-            Err(ManifestError::Version(3))
+            Manifest::parse(doc(4, "a.png").as_bytes()),
+            Err(ManifestError::Version(4))
         );
         assert_eq!(
             Manifest::parse(doc(0, "a.png").as_bytes()),

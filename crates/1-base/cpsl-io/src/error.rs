@@ -71,6 +71,14 @@ pub enum IoError {
         /// What is wrong.
         cause: String,
     },
+    /// A mesh layer's grid file is malformed or does not fit its layer set.
+    #[error("{path}: {cause}")]
+    Grid {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        cause: String,
+    },
     /// The write target exists and is not a layer set, so it is not replaced.
     #[error(
         "{path}: exists and is not a CPSL layer set (no manifest.json); refusing to replace it"

@@ -1,6 +1,7 @@
 //! The layer-set folder: `manifest.json` plus one straight-alpha RGBA PNG per layer
-//! (see [`cpsl_core::manifest`] for the schema), plus optional side files written by later
-//! stages (configs, edge-depth caches).
+//! (see [`cpsl_core::manifest`] for the schema) and one grid file per mesh layer
+//! ([`crate::grid`]), plus optional side files written by later stages (configs, edge-depth
+//! caches).
 //!
 //! Reading validates everything before returning and names the file and field of the first
 //! problem. Writing is atomic: files go to a temporary sibling directory that is renamed into
@@ -8,7 +9,7 @@
 
 use crate::atomic::Staged;
 use crate::error::IoError;
-use crate::images;
+use crate::{grid, images};
 use cpsl_core::{
     Edc, Geometry, Layer, LayerEntry, LayerSet, Limits, Manifest, PremulImage, FORMAT_NAME,
 };
@@ -25,19 +26,10 @@ pub const EDC_FILE: &str = "edc.bin";
 /// `set` (same size and layer count).
 pub fn read_edc(dir: &Path, set: &LayerSet, limits: &Limits) -> Result<Option<Edc>, IoError> {
     let path = dir.join(EDC_FILE);
-    let meta = match std::fs::metadata(&path) {
-        Ok(m) => m,
-        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(None),
-        Err(e) => return Err(IoError::io(&path, e)),
-    };
-    if meta.len() > limits.max_file_bytes {
-        return Err(IoError::FileTooLarge {
-            path,
-            size: meta.len(),
-            max: limits.max_file_bytes,
-        });
+    if !path.exists() {
+        return Ok(None);
     }
-    let bytes = std::fs::read(&path).map_err(|e| IoError::io(&path, e))?;
+    let bytes = read_limited(&path, limits)?;
     let edc = Edc::decode(&bytes).map_err(|e| IoError::Edc {
         path: path.clone(),
         cause: e.to_string(),
@@ -58,6 +50,19 @@ pub fn read_edc(dir: &Path, set: &LayerSet, limits: &Limits) -> Result<Option<Ed
         });
     }
     Ok(Some(edc))
+}
+
+/// Reads a side file of at most `limits.max_file_bytes`.
+fn read_limited(path: &Path, limits: &Limits) -> Result<Vec<u8>, IoError> {
+    let meta = std::fs::metadata(path).map_err(|e| IoError::io(path, e))?;
+    if meta.len() > limits.max_file_bytes {
+        return Err(IoError::FileTooLarge {
+            path: path.to_path_buf(),
+            size: meta.len(),
+            max: limits.max_file_bytes,
+        });
+    }
+    std::fs::read(path).map_err(|e| IoError::io(path, e))
 }
 
 /// Reads and validates a layer-set folder.
@@ -109,6 +114,16 @@ pub fn read_layer_set(dir: &Path, limits: &Limits) -> Result<LayerSet, IoError> 
 
     let mut layers = Vec::with_capacity(manifest.layers.len());
     for entry in &manifest.layers {
+        let geometry = match &entry.grid {
+            None => entry.geometry.clone(),
+            Some(file) => {
+                let path = dir.join(file);
+                let bytes = read_limited(&path, limits)?;
+                let grid = grid::decode_grid(&bytes, cam.width, cam.height)
+                    .map_err(|cause| IoError::Grid { path, cause })?;
+                Geometry::Mesh(std::sync::Arc::new(grid))
+            }
+        };
         let path = dir.join(&entry.file);
         let (w, h) = images::dimensions(&path, limits)?;
         if (w, h) != (cam.width, cam.height) {
@@ -131,7 +146,7 @@ pub fn read_layer_set(dir: &Path, limits: &Limits) -> Result<LayerSet, IoError> 
         layers.push(Layer {
             image,
             depth: entry.depth,
-            geometry: entry.geometry.clone(),
+            geometry,
             meta: entry.meta.clone(),
         });
     }
@@ -144,11 +159,20 @@ pub fn manifest_for(set: &LayerSet) -> Manifest {
         .layers()
         .iter()
         .enumerate()
-        .map(|(i, l)| LayerEntry {
-            file: format!("layer_{i:02}.png"),
-            depth: l.depth,
-            geometry: l.geometry.clone(),
-            meta: l.meta.clone(),
+        .map(|(i, l)| {
+            // A mesh's grid goes to a side file.
+            let mesh = matches!(l.geometry, Geometry::Mesh(_));
+            LayerEntry {
+                file: format!("layer_{i:02}.png"),
+                depth: l.depth,
+                geometry: if mesh {
+                    Geometry::Plane
+                } else {
+                    l.geometry.clone()
+                },
+                grid: mesh.then(|| format!("layer_{i:02}.grid")),
+                meta: l.meta.clone(),
+            }
         })
         .collect();
     Manifest {
@@ -210,7 +234,13 @@ fn write_inner(
             })
         })
         .collect::<Result<Vec<_>, _>>()?;
-    for (written, (entry, png)) in manifest.layers.iter().zip(&pngs).enumerate() {
+    for (written, ((entry, png), layer)) in manifest
+        .layers
+        .iter()
+        .zip(&pngs)
+        .zip(set.layers())
+        .enumerate()
+    {
         if fail_after == Some(written) {
             return Err(IoError::io(
                 stage.path(),
@@ -218,6 +248,9 @@ fn write_inner(
             ));
         }
         stage.write_file(&entry.file, png)?;
+        if let (Some(file), Geometry::Mesh(g)) = (&entry.grid, &layer.geometry) {
+            stage.write_file(file, &grid::encode_grid(g))?;
+        }
     }
     for (name, bytes) in extras {
         stage.write_file(name, bytes)?;

@@ -2,6 +2,7 @@
 //!
 //! * [`layerset`]: the layer-set folder (`manifest.json` + one RGBA PNG per layer + optional
 //!   side files), read with full validation under [`cpsl_core::Limits`] and written atomically.
+//! * [`grid`]: a mesh layer's depth grid as a side file of its layer set.
 //! * [`images`]: PNG/JPEG reading with size limits checked before decoding, PNG writing.
 //! * [`pfm`]: Portable Float Map files.
 //! * [`depth`]: depth maps from PFM, 16-bit PNG or NumPy `.npy`.
@@ -9,6 +10,7 @@
 pub mod atomic;
 pub mod depth;
 pub mod error;
+pub mod grid;
 pub mod images;
 pub mod layerset;
 pub mod pfm;

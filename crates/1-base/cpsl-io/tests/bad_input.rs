@@ -198,7 +198,7 @@ fn unsafe_file_names() {
     edit_manifest(&p, |v| {
         v["layers"][0]["file"] = "layer_01.png".into();
     });
-    rejects(&p, &["layers[1].file", "earlier layer"]);
+    rejects(&p, &["layers[1].file", "used twice"]);
 }
 
 #[test]
@@ -240,4 +240,53 @@ fn slanted_layers_round_trip_and_bad_planes_are_rejected() {
         v["layers"][1]["geometry"] = serde_json::json!({ "slanted": [0.0, 0.1] })
     });
     rejects(&p, &["manifest.json", "invalid JSON"]);
+}
+
+#[test]
+fn mesh_grids_go_to_side_files_and_bad_ones_are_rejected() {
+    let d = tempfile::tempdir().unwrap();
+    let p = valid(d.path());
+    let (cols, rows) = cpsl_core::DepthGrid::dims(8, 6, 4);
+    let grid = |inverse_depth: Vec<f32>| serde_json::json!({ "mesh": { "step": 4, "cols": cols, "rows": rows, "inverse_depth": inverse_depth } });
+    // A version 2 manifest with the grid inline is still read...
+    let values: Vec<f32> = (0..cols * rows).map(|i| 0.5 - 0.01 * i as f32).collect();
+    edit_manifest(&p, |v| {
+        v["version"] = 2.into();
+        v["layers"][1]["geometry"] = grid(values.clone());
+    });
+    let set = read_layer_set(&p, &Limits::default()).unwrap();
+    let cpsl_core::Geometry::Mesh(g) = &set.layers()[1].geometry else {
+        panic!("not a mesh: {:?}", set.layers()[1].geometry)
+    };
+    assert_eq!(g.inverse_depth, values);
+    // ...and written as version 3 with the grid in a side file, read back exactly.
+    let again = d.path().join("again");
+    write_layer_set(&again, &set, &[]).unwrap();
+    let manifest = std::fs::read_to_string(again.join("manifest.json")).unwrap();
+    assert!(manifest.contains("\"version\": 3"), "{manifest}");
+    assert!(
+        manifest.contains("\"grid\": \"layer_01.grid\""),
+        "{manifest}"
+    );
+    assert!(!manifest.contains("inverse_depth"), "{manifest}");
+    assert_eq!(read_layer_set(&again, &Limits::default()).unwrap(), set);
+    // A grid file missing, for another camera, cut short, or with a value that is no depth.
+    let file = again.join("layer_01.grid");
+    let bytes = std::fs::read(&file).unwrap();
+    std::fs::remove_file(&file).unwrap();
+    rejects(&again, &["layer_01.grid"]);
+    let mut other = bytes.clone();
+    other[16..20].copy_from_slice(&(cols + 1).to_le_bytes());
+    std::fs::write(&file, &other).unwrap();
+    rejects(&again, &["layer_01.grid", "8x6 layer at step 4 needs"]);
+    std::fs::write(&file, &bytes[..bytes.len() - 2]).unwrap();
+    rejects(&again, &["layer_01.grid", "values"]);
+    let mut bad = g.as_ref().clone();
+    bad.inverse_depth[3] = -1.0;
+    std::fs::write(&file, cpsl_io::grid::encode_grid(&bad)).unwrap();
+    rejects(&again, &["layer_01.grid", "vertex (0, 1)", "-1"]);
+    // The grid field in a version 2 manifest.
+    std::fs::write(&file, &bytes).unwrap();
+    edit_manifest(&again, |v| v["version"] = 2.into());
+    rejects(&again, &["manifest.json", "layers[1].grid", "version 3"]);
 }

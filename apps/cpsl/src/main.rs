@@ -35,7 +35,7 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Render a layer set or a package from a new viewpoint (--pose) or along a sweep (--sweep).
+    /// Render a layer set, a layered video or a package from a new viewpoint (--pose) or along a sweep (--sweep).
     Render(render::RenderArgs),
     /// Write a synthetic scene: input view, exact depth and ground-truth novel views.
     Synth(synth::SynthArgs),
@@ -77,7 +77,7 @@ enum Command {
     /// Rate-distortion curves on a synthetic moving clip: CPSL packages under budgets against
     /// DIBR streaming (colour + depth) and a uniform MPI coded with the same codec.
     EvalRd(eval_rd::EvalRdArgs),
-    /// Play a package (or show a layer set) in an interactive window: drag to move the
+    /// Play a package or a layered video (or show a layer set) in an interactive window: drag to move the
     /// viewpoint, play/pause/seek, side-by-side stereo, on-screen frame time.
     View(view::ViewArgs),
     /// Serve packages and the browser player over HTTP (range requests, ETags, CORS).

@@ -13,10 +13,11 @@ use std::path::PathBuf;
 /// Arguments of `cpsl render`.
 #[derive(Args)]
 pub struct RenderArgs {
-    /// A layer-set folder (from `cpsl layer`) or a package (from `cpsl encode`, decoded first).
+    /// A layer-set folder (from `cpsl layer`), a layered video (from `cpsl layer-video`) or a
+    /// package (from `cpsl encode`, decoded first).
     pub layerset: PathBuf,
-    /// Frame of a package to render with --pose (a --sweep plays the package's frames, one per
-    /// step, looping).
+    /// Frame of a package or layered video to render with --pose (a --sweep plays its frames,
+    /// one per step, looping).
     #[arg(long, default_value_t = 0)]
     pub frame: u32,
     /// Viewer pose `tx,ty,tz,rx,ry,rz`: the viewer's position in the reference camera frame

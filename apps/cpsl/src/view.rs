@@ -1,5 +1,5 @@
 //! `cpsl view`: the desktop viewer (`cpsl-viewer`, whose documentation lists the controls) on
-//! a package or a layer set.
+//! a package, a layered video or a layer set.
 
 use crate::util::FilterArg;
 use anyhow::Result;
@@ -11,7 +11,8 @@ use std::path::PathBuf;
 /// Arguments of `cpsl view`.
 #[derive(Args)]
 pub struct ViewArgs {
-    /// A package (from `cpsl encode`) or a layer-set folder (from `cpsl layer`).
+    /// A package (from `cpsl encode`), a layered video (from `cpsl layer-video`) or a layer-set
+    /// folder (from `cpsl layer`).
     pub source: PathBuf,
     /// Frame to start at.
     #[arg(long, default_value_t = 0)]

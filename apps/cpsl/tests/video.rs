@@ -47,6 +47,15 @@ fn layers_a_clip_and_refuses_bad_input() {
     ]);
     // Running again replaces its own output.
     ok(&["layer-video", s(&clip), "-o", s(&out), "--max-frames", "2"]);
+    // The folder renders like a package: any frame, a frame past the end refused.
+    let view = dir.path().join("f1.png");
+    let pose = "0.02,0,0,0,0,0";
+    let args = ["render", s(&out), "--pose", pose, "-o", s(&view)];
+    ok(&[&args[..], &["--frame", "1"]].concat());
+    assert!(view.is_file());
+    let o = cpsl(&[&args[..], &["--frame", "2"]].concat());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("has 2 frames"), "{err}");
     // `cpsl info` summarises the output.
     let info = ok(&["info", s(&out)]);
     for part in [

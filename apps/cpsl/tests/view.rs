@@ -1,4 +1,5 @@
-//! `cpsl view` under Xvfb: the window shows a layer set and a package frame at a given pose,
+//! `cpsl view` under Xvfb: the window shows a layer set, a package frame and a layered video's
+//! frame at a given pose,
 //! and a screenshot of the screen (ImageMagick `import`) matches the CPU render of the same
 //! pose and frame. Skips, saying why, without Xvfb, `import` or a GPU adapter (lavapipe
 //! counts), unless `CPSL_REQUIRE_GPU=1` (set by `.ci/run`, which installs all three).
@@ -176,11 +177,30 @@ fn viewer_screenshot_matches_the_cpu_render() {
         "12",
     ]);
     let package = d.path().join("demo/clip.cpsl");
+    // The demo's clip layered into a folder of layer sets (`cpsl layer-video`), played as a
+    // package is.
+    let clip = d.path().join("demo/clip");
+    let video = d.path().join("video");
+    ok(&[
+        "layer-video",
+        s(&clip.join("frames")),
+        "--camera",
+        s(&clip.join("camera.json")),
+        "--depth-frames",
+        s(&clip.join("depth")),
+        "-o",
+        s(&video),
+    ]);
     let x = Xvfb::start();
     // It looks past the frame's edge: the viewer fills what the layers leave uncovered as
     // the CPU render does (`--background fill`, the default).
     let pose = "0.05,0.01,0,1,2,0";
-    for (source, frame, (w, h)) in [(&layers, "0", (160, 120)), (&package, "7", (128, 96))] {
+    let sources = [
+        (&layers, "0", (160, 120)),
+        (&package, "7", (128, 96)),
+        (&video, "5", (128, 96)),
+    ];
+    for (source, frame, (w, h)) in sources {
         // The CPU's render of the same view with `filter`.
         let render = |filter: &str| {
             let out = d.path().join(format!("reference_{filter}.png"));

@@ -79,6 +79,14 @@ pub enum IoError {
         /// What is wrong.
         cause: String,
     },
+    /// A layered video's index is malformed.
+    #[error("{path}: {cause}")]
+    Video {
+        /// The file.
+        path: PathBuf,
+        /// What is wrong.
+        cause: String,
+    },
     /// The write target exists and is not a layer set, so it is not replaced.
     #[error(
         "{path}: exists and is not a CPSL layer set (no manifest.json); refusing to replace it"

@@ -6,6 +6,7 @@
 //! * [`images`]: PNG/JPEG reading with size limits checked before decoding, PNG writing.
 //! * [`pfm`]: Portable Float Map files.
 //! * [`depth`]: depth maps from PFM, 16-bit PNG or NumPy `.npy`.
+//! * [`video`]: the index of a layered video folder (`video.json`), as players read it.
 
 pub mod atomic;
 pub mod depth;
@@ -14,6 +15,7 @@ pub mod grid;
 pub mod images;
 pub mod layerset;
 pub mod pfm;
+pub mod video;
 
 pub use atomic::{write_file_atomic, write_json, Staged};
 pub use error::IoError;

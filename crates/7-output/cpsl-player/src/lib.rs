@@ -1,6 +1,8 @@
 //! Playback of what cpsl makes: a seekable [`Player`] for packages (every layer stream of a
 //! segment decoded in lock step, one picture at a time, so a player holds one frame), a
-//! [`Source`] that is either a package or a layer-set folder, and the choice of renderer
+//! [`LayeredVideo`] for the folders of `cpsl layer-video` (each frame's layer set read when
+//! asked for), a [`Source`] that is a package, a layered video or a layer-set folder, the
+//! [`Frames`] both sequences share, and the choice of renderer
 //! ([`choose_renderer`]: the GPU where asked for and present, else the CPU reference), and
 //! rendering along a sweep of poses into frames, a contact sheet and an MP4 ([`sweep`]), and
 //! timed playback ([`mod@bench`]).
@@ -9,7 +11,7 @@ pub mod bench;
 pub mod sweep;
 
 use cpsl_codec::{CodecError, SegmentReader};
-use cpsl_core::{Limits, Progress, ProgressEvent};
+use cpsl_core::{Camera, Limits, Progress, ProgressEvent};
 use cpsl_package::{Package, PackageError};
 use cpsl_render::{CpuRenderer, Filter, FrameLayers, Renderer};
 use std::path::{Path, PathBuf};
@@ -27,7 +29,7 @@ pub enum PlayerError {
         source: PackageError,
     },
     /// A frame past the end.
-    #[error("frame {frame}: the package has {frames} frames")]
+    #[error("frame {frame}: the input has {frames} frames")]
     NoFrame {
         /// The frame asked for.
         frame: u32,
@@ -53,6 +55,16 @@ pub enum PlayerError {
         package: PathBuf,
         /// The frame asked for.
         frame: u32,
+    },
+    /// A frame of a layered video has another camera than its first frame.
+    #[error("{path}: camera {found:?} differs from the first frame's {first:?}")]
+    Camera {
+        /// The frame's layer-set folder.
+        path: PathBuf,
+        /// Its camera.
+        found: Box<Camera>,
+        /// The first frame's.
+        first: Box<Camera>,
     },
     /// A layer-set folder cannot be read.
     #[error("reading layer set {path}: {source}")]
@@ -189,16 +201,120 @@ impl Player {
     }
 }
 
-/// What is played: one layer set, or the frames of a package.
+/// A sequence of frames decoded one at a time, from any thread: a package ([`Player`]) or a
+/// layered video ([`LayeredVideo`]).
+pub trait Frames: Send {
+    /// Number of frames.
+    fn frames(&self) -> u32;
+    /// Decodes frame `f` with its Edge-Depth Cache.
+    fn decode(&mut self, f: u32) -> Result<FrameLayers, PlayerError>;
+}
+
+impl Frames for Player {
+    fn frames(&self) -> u32 {
+        Player::frames(self)
+    }
+    fn decode(&mut self, f: u32) -> Result<FrameLayers, PlayerError> {
+        Player::decode(self, f)
+    }
+}
+
+/// Reads a layer-set folder with its Edge-Depth Cache, when it has one.
+fn read_layers(path: &Path) -> Result<FrameLayers, PlayerError> {
+    let limits = Limits::default();
+    let layer_set = |source| PlayerError::LayerSet {
+        path: path.to_path_buf(),
+        source,
+    };
+    let set = cpsl_io::read_layer_set(path, &limits).map_err(layer_set)?;
+    let edc = cpsl_io::read_edc(path, &set, &limits).map_err(layer_set)?;
+    Ok(FrameLayers::new(set, edc))
+}
+
+/// Plays the folder of `cpsl layer-video` (`video.json` and a layer set per frame): each
+/// frame's layer set is read when asked for; every frame must have the first one's camera.
+pub struct LayeredVideo {
+    dir: PathBuf,
+    index: cpsl_io::video::VideoIndex,
+    camera: Camera,
+    /// The last frame handed out by [`LayeredVideo::frame`].
+    current: Option<(u32, FrameLayers)>,
+}
+
+impl LayeredVideo {
+    /// Opens a layered video folder: its index checked and its first frame read.
+    pub fn open(dir: &Path) -> Result<Self, PlayerError> {
+        let index =
+            cpsl_io::video::read_video_index(dir).map_err(|source| PlayerError::LayerSet {
+                path: dir.to_path_buf(),
+                source,
+            })?;
+        let first = read_layers(&dir.join(&index.frames[0]))?;
+        Ok(Self {
+            dir: dir.to_path_buf(),
+            camera: *first.set.camera(),
+            index,
+            current: Some((0, first)),
+        })
+    }
+
+    /// The camera of every frame.
+    pub fn camera(&self) -> &Camera {
+        &self.camera
+    }
+
+    /// Frames per second.
+    pub fn fps(&self) -> f64 {
+        self.index.fps
+    }
+
+    /// Frame `f`, read once and kept until another frame is asked for.
+    pub fn frame(&mut self, f: u32) -> Result<&FrameLayers, PlayerError> {
+        if self.current.as_ref().is_none_or(|c| c.0 != f) {
+            let frame = Frames::decode(self, f)?;
+            self.current = Some((f, frame));
+        }
+        Ok(&self.current.as_ref().expect("read above").1)
+    }
+}
+
+impl Frames for LayeredVideo {
+    fn frames(&self) -> u32 {
+        self.index.frames.len() as u32
+    }
+
+    fn decode(&mut self, f: u32) -> Result<FrameLayers, PlayerError> {
+        let frames = self.frames();
+        let name = self
+            .index
+            .frames
+            .get(f as usize)
+            .ok_or(PlayerError::NoFrame { frame: f, frames })?;
+        let path = self.dir.join(name);
+        let layers = read_layers(&path)?;
+        if *layers.set.camera() != self.camera {
+            return Err(PlayerError::Camera {
+                path,
+                found: Box::new(*layers.set.camera()),
+                first: Box::new(self.camera),
+            });
+        }
+        Ok(layers)
+    }
+}
+
+/// What is played: one layer set, the frames of a layered video, or those of a package.
 pub enum Source {
     /// A layer set (with its cache, when its folder has one).
     Still(Box<FrameLayers>),
+    /// A layered video folder.
+    Video(Box<LayeredVideo>),
     /// A package.
     Package(Box<Player>),
 }
 
 impl Source {
-    /// Opens a package (folder or archive) or a layer-set folder.
+    /// Opens a package (folder or archive), a layered video folder or a layer-set folder.
     pub fn open(path: &Path) -> Result<Self, PlayerError> {
         if cpsl_package::is_package(path) {
             return Ok(Source::Package(Box::new(Player::open(path)?)));
@@ -206,20 +322,17 @@ impl Source {
         if path.is_file() {
             return Err(PlayerError::NotLayers(path.to_path_buf()));
         }
-        let limits = Limits::default();
-        let layer_set = |source| PlayerError::LayerSet {
-            path: path.to_path_buf(),
-            source,
-        };
-        let set = cpsl_io::read_layer_set(path, &limits).map_err(layer_set)?;
-        let edc = cpsl_io::read_edc(path, &set, &limits).map_err(layer_set)?;
-        Ok(Source::Still(Box::new(FrameLayers::new(set, edc))))
+        if path.join(cpsl_io::video::VIDEO_FILE).is_file() {
+            return Ok(Source::Video(Box::new(LayeredVideo::open(path)?)));
+        }
+        Ok(Source::Still(Box::new(read_layers(path)?)))
     }
 
     /// Number of frames (1 for a layer set).
     pub fn frames(&self) -> u32 {
         match self {
             Source::Still(_) => 1,
+            Source::Video(v) => v.frames(),
             Source::Package(p) => p.frames(),
         }
     }
@@ -228,6 +341,7 @@ impl Source {
     pub fn frame(&mut self, f: u32) -> Result<&FrameLayers, PlayerError> {
         match self {
             Source::Still(s) => Ok(s),
+            Source::Video(v) => v.frame(f),
             Source::Package(p) => p.frame(f),
         }
     }

@@ -93,3 +93,52 @@ fn seeks_anywhere_and_opens_every_source() {
     let e = Player::open(&layers).err().unwrap().to_string();
     assert!(e.contains("opening the package"), "{e}");
 }
+
+#[test]
+fn plays_a_layered_video_folder_frame_by_frame() {
+    let dir = tempfile::tempdir().unwrap();
+    let video = dir.path().join("video");
+    let names = ["frame_000000", "frame_000001", "frame_000002"];
+    for (i, name) in names.iter().enumerate() {
+        cpsl_io::write_layer_set(&video.join(name), &set(i as u32), &[]).unwrap();
+    }
+    let frames: Vec<String> = names
+        .iter()
+        .map(|n| format!("{{\"dir\": \"{n}\"}}"))
+        .collect();
+    let index = format!(
+        "{{\"format\": \"cpsl-video-layers\", \"version\": 1, \"fps\": 24, \"frames\": [{}]}}",
+        frames.join(", ")
+    );
+    std::fs::write(video.join("video.json"), index).unwrap();
+    let Source::Video(mut v) = Source::open(&video).unwrap() else {
+        panic!("not opened as a layered video")
+    };
+    assert_eq!((cpsl_player::Frames::frames(&*v), v.fps()), (3, 24.0));
+    // Any frame in any order, each the layer set written for it.
+    for f in [2, 0, 1, 1] {
+        assert_eq!(v.frame(f).unwrap().set, set(f));
+    }
+    assert!(matches!(
+        v.frame(3),
+        Err(PlayerError::NoFrame {
+            frame: 3,
+            frames: 3
+        })
+    ));
+    // A frame with another camera is refused, naming its folder (frame 1 read again: the
+    // frame asked for last is kept).
+    v.frame(0).unwrap();
+    let other = synthetic_layer_set(32, 24, 2, Coverage::Typical, 1);
+    cpsl_io::write_layer_set(&video.join(names[1]), &other, &[]).unwrap();
+    let e = v.frame(1).err().unwrap().to_string();
+    assert!(e.contains("frame_000001") && e.contains("camera"), "{e}");
+    // A broken index says which file and field.
+    std::fs::write(
+        video.join("video.json"),
+        "{\"format\": \"cpsl-video-layers\", \"version\": 1, \"fps\": 24, \"frames\": []}",
+    )
+    .unwrap();
+    let e = Source::open(&video).err().unwrap().to_string();
+    assert!(e.contains("video.json") && e.contains("frames"), "{e}");
+}

@@ -1,8 +1,9 @@
-//! The desktop viewer: a window (winit + wgpu) that plays a package, or shows a layer set,
-//! from a viewpoint the mouse and keyboard move.
+//! The desktop viewer: a window (winit + wgpu) that plays a package or a layered video, or
+//! shows a layer set, from a viewpoint the mouse and keyboard move.
 //!
-//! Packages are decoded on a background thread (a [`Player`]) into a bounded queue; the window
-//! takes frames from it at the package's frame rate and renders them with `cpsl-render-gpu`,
+//! Packages and layered videos are decoded on a background thread (a
+//! [`cpsl_player::Player`] or [`cpsl_player::LayeredVideo`]) into a bounded queue; the window
+//! takes frames from it at the frame rate and renders them with `cpsl-render-gpu`,
 //! what the layers leave uncovered filled as the CPU reference fills it (`Fill`).
 //! Controls: left drag orbits, right (or shift) drag pans, the wheel dollies, R resets, space
 //! plays/pauses, Left/Right step a frame, PageUp/PageDown jump a second, Home goes to the
@@ -11,7 +12,7 @@
 //! (Catmull-Rom) filter against the bilinear one, H the on-screen readout, Esc/Q quit.
 
 use cpsl_core::{Camera, Pose, Vec3};
-use cpsl_player::{Player, PlayerError, Source};
+use cpsl_player::{Frames, PlayerError, Source};
 use cpsl_render::{DpsConfig, Filter, FrameLayers};
 use cpsl_render_gpu::{wgpu, Blit, Fill, GpuError, GpuLayers, GpuRenderer};
 use std::path::PathBuf;
@@ -60,7 +61,7 @@ pub enum ViewerError {
     #[error(transparent)]
     Gpu(#[from] GpuError),
     /// A start frame past the end.
-    #[error("--frame {frame}: the package has {frames} frames")]
+    #[error("--frame {frame}: the input has {frames} frames")]
     NoFrame {
         /// The frame asked for.
         frame: u32,
@@ -111,7 +112,7 @@ struct Decoder {
 }
 
 impl Decoder {
-    fn start(mut player: Player, first: u32) -> Result<Self> {
+    fn start(mut player: impl Frames + 'static, first: u32) -> Result<Self> {
         let (tx, rx) = sync_channel::<std::result::Result<Decoded, String>>(8);
         let (seek_tx, seek_rx) = std::sync::mpsc::channel::<(u64, u32)>();
         std::thread::Builder::new()
@@ -650,6 +651,22 @@ pub fn run(a: ViewOptions, events: impl FnMut(ViewerEvent) + 'static) -> Result<
             }
             let dec = Decoder::start(*player, a.frame)?;
             (m.camera, m.frames, m.frame_rate, Some(dec), None)
+        }
+        Source::Video(video) => {
+            let (camera, frames, fps) = (*video.camera(), video.frames(), video.fps());
+            if a.frame >= frames {
+                return Err(ViewerError::NoFrame {
+                    frame: a.frame,
+                    frames,
+                });
+            }
+            (
+                camera,
+                frames,
+                fps,
+                Some(Decoder::start(*video, a.frame)?),
+                None,
+            )
         }
         Source::Still(frame) => (*frame.set.camera(), 1, 30.0, None, Some((0, *frame))),
     };

@@ -206,10 +206,7 @@ fn is_zero(n: &usize) -> bool {
     *n == 0
 }
 
-/// Format name of `video.json`.
-pub const VIDEO_FORMAT: &str = "cpsl-video-layers";
-/// File describing a layered video.
-pub const VIDEO_FILE: &str = "video.json";
+pub use cpsl_io::video::{VIDEO_FILE, VIDEO_FORMAT, VIDEO_VERSION};
 
 /// `video.json`: what was layered, how, and every frame.
 #[derive(Debug, Clone, Serialize, Deserialize)]
@@ -399,7 +396,7 @@ pub fn write_layered_video(
     })?;
     let manifest = VideoManifest {
         format: VIDEO_FORMAT.into(),
-        version: 1,
+        version: VIDEO_VERSION,
         input: job.input.display().to_string(),
         codec: info.codec,
         fps: info.fps,

@@ -7,7 +7,7 @@ use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
 use cpsl_codec::{Container, RateControl, SegmentReport};
 use cpsl_package::{Codec, Package};
-use cpsl_pipeline::encode::{encode, EncodeJob, EncodeTarget};
+use cpsl_pipeline::encode::{encode, encode_layered, EncodeJob, EncodeTarget};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
@@ -104,8 +104,9 @@ pub fn parse_bitrate(s: &str) -> Result<f64, String> {
 /// Arguments of `cpsl encode`.
 #[derive(Args)]
 pub struct EncodeArgs {
-    /// Input: a video file (any container and codec FFmpeg reads), an image, or a folder of
-    /// PNG/JPEG frames.
+    /// Input: a video file (any container and codec FFmpeg reads), an image, a folder of
+    /// PNG/JPEG frames, or a layered video (the output of `cpsl layer-video`, coded as it was
+    /// layered: its K, GOP and refreshes; the layering options are not used).
     pub input: PathBuf,
     /// Output package (a folder, by convention `NAME.cpsl`; one file with --archive). Written
     /// beside it first and moved into place when complete; an existing package is replaced,
@@ -175,7 +176,15 @@ pub fn run(a: EncodeArgs) -> Result<()> {
         (true, true) => EncodeTarget::Archive(a.output.clone(), rate),
         (false, true) => EncodeTarget::Package(a.output.clone(), rate),
     };
-    let (mut video, mut depth) = a.layering.job(&a.input)?;
+    // A layered video folder is coded as it was layered; anything else is layered first.
+    let layered = cpsl_pipeline::video::is_layered_video(&a.input);
+    let (mut video, mut depth) = match layered {
+        true => (a.layering.video_job(&a.input)?, None),
+        false => {
+            let (video, depth) = a.layering.job(&a.input)?;
+            (video, Some(depth))
+        }
+    };
     video.gop.rate_aware_refresh = !a.fixed_refresh;
     let job = EncodeJob {
         video,
@@ -193,7 +202,10 @@ pub fn run(a: EncodeArgs) -> Result<()> {
         ctrlc::set_handler(move || stop.store(true, Ordering::SeqCst))
             .context("installing the Ctrl-C handler")?;
     }
-    let done = encode(&job, &mut depth, &Bars::default(), &stop)?;
+    let done = match depth.as_mut() {
+        Some(depth) => encode(&job, depth, &Bars::default(), &stop)?,
+        None => encode_layered(&job, &Bars::default(), &stop)?,
+    };
     let (secs, coding) = (done.seconds, done.coding_seconds);
     for (path, m) in &done.packages {
         println!(

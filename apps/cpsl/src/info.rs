@@ -4,7 +4,7 @@ use anyhow::{Context, Result};
 use clap::Args;
 use cpsl_core::{Geometry, Limits};
 use cpsl_package::Package;
-use cpsl_pipeline::video::{depth_runs, VideoManifest, VIDEO_FILE};
+use cpsl_pipeline::video::{depth_runs, read_manifest, VIDEO_FILE};
 use std::path::{Path, PathBuf};
 
 /// Arguments of `cpsl info`.
@@ -113,10 +113,7 @@ fn layer_set(dir: &Path, indent: &str) -> Result<()> {
 /// The summary of a layered video: its frames, where their depth came from, and its first
 /// frame's layer set.
 fn video(dir: &Path) -> Result<()> {
-    let path = dir.join(VIDEO_FILE);
-    let bytes = std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?;
-    let v: VideoManifest =
-        serde_json::from_slice(&bytes).with_context(|| format!("parsing {}", path.display()))?;
+    let v = read_manifest(dir)?;
     let intra: Vec<_> = v.frames.iter().filter(|f| f.kind == "I").collect();
     println!(
         "{}: {} v{} from {} ({}), {}x{} at {:.3} fps, {} frames ({} I, {} P), GOP {}",

@@ -189,6 +189,12 @@ pub struct VideoLayeringArgs {
 impl VideoLayeringArgs {
     /// The job these arguments describe for `input`, and its depth source.
     pub fn job(&self, input: &Path) -> Result<(VideoJob, VideoDepth)> {
+        let depth = self.depth()?;
+        Ok((self.video_job(input)?, depth))
+    }
+
+    /// The depth source the options give (models are opened here).
+    fn depth(&self) -> Result<VideoDepth> {
         let depth = match (&self.depth_frames, self.stereo.stereo) {
             (Some(dir), _) => VideoDepth::frames(dir, self.depth_scale)?,
             (None, Some(_)) => {
@@ -214,7 +220,12 @@ impl VideoLayeringArgs {
                 )),
             },
         };
-        let job = VideoJob {
+        Ok(depth)
+    }
+
+    /// The layering job the options give for `input`.
+    pub fn video_job(&self, input: &Path) -> Result<VideoJob> {
+        Ok(VideoJob {
             input: input.to_path_buf(),
             camera: self.camera.choice(),
             layering: layering_config(
@@ -230,8 +241,7 @@ impl VideoLayeringArgs {
             p_depth: self.p_depth.into(),
             max_frames: self.max_frames,
             stereo: self.stereo.stereo,
-        };
-        Ok((job, depth))
+        })
     }
 }
 

@@ -56,6 +56,32 @@ fn layers_a_clip_and_refuses_bad_input() {
     let o = cpsl(&[&args[..], &["--frame", "2"]].concat());
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && err.contains("has 2 frames"), "{err}");
+    // `cpsl encode` codes the folder as it was layered: the same package as encoding the clip
+    // with the same options, byte for byte.
+    let from_layers = dir.path().join("from_layers.cpsl");
+    let direct = dir.path().join("direct.cpsl");
+    let q = ["--quality", "30"];
+    ok(&[&["encode", s(&out), "-o", s(&from_layers)], &q[..]].concat());
+    ok(&[
+        &["encode", s(&clip), "-o", s(&direct), "--max-frames", "2"],
+        &q[..],
+    ]
+    .concat());
+    let coded = files(&from_layers);
+    assert!(!coded.is_empty() && coded == files(&direct), "the packages differ");
+    // Layering cpsl's own output is refused with what to do instead.
+    let o = cpsl(&["layer-video", s(&out), "-o", s(&dir.path().join("again"))]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && err.contains("layered video"),
+        "{err}"
+    );
+    let o = cpsl(&["encode", s(&out.join("frame_000000")), "-o", s(&direct)]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        !o.status.success() && err.contains("is a layer set"),
+        "{err}"
+    );
     // `cpsl info` summarises the output.
     let info = ok(&["info", s(&out)]);
     for part in [
@@ -145,4 +171,23 @@ fn a_damaged_packet_costs_its_frame_only() {
     let v: serde_json::Value =
         serde_json::from_slice(&std::fs::read(out.join("video.json")).unwrap()).unwrap();
     assert_eq!(v["damaged_packets"], 1);
+}
+
+/// Every file under `dir` (relative path and bytes), in path order.
+fn files(dir: &std::path::Path) -> Vec<(std::path::PathBuf, Vec<u8>)> {
+    let mut out = Vec::new();
+    let mut todo = vec![dir.to_path_buf()];
+    while let Some(d) = todo.pop() {
+        for e in std::fs::read_dir(&d).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                todo.push(p);
+            } else {
+                let bytes = std::fs::read(&p).unwrap();
+                out.push((p.strip_prefix(dir).unwrap().to_path_buf(), bytes));
+            }
+        }
+    }
+    out.sort();
+    out
 }

@@ -1,5 +1,5 @@
 //! A mesh layer's depth grid as a side file of its layer set (`layer_NN.grid`, layer-set
-//! manifest version 3): exact, and a sixth of the size of the same grid as JSON numbers.
+//! manifest version 3): exact, and an eighteenth of the size of the same grid as JSON numbers.
 //!
 //! Little endian: a 24-byte header (magic `CPSLGRD\0`, `u16` version 1, `u16` flags 0,
 //! `u32` step, `u32` vertex columns, `u32` vertex rows) followed by a zlib stream of the

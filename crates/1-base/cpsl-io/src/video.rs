@@ -22,6 +22,24 @@ pub struct VideoIndex {
     pub frames: Vec<String>,
 }
 
+/// Reads the index of the layered video in `dir` with its format and version checked, for a
+/// reader that parses the rest (this build reads version 1).
+pub fn read_video_file(dir: &Path) -> Result<Vec<u8>, IoError> {
+    let path = dir.join(VIDEO_FILE);
+    let bytes = std::fs::read(&path).map_err(|e| IoError::io(&path, e))?;
+    let cause = match cpsl_core::check_head(&bytes, VIDEO_FORMAT, VIDEO_VERSION) {
+        Ok(()) => return Ok(bytes),
+        Err(cpsl_core::HeadError::Json(m)) => format!("invalid JSON: {m}"),
+        Err(cpsl_core::HeadError::Format(f)) => {
+            format!("field `format`: expected \"{VIDEO_FORMAT}\", found \"{f}\"")
+        }
+        Err(cpsl_core::HeadError::Version(v)) => {
+            format!("field `version`: this build reads versions 1..={VIDEO_VERSION}, found {v}")
+        }
+    };
+    Err(IoError::Video { path, cause })
+}
+
 /// Reads and checks the index of the layered video in `dir`: format and version, a frame rate
 /// above zero, at least one frame, and plain folder names.
 pub fn read_video_index(dir: &Path) -> Result<VideoIndex, IoError> {
@@ -34,23 +52,11 @@ pub fn read_video_index(dir: &Path) -> Result<VideoIndex, IoError> {
         fps: f64,
         frames: Vec<Frame>,
     }
-    let path = dir.join(VIDEO_FILE);
-    let bytes = std::fs::read(&path).map_err(|e| IoError::io(&path, e))?;
+    let bytes = read_video_file(dir)?;
     let bad = |cause: String| IoError::Video {
-        path: path.clone(),
+        path: dir.join(VIDEO_FILE),
         cause,
     };
-    cpsl_core::check_head(&bytes, VIDEO_FORMAT, VIDEO_VERSION).map_err(|e| {
-        bad(match e {
-            cpsl_core::HeadError::Json(m) => format!("invalid JSON: {m}"),
-            cpsl_core::HeadError::Format(f) => {
-                format!("field `format`: expected \"{VIDEO_FORMAT}\", found \"{f}\"")
-            }
-            cpsl_core::HeadError::Version(v) => {
-                format!("field `version`: this build reads versions 1..={VIDEO_VERSION}, found {v}")
-            }
-        })
-    })?;
     let index: Index =
         serde_json::from_slice(&bytes).map_err(|e| bad(format!("invalid JSON: {e}")))?;
     if !(index.fps.is_finite() && index.fps > 0.0) {

@@ -1,12 +1,13 @@
 //! A video to a package: frames decoded, layered and pushed into the package writers as they
 //! arrive (each writer codes a segment when its group of pictures closes), written as a
-//! package folder, a single archive file, or one package per budget with a `variants.json`.
+//! package folder, a single archive file, or one package per budget with a `variants.json`;
+//! or the frames of a layered video folder, coded as they were layered ([`encode_layered`]).
 
 use crate::error::{Context, PipelineError};
 use crate::sources::VideoDepth;
 use crate::video::{layer_video, VideoJob};
 use cpsl_codec::{CodingOptions, Container, PackageWriter, RateControl, SegmentReport};
-use cpsl_core::{Progress, ProgressEvent};
+use cpsl_core::{LayeredFrame, Progress, ProgressEvent};
 use cpsl_package::{Codec, PackageManifest, VariantSet, VARIANTS_FILE};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -156,6 +157,147 @@ fn warn_over_budget(r: &SegmentReport, progress: &dyn Progress) {
     }
 }
 
+/// The package's frame rate: `given` (checked) or the input's.
+fn frame_rate(given: Option<f64>, input: f64) -> Result<f64, PipelineError> {
+    match given {
+        Some(f) if f.is_finite() && (0.1..=1000.0).contains(&f) => Ok(f),
+        Some(f) => Err(PipelineError::Invalid(format!(
+            "--fps {f}: give 0.1 to 1000 frames per second"
+        ))),
+        None => Ok(input),
+    }
+}
+
+/// The packages of one encode, fed layered frames one at a time (every writer codes a segment
+/// when its group of pictures closes).
+struct Packages<'a> {
+    job: &'a EncodeJob,
+    outputs: Vec<(PathBuf, RateControl)>,
+    fps: f64,
+    /// Frames per group of pictures, and layers per frame (K).
+    gop: u32,
+    layers: u32,
+    writers: Vec<PackageWriter>,
+    reports: Vec<Vec<SegmentReport>>,
+    /// Seconds spent coding.
+    coding: f64,
+    /// Each frame's depth note.
+    notes: Vec<(u32, Option<String>)>,
+    progress: &'a dyn Progress,
+    stop: &'a AtomicBool,
+}
+
+impl Packages<'_> {
+    /// Codes `f` into every package (where a segment closes), `frames_left` counting it.
+    fn push(
+        &mut self,
+        f: LayeredFrame,
+        depth_note: Option<String>,
+        frames_left: Option<usize>,
+    ) -> Result<(), PipelineError> {
+        self.notes.push((f.index, depth_note));
+        if self.stop.load(Ordering::SeqCst) {
+            return Err(PipelineError::Interrupted("package"));
+        }
+        if self.writers.is_empty() {
+            for (path, rate) in &self.outputs {
+                let opts = CodingOptions {
+                    codec: self.job.codec,
+                    rate: *rate,
+                    fps: self.fps,
+                    gop: self.gop,
+                    container: self.job.container,
+                    segments: self.job.segments,
+                };
+                let camera = *f.set.camera();
+                self.writers
+                    .push(PackageWriter::create(path, camera, self.layers, opts)?);
+            }
+        }
+        let t = Instant::now();
+        let index = f.index;
+        let left = frames_left.map(|n| n as u32);
+        // Every writer but the last gets a copy; the last takes the frame.
+        let n = self.writers.len();
+        let mut frame = Some(f);
+        for (i, writer) in self.writers.iter_mut().enumerate() {
+            let f = match i + 1 == n {
+                true => frame.take().expect("the last writer takes the frame"),
+                false => frame.clone().expect("kept for the last writer"),
+            };
+            writer.set_frames_left(left);
+            let report = writer
+                .push(f)
+                .context_with(|| format!("coding the segment before frame {index}"))?;
+            report
+                .iter()
+                .for_each(|r| warn_over_budget(r, self.progress));
+            self.reports[i].extend(report);
+        }
+        self.coding += t.elapsed().as_secs_f64();
+        Ok(())
+    }
+
+    /// Codes the last segments and writes the target (the run started at `started`).
+    fn finish(mut self, started: Instant, damaged: usize) -> Result<Encoded, PipelineError> {
+        if self.stop.load(Ordering::SeqCst) {
+            return Err(PipelineError::Interrupted("package"));
+        }
+        let depth_runs =
+            crate::video::depth_runs(self.notes.iter().map(|(i, n)| (*i, n.as_deref())));
+        let mut packages = Vec::new();
+        let outputs = std::mem::take(&mut self.outputs);
+        for ((writer, (path, _)), reports) in self
+            .writers
+            .into_iter()
+            .zip(&outputs)
+            .zip(&mut self.reports)
+        {
+            let t = Instant::now();
+            let mut writer = writer;
+            writer.set_depth(depth_runs.clone());
+            let report = writer
+                .flush()
+                .context_with(|| "coding the last segment".into())?;
+            report
+                .iter()
+                .for_each(|r| warn_over_budget(r, self.progress));
+            reports.extend(report);
+            let manifest = writer.finish()?;
+            self.coding += t.elapsed().as_secs_f64();
+            packages.push((path.clone(), manifest));
+        }
+        let mut variant_set = None;
+        match &self.job.target {
+            EncodeTarget::Archive(out, _) => {
+                let folder = &packages[0].0;
+                let packed = cpsl_package::pack(folder, out);
+                std::fs::remove_dir_all(folder).map_err(|source| PipelineError::File {
+                    path: folder.clone(),
+                    source,
+                })?;
+                packed.context_with(|| format!("packing {}", out.display()))?;
+                packages[0].0 = out.clone();
+            }
+            EncodeTarget::Variants(dir, _) => {
+                let names = packages.iter().filter_map(|(p, _)| p.file_name()?.to_str());
+                VariantSet::new(names.map(String::from).collect()).write(dir)?;
+                variant_set = Some(dir.join(VARIANTS_FILE));
+            }
+            EncodeTarget::Package(..) => {}
+        }
+        Ok(Encoded {
+            packages,
+            reports: self.reports,
+            variant_set,
+            seconds: started.elapsed().as_secs_f64(),
+            coding_seconds: self.coding,
+            damaged_packets: damaged,
+            depth: depth_runs,
+        })
+    }
+}
+
 /// Encodes the job's video: one layering pass feeds every package of the target. `stop`,
 /// when set (e.g. by Ctrl-C), ends the run after the current frame with nothing written.
 pub fn encode(
@@ -165,21 +307,14 @@ pub fn encode(
     stop: &AtomicBool,
 ) -> Result<Encoded, PipelineError> {
     require_encoder(job.codec)?;
-    let outputs = plan(&job.target)?;
     let input = &job.video.input;
+    crate::video::refuse_layers(input)?;
+    let outputs = plan(&job.target)?;
     let media = cpsl_media::open(input)
         .context_with(|| format!("opening {}", input.display()))?
         .info()
         .clone();
-    let fps = match job.fps {
-        Some(f) if f.is_finite() && (0.1..=1000.0).contains(&f) => f,
-        Some(f) => {
-            return Err(PipelineError::Invalid(format!(
-                "--fps {f}: give 0.1 to 1000 frames per second"
-            )))
-        }
-        None => media.fps,
-    };
+    let fps = frame_rate(job.fps, media.fps)?;
     // Under a budget the layering's refresh weighs what it costs (`GopConfig::for_budget`);
     // variants share one layering, made for their median budget.
     let mut video = job.video.clone();
@@ -194,99 +329,88 @@ pub fn encode(
             .gop
             .for_budget(bps / (f64::from(w) * f64::from(h) * fps));
     }
-    let interrupted = || PipelineError::Interrupted("package");
-    let layers = job.video.layering.layers as u32;
-    let mut writers: Vec<PackageWriter> = Vec::new();
-    let mut reports: Vec<Vec<SegmentReport>> = vec![Vec::new(); outputs.len()];
-    let mut coding = 0.0;
-    let mut notes = Vec::new();
+    let mut packages = Packages {
+        job,
+        outputs,
+        fps,
+        gop: job.video.gop.gop as u32,
+        layers: job.video.layering.layers as u32,
+        writers: Vec::new(),
+        reports: Vec::new(),
+        coding: 0.0,
+        notes: Vec::new(),
+        progress,
+        stop,
+    };
+    packages.reports = vec![Vec::new(); packages.outputs.len()];
     let t = Instant::now();
     let info = layer_video(&video, depth, progress, |r| {
-        notes.push((r.frame.index, r.depth_note));
-        if stop.load(Ordering::SeqCst) {
-            return Err(interrupted());
-        }
-        let f = r.frame;
-        if writers.is_empty() {
-            for (path, rate) in &outputs {
-                let opts = CodingOptions {
-                    codec: job.codec,
-                    rate: *rate,
-                    fps,
-                    gop: job.video.gop.gop as u32,
-                    container: job.container,
-                    segments: job.segments,
-                };
-                writers.push(PackageWriter::create(path, *f.set.camera(), layers, opts)?);
-            }
-        }
-        let t = Instant::now();
-        let index = f.index;
-        let left = r.frames_left.map(|n| n as u32);
-        // Every writer but the last gets a copy; the last takes the frame.
-        let n = writers.len();
-        let mut frame = Some(f);
-        for (i, writer) in writers.iter_mut().enumerate() {
-            let f = match i + 1 == n {
-                true => frame.take().expect("the last writer takes the frame"),
-                false => frame.clone().expect("kept for the last writer"),
-            };
-            writer.set_frames_left(left);
-            let report = writer
-                .push(f)
-                .context_with(|| format!("coding the segment before frame {index}"))?;
-            report.iter().for_each(|r| warn_over_budget(r, progress));
-            reports[i].extend(report);
-        }
-        coding += t.elapsed().as_secs_f64();
-        Ok(())
+        packages.push(r.frame, r.depth_note, r.frames_left)
     })?;
-    if stop.load(Ordering::SeqCst) {
-        return Err(interrupted());
+    packages.finish(t, info.damaged)
+}
+
+/// The progress stage of reading a layered video's frames.
+pub const READING: &str = "reading layers";
+
+/// Encodes the layered video folder `job.video.input` (the output of `cpsl layer-video`) as
+/// it was layered: its layer sets, refreshes, tracks, temporal confidence and depth notes,
+/// its K and group length (`job.video`'s layering and GOP are not used, and a budget does not
+/// change refreshes made already). `stop` as for [`encode`].
+pub fn encode_layered(
+    job: &EncodeJob,
+    progress: &dyn Progress,
+    stop: &AtomicBool,
+) -> Result<Encoded, PipelineError> {
+    require_encoder(job.codec)?;
+    let dir = &job.video.input;
+    let video = crate::video::read_manifest(dir)?;
+    let outputs = plan(&job.target)?;
+    let fps = frame_rate(job.fps, video.fps)?;
+    let mut packages = Packages {
+        job,
+        reports: vec![Vec::new(); outputs.len()],
+        outputs,
+        fps,
+        gop: video.gop.gop as u32,
+        layers: video.layering.layers as u32,
+        writers: Vec::new(),
+        coding: 0.0,
+        notes: Vec::new(),
+        progress,
+        stop,
+    };
+    let t = Instant::now();
+    let n = video.frames.len();
+    progress.event(ProgressEvent::Start {
+        stage: READING,
+        total: Some(n as u64),
+    });
+    let limits = cpsl_core::Limits::default();
+    for (i, e) in video.frames.iter().enumerate() {
+        let path = dir.join(&e.dir);
+        let set = cpsl_io::read_layer_set(&path, &limits)?;
+        let edc = cpsl_io::read_edc(&path, &set, &limits)?.ok_or_else(|| {
+            PipelineError::Invalid(format!(
+                "{}: no {} (cpsl layer-video writes one per frame)",
+                path.display(),
+                cpsl_io::EDC_FILE
+            ))
+        })?;
+        let frame = LayeredFrame {
+            confidence: e.confidence.clone(),
+            crack: e.crack,
+            depth_propagated: e.depth == "propagated",
+            ..LayeredFrame::new(e.index, e.refresh, set, edc)
+        };
+        packages.push(frame, e.depth_note.clone(), Some(n - i))?;
+        progress.event(ProgressEvent::Advance {
+            stage: READING,
+            done: i as u64 + 1,
+        });
     }
-    let depth_runs = crate::video::depth_runs(notes.iter().map(|(i, n)| (*i, n.as_deref())));
-    let mut packages = Vec::new();
-    for ((writer, (path, _)), reports) in writers.into_iter().zip(&outputs).zip(&mut reports) {
-        let t = Instant::now();
-        let mut writer = writer;
-        writer.set_depth(depth_runs.clone());
-        let report = writer
-            .flush()
-            .context_with(|| "coding the last segment".into())?;
-        report.iter().for_each(|r| warn_over_budget(r, progress));
-        reports.extend(report);
-        let manifest = writer.finish()?;
-        coding += t.elapsed().as_secs_f64();
-        packages.push((path.clone(), manifest));
-    }
-    let mut variant_set = None;
-    match &job.target {
-        EncodeTarget::Archive(out, _) => {
-            let folder = &packages[0].0;
-            let packed = cpsl_package::pack(folder, out);
-            std::fs::remove_dir_all(folder).map_err(|source| PipelineError::File {
-                path: folder.clone(),
-                source,
-            })?;
-            packed.context_with(|| format!("packing {}", out.display()))?;
-            packages[0].0 = out.clone();
-        }
-        EncodeTarget::Variants(dir, _) => {
-            let names = packages.iter().filter_map(|(p, _)| p.file_name()?.to_str());
-            VariantSet::new(names.map(String::from).collect()).write(dir)?;
-            variant_set = Some(dir.join(VARIANTS_FILE));
-        }
-        EncodeTarget::Package(..) => {}
-    }
-    Ok(Encoded {
-        packages,
-        reports,
-        variant_set,
-        seconds: t.elapsed().as_secs_f64(),
-        coding_seconds: coding,
-        damaged_packets: info.damaged,
-        depth: depth_runs,
-    })
+    progress.event(ProgressEvent::Finish { stage: READING });
+    packages.finish(t, video.damaged_packets)
 }
 
 /// The hidden sibling folder that an archive is written to and packed from.

@@ -92,6 +92,22 @@ pub(crate) fn frames_to_read(input: Option<usize>, max_frames: Option<usize>) ->
 /// The progress stage of layering a video.
 pub const LAYERING: &str = "layering";
 
+/// Refuses an input that is cpsl's own output rather than a video or a folder of frames (a
+/// folder of layer PNGs would otherwise be read as frames).
+pub(crate) fn refuse_layers(input: &Path) -> Result<(), PipelineError> {
+    let what = if is_layered_video(input) {
+        "a layered video (video.json): `cpsl encode` codes it as it was layered, `cpsl view` plays it"
+    } else if input.join(cpsl_io::MANIFEST_FILE).is_file() {
+        "a layer set (manifest.json): `cpsl render` and `cpsl view` show it"
+    } else {
+        return Ok(());
+    };
+    Err(PipelineError::Invalid(format!(
+        "{} is {what}; layering takes a video file or a folder of frames",
+        input.display()
+    )))
+}
+
 /// Layers every frame of the job's input with `depth`, handing each frame to `sink` as soon as
 /// it is layered. Returns what the input is.
 pub fn layer_video(
@@ -101,6 +117,7 @@ pub fn layer_video(
     mut sink: impl FnMut(FrameRecord) -> Result<(), PipelineError>,
 ) -> Result<cpsl_media::Info, PipelineError> {
     let input = &job.input;
+    refuse_layers(input)?;
     // Decoding overlaps the layering of the frame before.
     let mut src = cpsl_media::open_ahead(input, true, 1)
         .context_with(|| format!("opening {}", input.display()))?;
@@ -343,6 +360,15 @@ pub fn depth_runs<'a>(frames: impl IntoIterator<Item = (u32, Option<&'a str>)>) 
         }
     }
     runs
+}
+
+/// Reads the `video.json` of the layered video in `dir` (format and version checked first).
+pub fn read_manifest(dir: &Path) -> Result<VideoManifest, PipelineError> {
+    let bytes = cpsl_io::video::read_video_file(dir)?;
+    serde_json::from_slice(&bytes).map_err(|source| PipelineError::Json {
+        path: dir.join(VIDEO_FILE),
+        source,
+    })
 }
 
 /// Whether a folder is the output of [`write_layered_video`] (and so may be replaced).

@@ -68,7 +68,10 @@ fn layers_a_clip_and_refuses_bad_input() {
     ]
     .concat());
     let coded = files(&from_layers);
-    assert!(!coded.is_empty() && coded == files(&direct), "the packages differ");
+    assert!(
+        !coded.is_empty() && coded == files(&direct),
+        "the packages differ"
+    );
     // Layering cpsl's own output is refused with what to do instead.
     let o = cpsl(&["layer-video", s(&out), "-o", s(&dir.path().join("again"))]);
     let err = String::from_utf8_lossy(&o.stderr);

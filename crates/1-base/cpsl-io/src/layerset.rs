@@ -112,8 +112,9 @@ pub fn read_layer_set(dir: &Path, limits: &Limits) -> Result<LayerSet, IoError> 
     };
     LayerSet::new(tiny, placeholder, limits).map_err(invalid)?;
 
-    let mut layers = Vec::with_capacity(manifest.layers.len());
-    for entry in &manifest.layers {
+    // The layers are decoded in parallel (most of the time a layer set takes to read); the
+    // first failing layer in manifest order is reported.
+    let read = |entry: &LayerEntry| -> Result<Layer, IoError> {
         let geometry = match &entry.grid {
             None => entry.geometry.clone(),
             Some(file) => {
@@ -143,13 +144,15 @@ pub fn read_layer_set(dir: &Path, limits: &Limits) -> Result<LayerSet, IoError> 
                     cause,
                 }
             })?;
-        layers.push(Layer {
+        Ok(Layer {
             image,
             depth: entry.depth,
             geometry,
             meta: entry.meta.clone(),
-        });
-    }
+        })
+    };
+    let read: Vec<Result<Layer, IoError>> = manifest.layers.par_iter().map(read).collect();
+    let layers = read.into_iter().collect::<Result<Vec<_>, _>>()?;
     LayerSet::new(cam, layers, limits).map_err(invalid)
 }
 

@@ -1,12 +1,12 @@
-//! `cpsl encode`, `cpsl info` and `cpsl verify`: the whole pipeline from a video to a package
-//! (depth, layering, propagation, coding), and the package's summary and integrity check.
+//! `cpsl encode` and `cpsl pack`: the whole pipeline from a video to a package (depth,
+//! layering, propagation, coding), and a package folder as one archive file.
 
 use crate::progress::Bars;
 use crate::video::VideoLayeringArgs;
 use anyhow::{bail, Context, Result};
 use clap::{Args, ValueEnum};
 use cpsl_codec::{Container, RateControl, SegmentReport};
-use cpsl_package::{Codec, Package};
+use cpsl_package::Codec;
 use cpsl_pipeline::encode::{encode, encode_layered, EncodeJob, EncodeTarget};
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -272,13 +272,6 @@ fn print_segments(path: &Path, reports: &[SegmentReport]) {
     }
 }
 
-/// Arguments of `cpsl info` and `cpsl verify`.
-#[derive(Args)]
-pub struct PackageArgs {
-    /// The package (a folder, or an archive from `cpsl pack` or `cpsl encode --archive`).
-    pub package: PathBuf,
-}
-
 /// Arguments of `cpsl pack`.
 #[derive(Args)]
 pub struct PackArgs {
@@ -303,24 +296,4 @@ pub fn pack(a: PackArgs) -> Result<()> {
         bytes as f64 / 1e3
     );
     Ok(())
-}
-
-/// Runs `cpsl verify`.
-pub fn verify(a: PackageArgs) -> Result<()> {
-    let pkg = Package::open(&a.package)?;
-    let problems = pkg.verify();
-    let files = pkg.manifest().files().count() + 1;
-    if problems.is_empty() {
-        println!("{}: ok ({files} files checked)", a.package.display());
-        Ok(())
-    } else {
-        for p in &problems {
-            eprintln!("{p}");
-        }
-        bail!(
-            "{}: {} of {files} files damaged or missing",
-            a.package.display(),
-            problems.len()
-        )
-    }
 }

@@ -1,13 +1,15 @@
-//! `cpsl info`: the summary of a package, a layer-set folder or a layered video.
+//! `cpsl info` and `cpsl verify`: the summary and the integrity check of a package, a layer-set
+//! folder or a layered video.
 
-use anyhow::{Context, Result};
+use anyhow::{bail, Context, Result};
 use clap::Args;
 use cpsl_core::{Geometry, Limits};
 use cpsl_package::Package;
 use cpsl_pipeline::video::{depth_runs, read_manifest, VIDEO_FILE};
+use cpsl_player::Frames;
 use std::path::{Path, PathBuf};
 
-/// Arguments of `cpsl info`.
+/// Arguments of `cpsl info` and `cpsl verify`.
 #[derive(Args)]
 pub struct InfoArgs {
     /// A package (a folder or an archive), a layer-set folder (from `cpsl layer`) or a layered
@@ -25,6 +27,46 @@ pub fn run(a: InfoArgs) -> Result<()> {
     } else {
         package(p)
     }
+}
+
+/// Runs `cpsl verify`: every file of a package checked against its checksum, or every frame
+/// of a layered video and every file of a layer set read and checked as the players read
+/// them.
+pub fn verify(a: InfoArgs) -> Result<()> {
+    let p = &a.path;
+    let (problems, checked) = if p.join(VIDEO_FILE).is_file() {
+        let mut video = cpsl_player::LayeredVideo::open(p)?;
+        let n = Frames::frames(&video);
+        let problems: Vec<String> = (0..n)
+            .filter_map(|f| Frames::decode(&mut video, f).err())
+            .map(|e| e.to_string())
+            .collect();
+        (problems, format!("{n} frames"))
+    } else if is_layer_set(p) {
+        let limits = Limits::default();
+        let set = cpsl_io::read_layer_set(p, &limits)?;
+        cpsl_io::read_edc(p, &set, &limits)?;
+        (Vec::new(), format!("{} layers", set.len()))
+    } else {
+        let pkg = Package::open(p)?;
+        let problems: Vec<String> = pkg.verify().iter().map(|e| e.to_string()).collect();
+        (
+            problems,
+            format!("{} files", pkg.manifest().files().count() + 1),
+        )
+    };
+    if problems.is_empty() {
+        println!("{}: ok ({checked} checked)", p.display());
+        return Ok(());
+    }
+    for e in &problems {
+        eprintln!("{e}");
+    }
+    bail!(
+        "{}: {} of {checked} damaged or missing",
+        p.display(),
+        problems.len()
+    )
 }
 
 /// Whether `dir` holds a layer-set manifest (of any version, so that a newer one gets the

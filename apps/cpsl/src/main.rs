@@ -51,8 +51,9 @@ enum Command {
     /// Summarise a package, a layer-set folder or a layered video (each layer's surface and
     /// its bits).
     Info(info::InfoArgs),
-    /// Check every checksum and reference of a package.
-    Verify(encode::PackageArgs),
+    /// Check every checksum and reference of a package, or read every frame of a layered video
+    /// or every file of a layer set as the players do.
+    Verify(info::InfoArgs),
     /// Write a package folder as one archive file (an uncompressed tar that every command
     /// reads like the folder).
     Pack(encode::PackArgs),
@@ -146,7 +147,7 @@ fn run(cli: Cli) -> anyhow::Result<()> {
         Command::LayerVideo(a) => video::run(a),
         Command::Encode(a) => encode::run(a),
         Command::Info(a) => info::run(a),
-        Command::Verify(a) => encode::verify(a),
+        Command::Verify(a) => info::verify(a),
         Command::Pack(a) => encode::pack(a),
         Command::Slice(a) => synth::run_slice(a),
         Command::Demo(a) => demo::run(a),

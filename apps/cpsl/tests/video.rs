@@ -95,6 +95,18 @@ fn layers_a_clip_and_refuses_bad_input() {
     ] {
         assert!(info.contains(part), "{info} lacks {part}");
     }
+    // `cpsl verify` reads every frame, and names each damaged one.
+    assert!(ok(&["verify", s(&out)]).contains("ok (2 frames checked)"));
+    let png = out.join("frame_000001").join("layer_00.png");
+    let bytes = std::fs::read(&png).unwrap();
+    std::fs::write(&png, &bytes[..bytes.len() / 2]).unwrap();
+    let o = cpsl(&["verify", s(&out)]);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "{err}");
+    assert!(
+        err.contains("frame_000001/layer_00.png") && err.contains("1 of 2 frames"),
+        "{err}"
+    );
     // Bad input: clear errors, nothing written.
     let junk = dir.path().join("junk.mp4");
     std::fs::write(&junk, b"not a video").unwrap();

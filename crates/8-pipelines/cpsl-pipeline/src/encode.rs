@@ -187,7 +187,31 @@ struct Packages<'a> {
     stop: &'a AtomicBool,
 }
 
-impl Packages<'_> {
+impl<'a> Packages<'a> {
+    /// Packages for `outputs` at `fps`, `gop` frames per group and `layers` per frame, none
+    /// created before the first frame.
+    fn new(
+        job: &'a EncodeJob,
+        outputs: Vec<(PathBuf, RateControl)>,
+        (fps, gop, layers): (f64, u32, u32),
+        progress: &'a dyn Progress,
+        stop: &'a AtomicBool,
+    ) -> Self {
+        Self {
+            job,
+            reports: vec![Vec::new(); outputs.len()],
+            outputs,
+            fps,
+            gop,
+            layers,
+            writers: Vec::new(),
+            coding: 0.0,
+            notes: Vec::new(),
+            progress,
+            stop,
+        }
+    }
+
     /// Codes `f` into every package (where a segment closes), `frames_left` counting it.
     fn push(
         &mut self,
@@ -329,20 +353,12 @@ pub fn encode(
             .gop
             .for_budget(bps / (f64::from(w) * f64::from(h) * fps));
     }
-    let mut packages = Packages {
-        job,
-        outputs,
+    let shape = (
         fps,
-        gop: job.video.gop.gop as u32,
-        layers: job.video.layering.layers as u32,
-        writers: Vec::new(),
-        reports: Vec::new(),
-        coding: 0.0,
-        notes: Vec::new(),
-        progress,
-        stop,
-    };
-    packages.reports = vec![Vec::new(); packages.outputs.len()];
+        job.video.gop.gop as u32,
+        job.video.layering.layers as u32,
+    );
+    let mut packages = Packages::new(job, outputs, shape, progress, stop);
     let t = Instant::now();
     let info = layer_video(&video, depth, progress, |r| {
         packages.push(r.frame, r.depth_note, r.frames_left)
@@ -365,21 +381,16 @@ pub fn encode_layered(
     require_encoder(job.codec)?;
     let dir = &job.video.input;
     let video = crate::video::read_manifest(dir)?;
-    let outputs = plan(&job.target)?;
+    if video.frames.is_empty() {
+        return Err(PipelineError::Invalid(format!(
+            "{}: a layered video without frames",
+            dir.display()
+        )));
+    }
     let fps = frame_rate(job.fps, video.fps)?;
-    let mut packages = Packages {
-        job,
-        reports: vec![Vec::new(); outputs.len()],
-        outputs,
-        fps,
-        gop: video.gop.gop as u32,
-        layers: video.layering.layers as u32,
-        writers: Vec::new(),
-        coding: 0.0,
-        notes: Vec::new(),
-        progress,
-        stop,
-    };
+    let outputs = plan(&job.target)?;
+    let shape = (fps, video.gop.gop as u32, video.layering.layers as u32);
+    let mut packages = Packages::new(job, outputs, shape, progress, stop);
     let t = Instant::now();
     let n = video.frames.len();
     progress.event(ProgressEvent::Start {

@@ -362,13 +362,26 @@ pub fn depth_runs<'a>(frames: impl IntoIterator<Item = (u32, Option<&'a str>)>) 
     runs
 }
 
-/// Reads the `video.json` of the layered video in `dir` (format and version checked first).
+/// Reads the `video.json` of the layered video in `dir` (format and version checked first;
+/// every frame's folder a plain name inside `dir`).
 pub fn read_manifest(dir: &Path) -> Result<VideoManifest, PipelineError> {
     let bytes = cpsl_io::video::read_video_file(dir)?;
-    serde_json::from_slice(&bytes).map_err(|source| PipelineError::Json {
-        path: dir.join(VIDEO_FILE),
-        source,
-    })
+    let path = dir.join(VIDEO_FILE);
+    let m: VideoManifest =
+        serde_json::from_slice(&bytes).map_err(|source| PipelineError::Json {
+            path: path.clone(),
+            source,
+        })?;
+    for (i, f) in m.frames.iter().enumerate() {
+        if let Some(reason) = cpsl_core::manifest::unsafe_file_name(&f.dir) {
+            return Err(PipelineError::Invalid(format!(
+                "{}: field `frames[{i}].dir`: {reason}, found \"{}\"",
+                path.display(),
+                f.dir
+            )));
+        }
+    }
+    Ok(m)
 }
 
 /// Whether a folder is the output of [`write_layered_video`] (and so may be replaced).

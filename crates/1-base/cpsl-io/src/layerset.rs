@@ -52,8 +52,8 @@ pub fn read_edc(dir: &Path, set: &LayerSet, limits: &Limits) -> Result<Option<Ed
     Ok(Some(edc))
 }
 
-/// Reads a side file of at most `limits.max_file_bytes`.
-fn read_limited(path: &Path, limits: &Limits) -> Result<Vec<u8>, IoError> {
+/// Reads a file of at most `limits.max_file_bytes`.
+pub(crate) fn read_limited(path: &Path, limits: &Limits) -> Result<Vec<u8>, IoError> {
     let meta = std::fs::metadata(path).map_err(|e| IoError::io(path, e))?;
     if meta.len() > limits.max_file_bytes {
         return Err(IoError::FileTooLarge {

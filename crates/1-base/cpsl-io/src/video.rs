@@ -22,11 +22,12 @@ pub struct VideoIndex {
     pub frames: Vec<String>,
 }
 
-/// Reads the index of the layered video in `dir` with its format and version checked, for a
-/// reader that parses the rest (this build reads version 1).
+/// Reads the index of the layered video in `dir` with its size (at most the default
+/// [`cpsl_core::Limits`]' file size), format and version checked, for a reader that parses the
+/// rest (this build reads version 1).
 pub fn read_video_file(dir: &Path) -> Result<Vec<u8>, IoError> {
     let path = dir.join(VIDEO_FILE);
-    let bytes = std::fs::read(&path).map_err(|e| IoError::io(&path, e))?;
+    let bytes = crate::layerset::read_limited(&path, &cpsl_core::Limits::default())?;
     let cause = match cpsl_core::check_head(&bytes, VIDEO_FORMAT, VIDEO_VERSION) {
         Ok(()) => return Ok(bytes),
         Err(cpsl_core::HeadError::Json(m)) => format!("invalid JSON: {m}"),

@@ -41,8 +41,34 @@ pub fn read_video_file(dir: &Path) -> Result<Vec<u8>, IoError> {
     Err(IoError::Video { path, cause })
 }
 
-/// Reads and checks the index of the layered video in `dir`: format and version, a frame rate
-/// above zero, at least one frame, and plain folder names.
+impl VideoIndex {
+    /// The index of the layered video in `dir` with frame rate `fps` and the frames' folders
+    /// `frames`, checked: a frame rate above zero, at least one frame, and plain folder names.
+    /// The error names `dir`'s index file and the field.
+    pub fn new(dir: &Path, fps: f64, frames: Vec<String>) -> Result<Self, IoError> {
+        let bad = |cause: String| IoError::Video {
+            path: dir.join(VIDEO_FILE),
+            cause,
+        };
+        if !(fps.is_finite() && fps > 0.0) {
+            return Err(bad(format!("field `fps`: {fps} is not a frame rate")));
+        }
+        if frames.is_empty() {
+            return Err(bad("field `frames`: no frames".into()));
+        }
+        for (i, f) in frames.iter().enumerate() {
+            if let Some(reason) = cpsl_core::manifest::unsafe_file_name(f) {
+                return Err(bad(format!(
+                    "field `frames[{i}].dir`: {reason}, found \"{f}\""
+                )));
+            }
+        }
+        Ok(Self { fps, frames })
+    }
+}
+
+/// Reads and checks the index of the layered video in `dir`: format and version, then
+/// [`VideoIndex::new`]'s checks.
 pub fn read_video_index(dir: &Path) -> Result<VideoIndex, IoError> {
     #[derive(Deserialize)]
     struct Frame {
@@ -54,33 +80,12 @@ pub fn read_video_index(dir: &Path) -> Result<VideoIndex, IoError> {
         frames: Vec<Frame>,
     }
     let bytes = read_video_file(dir)?;
-    let bad = |cause: String| IoError::Video {
+    let index: Index = serde_json::from_slice(&bytes).map_err(|e| IoError::Video {
         path: dir.join(VIDEO_FILE),
-        cause,
-    };
-    let index: Index =
-        serde_json::from_slice(&bytes).map_err(|e| bad(format!("invalid JSON: {e}")))?;
-    if !(index.fps.is_finite() && index.fps > 0.0) {
-        return Err(bad(format!(
-            "field `fps`: {} is not a frame rate",
-            index.fps
-        )));
-    }
-    if index.frames.is_empty() {
-        return Err(bad("field `frames`: no frames".into()));
-    }
-    for (i, f) in index.frames.iter().enumerate() {
-        if let Some(reason) = cpsl_core::manifest::unsafe_file_name(&f.dir) {
-            return Err(bad(format!(
-                "field `frames[{i}].dir`: {reason}, found \"{}\"",
-                f.dir
-            )));
-        }
-    }
-    Ok(VideoIndex {
-        fps: index.fps,
-        frames: index.frames.into_iter().map(|f| f.dir).collect(),
-    })
+        cause: format!("invalid JSON: {e}"),
+    })?;
+    let frames = index.frames.into_iter().map(|f| f.dir).collect();
+    VideoIndex::new(dir, index.fps, frames)
 }
 
 #[cfg(test)]

@@ -380,13 +380,8 @@ pub fn encode_layered(
 ) -> Result<Encoded, PipelineError> {
     require_encoder(job.codec)?;
     let dir = &job.video.input;
+    // At least one frame (checked by the reader), so `finish` has a package to write.
     let video = crate::video::read_manifest(dir)?;
-    if video.frames.is_empty() {
-        return Err(PipelineError::Invalid(format!(
-            "{}: a layered video without frames",
-            dir.display()
-        )));
-    }
     let fps = frame_rate(job.fps, video.fps)?;
     let outputs = plan(&job.target)?;
     let shape = (fps, video.gop.gop as u32, video.layering.layers as u32);

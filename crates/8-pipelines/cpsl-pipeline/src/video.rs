@@ -362,25 +362,18 @@ pub fn depth_runs<'a>(frames: impl IntoIterator<Item = (u32, Option<&'a str>)>) 
     runs
 }
 
-/// Reads the `video.json` of the layered video in `dir` (format and version checked first;
-/// every frame's folder a plain name inside `dir`).
+/// Reads the `video.json` of the layered video in `dir`: format and version checked first,
+/// then what a player needs of it ([`cpsl_io::video::VideoIndex::new`]: a frame rate, at least
+/// one frame, each frame's folder a plain name inside `dir`).
 pub fn read_manifest(dir: &Path) -> Result<VideoManifest, PipelineError> {
     let bytes = cpsl_io::video::read_video_file(dir)?;
-    let path = dir.join(VIDEO_FILE);
     let m: VideoManifest =
         serde_json::from_slice(&bytes).map_err(|source| PipelineError::Json {
-            path: path.clone(),
+            path: dir.join(VIDEO_FILE),
             source,
         })?;
-    for (i, f) in m.frames.iter().enumerate() {
-        if let Some(reason) = cpsl_core::manifest::unsafe_file_name(&f.dir) {
-            return Err(PipelineError::Invalid(format!(
-                "{}: field `frames[{i}].dir`: {reason}, found \"{}\"",
-                path.display(),
-                f.dir
-            )));
-        }
-    }
+    let frames = m.frames.iter().map(|f| f.dir.clone()).collect();
+    cpsl_io::video::VideoIndex::new(dir, m.fps, frames)?;
     Ok(m)
 }
 

@@ -2,31 +2,9 @@
 
 mod common;
 
-use common::{cpsl, models_present, ok, s};
+use common::{cpsl, fails, models_present, ok, s};
 use std::path::Path;
 use std::process::Command;
-
-fn fails(args: &[&str], fragment: &str) {
-    let o = cpsl(args);
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(!o.status.success(), "cpsl {args:?} should fail");
-    assert!(
-        err.contains(fragment),
-        "cpsl {args:?}: {err:?} lacks {fragment:?}"
-    );
-    // Each cause once: no run of ": "-separated parts repeats right after itself.
-    let line = err.lines().find(|l| l.starts_with("error: ")).unwrap();
-    let parts: Vec<&str> = line.split(": ").collect();
-    for len in 1..=parts.len() / 2 {
-        for i in 0..=parts.len() - 2 * len {
-            assert!(
-                parts[i..i + len] != parts[i + len..i + 2 * len],
-                "cpsl {args:?}: {line:?} repeats {:?}",
-                parts[i..i + len].join(": ")
-            );
-        }
-    }
-}
 
 #[test]
 fn synth_slice_render_pose_and_sweep() {

@@ -1,7 +1,7 @@
 //! `cpsl layer-video` end to end on a short clip, and its errors.
 
 mod common;
-use common::{cpsl, ok, s, test_clip};
+use common::{cpsl, fails, ok, s, test_clip};
 
 #[test]
 fn layers_a_clip_and_refuses_bad_input() {
@@ -53,9 +53,7 @@ fn layers_a_clip_and_refuses_bad_input() {
     let args = ["render", s(&out), "--pose", pose, "-o", s(&view)];
     ok(&[&args[..], &["--frame", "1"]].concat());
     assert!(view.is_file());
-    let o = cpsl(&[&args[..], &["--frame", "2"]].concat());
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(!o.status.success() && err.contains("has 2 frames"), "{err}");
+    fails(&[&args[..], &["--frame", "2"]].concat(), "has 2 frames");
     // `cpsl encode` codes the folder as it was layered: the same package as encoding the clip
     // with the same options, byte for byte.
     let from_layers = dir.path().join("from_layers.cpsl");
@@ -73,18 +71,10 @@ fn layers_a_clip_and_refuses_bad_input() {
         "the packages differ"
     );
     // Layering cpsl's own output is refused with what to do instead.
-    let o = cpsl(&["layer-video", s(&out), "-o", s(&dir.path().join("again"))]);
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(
-        !o.status.success() && err.contains("layered video"),
-        "{err}"
-    );
-    let o = cpsl(&["encode", s(&out.join("frame_000000")), "-o", s(&direct)]);
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(
-        !o.status.success() && err.contains("is a layer set"),
-        "{err}"
-    );
+    let again = dir.path().join("again");
+    fails(&["layer-video", s(&out), "-o", s(&again)], "layered video");
+    let frame = out.join("frame_000000");
+    fails(&["encode", s(&frame), "-o", s(&direct)], "is a layer set");
     // `cpsl info` summarises the output.
     let info = ok(&["info", s(&out)]);
     for part in [

@@ -23,6 +23,30 @@ pub fn ok(args: &[&str]) -> String {
     String::from_utf8_lossy(&o.stdout).into_owned()
 }
 
+/// Runs `cpsl`, asserts failure with `fragment` in its error, each cause said once (no run
+/// of `": "`-separated parts repeats right after itself).
+pub fn fails(args: &[&str], fragment: &str) {
+    let o = cpsl(args);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success(), "cpsl {args:?} should fail");
+    assert!(
+        err.contains(fragment),
+        "cpsl {args:?}: {err:?} lacks {fragment:?}"
+    );
+    // Each cause once: no run of ": "-separated parts repeats right after itself.
+    let line = err.lines().find(|l| l.starts_with("error: ")).unwrap();
+    let parts: Vec<&str> = line.split(": ").collect();
+    for len in 1..=parts.len() / 2 {
+        for i in 0..=parts.len() - 2 * len {
+            assert!(
+                parts[i..i + len] != parts[i + len..i + 2 * len],
+                "cpsl {args:?}: {line:?} repeats {:?}",
+                parts[i..i + len].join(": ")
+            );
+        }
+    }
+}
+
 /// A path as `&str`.
 pub fn s(p: &Path) -> &str {
     p.to_str().unwrap()

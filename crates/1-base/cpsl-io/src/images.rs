@@ -97,7 +97,7 @@ pub fn encode_png(width: u32, height: u32, channels: u8, data: &[u8]) -> Result<
     image::codecs::png::PngEncoder::new_with_quality(
         &mut out,
         image::codecs::png::CompressionType::Fast,
-        image::codecs::png::FilterType::Adaptive,
+        image::codecs::png::FilterType::Paeth,
     )
     .write_image(data, width, height, ct)
     .map_err(|e| e.to_string())?;

@@ -13,8 +13,9 @@ pub struct DepthSourceError {
     pub cause: Box<dyn std::error::Error + Send + Sync>,
 }
 
-/// A source of z-depth (scene units along the optical axis) for an RGB frame.
-pub trait DepthSource {
+/// A source of z-depth (scene units along the optical axis) for an RGB frame. Sources are
+/// `Send`: a video's driver runs one beside the layering of the frame before.
+pub trait DepthSource: Send {
     /// A short human-readable description, saved with the output (e.g. `model fastdepth_7.onnx`).
     fn name(&self) -> String;
     /// Depth for `rgb` (3 bytes per pixel, row-major, `width x height`): one value per pixel.

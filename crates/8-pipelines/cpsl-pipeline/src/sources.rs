@@ -213,15 +213,19 @@ impl VideoDepth {
 
     /// Depth of frame `index`, whose (left) view is `rgb` seen by `cam`; `right` is its
     /// right view for stereo input.
+    /// `model` is the source's monocular model already run on `rgb` ([`Self::model_depth`]),
+    /// which a model or the video's depth then take instead of running it again.
     pub fn depth(
         &mut self,
         index: usize,
         rgb: &[u8],
         right: Option<&[u8]>,
         cam: &Camera,
+        model: Option<Vec<f32>>,
     ) -> Result<Vec<f32>, PipelineError> {
         let (width, height) = (cam.width, cam.height);
         Ok(match self {
+            VideoDepth::Model(_) if model.is_some() => model.unwrap_or_default(),
             VideoDepth::Model(m) => m.depth(rgb, width, height)?,
             VideoDepth::Frames(s) => s.depth_at(index, width, height)?,
             VideoDepth::Stereo(s) => {
@@ -232,8 +236,30 @@ impl VideoDepth {
                 })?;
                 s.depth(rgb, right, width, height, cam.fx)?
             }
-            VideoDepth::Tracked(t) => t.depth(index, rgb, cam)?,
+            VideoDepth::Tracked(t) => t.depth(index, rgb, cam, model)?,
         })
+    }
+
+    /// The source's monocular model (a model, or the prior of the video's depth) run on `rgb`,
+    /// seen by `cam`; `None` for sources without one. For work done ahead: [`Self::depth`]
+    /// and [`Self::carried`] take it.
+    pub fn model_depth(
+        &mut self,
+        rgb: &[u8],
+        cam: &Camera,
+    ) -> Option<Result<Vec<f32>, PipelineError>> {
+        let m: &mut dyn DepthSource = match self {
+            VideoDepth::Model(m) => &mut **m,
+            VideoDepth::Tracked(t) => t.prior_mut(),
+            VideoDepth::Frames(_) | VideoDepth::Stereo(_) => return None,
+        };
+        Some(m.depth(rgb, cam.width, cam.height).map_err(Into::into))
+    }
+
+    /// Whether [`Self::carried`] carries depth (the video's depth of a translating camera),
+    /// so that every P-frame runs the model.
+    pub fn carries(&self) -> bool {
+        matches!(self, VideoDepth::Tracked(t) if t.carries())
     }
 
     /// Depth of frame `index` (picture `rgb`, seen by `cam`) carried from frame `from`'s depth
@@ -246,9 +272,10 @@ impl VideoDepth {
         index: usize,
         rgb: &[u8],
         cam: &Camera,
+        model: Option<&[f32]>,
     ) -> Result<Option<Vec<f32>>, PipelineError> {
         match self {
-            VideoDepth::Tracked(t) => t.carried(from, from_depth, index, rgb, cam),
+            VideoDepth::Tracked(t) => t.carried(from, from_depth, index, rgb, cam, model),
             _ => Ok(None),
         }
     }

@@ -285,6 +285,7 @@ impl VideoTrackedDepth {
     /// poses, the rest the prior fitted to it ([`TrackedDepth::carry_depth`]). `None` where
     /// the poses cannot carry it (a frame not placed, another world, a camera that does not
     /// translate).
+    /// `prior` is the prior already run on `rgb`, if it was.
     pub fn carried(
         &mut self,
         from: usize,
@@ -292,30 +293,54 @@ impl VideoTrackedDepth {
         index: usize,
         rgb: &[u8],
         cam: &Camera,
+        prior: Option<&[f32]>,
     ) -> Result<Option<Vec<f32>>, PipelineError> {
         let Some(Ok(tracked)) = &self.tracked else {
             return Ok(None);
         };
-        if tracked.trajectory().motion != cpsl_track::CameraMotion::Translating {
+        if !self.carries() {
             return Ok(None);
         }
         let (w, h) = (cam.width, cam.height);
-        let prior = self.prior.depth(rgb, w, h)?;
-        Ok(tracked.carry_depth(from, from_depth, index, rgb, &prior, (w, h))?)
+        let run;
+        let prior = match prior {
+            Some(p) => p,
+            None => {
+                run = self.prior.depth(rgb, w, h)?;
+                &run
+            }
+        };
+        Ok(tracked.carry_depth(from, from_depth, index, rgb, prior, (w, h))?)
     }
 
-    /// Depth of frame `index`, whose picture is `rgb` seen by `cam` (the input's size).
+    /// Whether [`Self::carried`] carries depth: the clip was tracked and the camera translates.
+    pub fn carries(&self) -> bool {
+        matches!(&self.tracked, Some(Ok(t))
+            if t.trajectory().motion == cpsl_track::CameraMotion::Translating)
+    }
+
+    /// The monocular prior.
+    pub fn prior_mut(&mut self) -> &mut dyn DepthSource {
+        &mut *self.prior
+    }
+
+    /// Depth of frame `index`, whose picture is `rgb` seen by `cam` (the input's size);
+    /// `prior` is the prior already run on `rgb`, if it was.
     pub fn depth(
         &mut self,
         index: usize,
         rgb: &[u8],
         cam: &Camera,
+        prior: Option<Vec<f32>>,
     ) -> Result<Vec<f32>, PipelineError> {
         let tracked = self.tracked.as_mut().ok_or_else(|| {
             PipelineError::Invalid("depth from the video: the clip was not tracked first".into())
         })?;
         let (w, h) = (cam.width, cam.height);
-        let prior = self.prior.depth(rgb, w, h)?;
+        let prior = match prior {
+            Some(p) => p,
+            None => self.prior.depth(rgb, w, h)?,
+        };
         let (z, from) = match tracked {
             Ok(t) => t.depth(index, rgb, &prior, (w, h))?,
             Err(why) => (prior, DepthFrom::Fallback(why.clone())),

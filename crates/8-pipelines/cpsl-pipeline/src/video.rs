@@ -128,6 +128,7 @@ pub fn layer_video(
             .context_with(|| format!("{} as stereo", input.display()))?;
     }
     let cam = job.camera.camera(info.width, info.height)?;
+    let full = (src.info().width, src.info().height);
     if let VideoDepth::Tracked(t) = depth {
         if job.stereo.is_some() {
             return Err(PipelineError::Invalid(
@@ -147,53 +148,93 @@ pub fn layer_video(
     let mut count = 0;
     // The last I-frame's depth, for P-frames that carry it by the camera's poses.
     let mut intra_depth: Option<(usize, Vec<f32>)> = None;
-    while job.max_frames.is_none_or(|m| count < m) {
+    // What of a frame's depth is worked out while the frame before is layered (which decides
+    // whether it is an I-frame).
+    let early = match job.p_depth {
+        PFrameDepth::Estimated => Some(Early::Depth),
+        PFrameDepth::Poses if depth.carries() => Some(Early::Carried),
+        _ => None,
+    };
+    let mut read = |count: usize| -> Result<Option<Picture>, PipelineError> {
+        if job.max_frames.is_some_and(|m| count >= m) {
+            return Ok(None);
+        }
         let Some(frame) = src
             .next_frame()
             .context_with(|| format!("decoding {}", input.display()))?
         else {
-            break;
+            return Ok(None);
         };
-        let t = Instant::now();
         let (rgb, right) = match job.stereo {
             Some(layout) => {
-                let (full_w, full_h) = (src.info().width, src.info().height);
-                let (l, r, ..) = cpsl_stereo::split(&frame.rgb, full_w, full_h, layout)
+                let (l, r, ..) = cpsl_stereo::split(&frame.rgb, full.0, full.1, layout)
                     .context_with(|| format!("frame {}", frame.index))?;
                 (l, Some(r))
             }
             None => (frame.rgb, None),
         };
+        Ok(Some(Picture {
+            index: frame.index,
+            rgb,
+            right,
+            motion: frame.motion,
+        }))
+    };
+    // A failure to read the next frame is reported once the frame before is handed on.
+    let mut next = read(count);
+    let mut ahead: Option<Result<Ahead, PipelineError>> = None;
+    while let Some(frame) = next? {
+        let t = Instant::now();
         layerer.set_frames_left(total.map(|n| n.saturating_sub(count)));
         let intra = layerer.next_is_intra();
-        let (z, depth_note) = if intra || job.p_depth == PFrameDepth::Estimated {
-            let z = depth
-                .depth(frame.index, &rgb, right.as_deref(), &cam)
-                .context_with(|| format!("depth of frame {}", frame.index))?;
-            if intra && job.p_depth == PFrameDepth::Poses {
-                intra_depth = Some((frame.index, z.clone()));
+        let (z, depth_note) = match ahead.take().transpose()? {
+            Some(Ahead::Depth(z, note)) => (Some(z), note),
+            Some(Ahead::Carried { carried, .. }) if !intra => (carried, None),
+            model @ (Some(Ahead::Carried { .. }) | None)
+                if intra || job.p_depth == PFrameDepth::Estimated =>
+            {
+                let model = model.and_then(Ahead::into_model);
+                let z = depth
+                    .depth(frame.index, &frame.rgb, frame.right.as_deref(), &cam, model)
+                    .context_with(|| format!("depth of frame {}", frame.index))?;
+                (Some(z), depth.note().map(String::from))
             }
-            (Some(z), depth.note().map(String::from))
-        } else {
             // Carried depth has no note of its own: a P-frame belongs to its I-frame's run
             // of depth notes ([`depth_runs`]); `video.json` says `carried`.
-            let carried = match (&intra_depth, job.p_depth) {
-                (Some((from, z)), PFrameDepth::Poses) => depth
-                    .carried(*from, z, frame.index, &rgb, &cam)
-                    .context_with(|| format!("depth of frame {}", frame.index))?,
-                _ => None,
-            };
-            (carried, None)
+            _ => (
+                carry(depth, &intra_depth, job.p_depth, &frame, &cam, None)?,
+                None,
+            ),
         };
+        if intra && job.p_depth == PFrameDepth::Poses {
+            intra_depth = z.clone().map(|z| (frame.index, z));
+        }
         let depth_carried = !intra && job.p_depth == PFrameDepth::Poses && z.is_some();
         let given = match job.motion {
             MotionSource::Auto if job.stereo.is_none() => frame.motion,
             _ => None,
         };
         let decoder_motion = given.is_some() && !intra;
-        let out = layerer
-            .push_with_motion(&rgb, z.as_deref(), given)
-            .context_with(|| format!("frame {}", frame.index))?;
+        next = read(count + 1);
+        // The next frame's depth (or what of it does not wait for the layering) beside this
+        // frame's layering.
+        let (out, early_work) = std::thread::scope(|s| {
+            let work = match (&next, early) {
+                (Ok(Some(f)), Some(kind)) => {
+                    let (depth, intra_depth, cam) = (&mut *depth, &intra_depth, &cam);
+                    Some(s.spawn(move || {
+                        ahead_of(kind, depth, intra_depth, job.p_depth, f, cam)
+                            .context_with(|| format!("depth of frame {}", f.index))
+                    }))
+                }
+                _ => None,
+            };
+            let out = layerer.push_with_motion(&frame.rgb, z.as_deref(), given);
+            let work = work.map(|w| w.join().unwrap_or_else(|p| std::panic::resume_unwind(p)));
+            (out, work)
+        });
+        ahead = early_work;
+        let out = out.context_with(|| format!("frame {}", frame.index))?;
         sink(FrameRecord {
             frame: out,
             decoder_motion,
@@ -217,6 +258,87 @@ pub fn layer_video(
     }
     info.damaged = src.info().damaged;
     Ok(info)
+}
+
+/// A decoded frame: the (left) view that is layered, the right view of stereo input, the
+/// decoder's motion.
+struct Picture {
+    index: usize,
+    rgb: Vec<u8>,
+    right: Option<Vec<u8>>,
+    motion: Option<cpsl_core::Flow>,
+}
+
+/// Which of a frame's depth [`ahead_of`] works out.
+#[derive(Clone, Copy)]
+enum Early {
+    /// All of it: every frame's depth is estimated.
+    Depth,
+    /// The model's, and the last I-frame's depth carried by the poses (what a P-frame takes).
+    Carried,
+}
+
+/// A frame's depth worked out while the frame before it was layered.
+enum Ahead {
+    /// Its depth and where it came from.
+    Depth(Vec<f32>, Option<String>),
+    /// The source's model run on it, and the carried depth a P-frame takes.
+    Carried {
+        model: Option<Vec<f32>>,
+        carried: Option<Vec<f32>>,
+    },
+}
+
+impl Ahead {
+    /// The model's depth, for a frame that turned out to be an I-frame.
+    fn into_model(self) -> Option<Vec<f32>> {
+        match self {
+            Ahead::Carried { model, .. } => model,
+            Ahead::Depth(..) => None,
+        }
+    }
+}
+
+/// Works out frame `f`'s depth, or the part of it that does not wait for whether it is an
+/// I-frame.
+fn ahead_of(
+    kind: Early,
+    depth: &mut VideoDepth,
+    intra_depth: &Option<(usize, Vec<f32>)>,
+    p_depth: PFrameDepth,
+    f: &Picture,
+    cam: &cpsl_core::Camera,
+) -> Result<Ahead, PipelineError> {
+    Ok(match kind {
+        Early::Depth => {
+            let z = depth.depth(f.index, &f.rgb, f.right.as_deref(), cam, None)?;
+            Ahead::Depth(z, depth.note().map(String::from))
+        }
+        Early::Carried => {
+            let model = depth.model_depth(&f.rgb, cam).transpose()?;
+            let carried = carry(depth, intra_depth, p_depth, f, cam, model.as_deref())?;
+            Ahead::Carried { model, carried }
+        }
+    })
+}
+
+/// A P-frame's depth: the last I-frame's carried by the camera's poses where the job and the
+/// source do that (`model`: the source's model already run on the frame), else `None` (the
+/// layering carries depth along the motion).
+fn carry(
+    depth: &mut VideoDepth,
+    intra_depth: &Option<(usize, Vec<f32>)>,
+    p_depth: PFrameDepth,
+    f: &Picture,
+    cam: &cpsl_core::Camera,
+    model: Option<&[f32]>,
+) -> Result<Option<Vec<f32>>, PipelineError> {
+    match (intra_depth, p_depth) {
+        (Some((from, z)), PFrameDepth::Poses) => depth
+            .carried(*from, z, f.index, &f.rgb, cam, model)
+            .context_with(|| format!("depth of frame {}", f.index)),
+        _ => Ok(None),
+    }
 }
 
 fn is_zero(n: &usize) -> bool {

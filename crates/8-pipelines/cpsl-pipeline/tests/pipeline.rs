@@ -121,22 +121,39 @@ fn layered_frames_variants_and_interruption() {
     assert!(left.is_empty(), "{left:?}");
 }
 
-/// A depth "model" that hands out the exact depth of the frames in the order it is asked,
-/// times three (other units, as a network's).
-struct InOrder(std::collections::VecDeque<Vec<f32>>);
+/// A depth "model" that knows each frame by its picture and hands out its exact depth times
+/// three (other units, as a network's), noting which frames it was asked for; it fails on
+/// frame `fail`.
+struct ByPicture {
+    frames: Vec<(Vec<u8>, Vec<f32>)>,
+    asked: std::sync::Arc<std::sync::Mutex<Vec<usize>>>,
+    fail: Option<usize>,
+}
 
-impl cpsl_core::DepthSource for InOrder {
+impl cpsl_core::DepthSource for ByPicture {
     fn name(&self) -> String {
-        "exact depth in order".into()
+        "exact depth by picture".into()
     }
 
     fn depth(
         &mut self,
-        _rgb: &[u8],
+        rgb: &[u8],
         _width: u32,
         _height: u32,
     ) -> Result<Vec<f32>, cpsl_core::DepthSourceError> {
-        Ok(self.0.pop_front().expect("asked once per frame"))
+        let i = self
+            .frames
+            .iter()
+            .position(|(p, _)| p == rgb)
+            .expect("a frame of the clip");
+        self.asked.lock().unwrap().push(i);
+        if self.fail == Some(i) {
+            return Err(cpsl_core::DepthSourceError {
+                source_name: self.name(),
+                cause: "broken on purpose".into(),
+            });
+        }
+        Ok(self.frames[i].1.clone())
     }
 }
 
@@ -149,13 +166,13 @@ fn p_frames_take_the_i_frames_depth_carried_by_the_tracked_poses() {
     let scene = Scene::default_scene(320, 240);
     let cam = scene.camera;
     let n = 12;
-    let mut depths = Vec::new();
+    let mut frames = Vec::new();
     for i in 0..n {
         let pose = Pose::from_translation(cpsl_core::Vec3::new(0.05 * i as f64, 0.0, 0.0));
         let v = scene.render(&cam, &pose, 0.0, 1);
         let file = dir.path().join(format!("frames/{i:04}.png"));
         cpsl_io::images::write_png(&file, cam.width, cam.height, 3, &v.rgb).unwrap();
-        depths.push(v.depth.iter().map(|z| 3.0 * z).collect::<Vec<f32>>());
+        frames.push((v.rgb, v.depth.iter().map(|z| 3.0 * z).collect::<Vec<f32>>()));
     }
     let camera = dir.path().join("camera.json");
     std::fs::write(&camera, serde_json::to_vec(&cam).unwrap()).unwrap();
@@ -164,6 +181,7 @@ fn p_frames_take_the_i_frames_depth_carried_by_the_tracked_poses() {
         camera: CameraChoice::File(camera),
         layering: cpsl_pipeline::sources::layering_config(None, 4, None).unwrap(),
         gop: GopConfig {
+            gop: 5,
             adaptive_refresh: false,
             ..GopConfig::default()
         },
@@ -172,25 +190,65 @@ fn p_frames_take_the_i_frames_depth_carried_by_the_tracked_poses() {
         max_frames: None,
         stereo: None,
     };
-    for (p_depth, kind) in [
-        (PFrameDepth::Poses, "carried"),
-        (PFrameDepth::Motion, "propagated"),
+    let source = |fail| {
+        let asked = std::sync::Arc::default();
+        let prior = ByPicture {
+            frames: frames.clone(),
+            asked: std::sync::Arc::clone(&asked),
+            fail,
+        };
+        let depth = VideoDepth::Tracked(Box::new(cpsl_pipeline::track::VideoTrackedDepth::new(
+            Box::new(prior),
+        )));
+        (depth, asked)
+    };
+    let intra = [0, 5, 10];
+    for (p_depth, kind, runs) in [
+        // Every frame runs the prior, the next one's beside the layering of the one before
+        // (also where the next turns out to be an I-frame): once each, in order.
+        (PFrameDepth::Poses, "carried", (0..n).collect::<Vec<_>>()),
+        (PFrameDepth::Motion, "propagated", intra.to_vec()),
     ] {
-        let prior = InOrder(depths.clone().into());
-        let mut depth = VideoDepth::Tracked(Box::new(
-            cpsl_pipeline::track::VideoTrackedDepth::new(Box::new(prior)),
-        ));
+        let (mut depth, asked) = source(None);
         let out = dir.path().join(format!("layers-{kind}"));
         let job = VideoJob {
             p_depth,
             ..job.clone()
         };
         let m = write_layered_video(&job, &mut depth, &out, &NoProgress).unwrap();
-        let kinds: Vec<&str> = m.frames.iter().map(|f| f.depth.as_str()).collect();
-        assert_eq!(kinds[0], "estimated");
-        assert!(kinds[1..].iter().all(|k| *k == kind), "{kinds:?}");
-        // The I-frame's note covers its P-frames.
-        assert!(m.frames[0].depth_note.is_some());
-        assert!(m.frames[1..].iter().all(|f| f.depth_note.is_none()));
+        assert_eq!(*asked.lock().unwrap(), runs);
+        for (i, f) in m.frames.iter().enumerate() {
+            let i_frame = intra.contains(&i);
+            assert_eq!(f.kind, if i_frame { "I" } else { "P" }, "frame {i}");
+            assert_eq!(
+                f.depth,
+                if i_frame { "estimated" } else { kind },
+                "frame {i}"
+            );
+            // The I-frame's note covers its P-frames.
+            assert_eq!(f.depth_note.is_some(), i_frame, "frame {i}");
+        }
     }
+    // A model failing on a frame is reported as that frame's, whether it ran ahead (a
+    // P-frame) or in turn (the first frame).
+    for fail in [7, 0] {
+        let (mut depth, _) = source(Some(fail));
+        let out = dir.path().join(format!("layers-failing-{fail}"));
+        let e = write_layered_video(&job, &mut depth, &out, &NoProgress).unwrap_err();
+        let text = format!("{:#}", anyhow_chain(&e));
+        assert!(text.contains(&format!("depth of frame {fail}")), "{text}");
+        assert!(text.contains("broken on purpose"), "{text}");
+        assert!(!out.exists(), "nothing left at {}", out.display());
+    }
+}
+
+/// An error and its causes, one line.
+fn anyhow_chain(e: &dyn std::error::Error) -> String {
+    let mut text = e.to_string();
+    let mut cause = e.source();
+    while let Some(c) = cause {
+        text += &format!(": {c}");
+        cause = c.source();
+    }
+    text
 }

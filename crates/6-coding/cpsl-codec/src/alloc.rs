@@ -172,6 +172,14 @@ impl RdModel {
         }
     }
 
+    /// Re-anchors the distortion on one measured at quality `q`: the curve is scaled to run
+    /// through it, keeping its shape.
+    pub fn anchor_distortion(&mut self, q: f32, distortion: f64) {
+        let by = distortion.max(MIN_D).ln()
+            - piecewise(&self.distortions, q as f64, |s| s.max(MIN_SLOPE));
+        self.distortions.iter_mut().for_each(|p| p.1 += by);
+    }
+
     /// Modelled key-frame bits and mean bits of the other pictures at quality `q`.
     pub fn intra_inter(&self, q: f32) -> (f64, f64) {
         let clamp = |s: f64| s.min(-MIN_SLOPE);

@@ -5,13 +5,13 @@
 //! picture as it comes, so no frame waits (unless the encoders would not fit in memory
 //! together: see [`concurrent_encoders`]). Under a budget each stream needs a rate-distortion
 //! model: one carried from the previous segment (by track, re-anchored on what the stream
-//! cost there), or, for a new stream, one whose cost drifted from its model, or any after a
-//! refresh for changed content, trial encodes of every other one of the segment's first
-//! frames (up to 10, as memory allows; at least [`TRIAL_FRAMES`]), the only frames held in
-//! memory. The allocation is made for the segment's expected length;
-//! the pictures go to raw files as they arrive and are coded when the segment ends; what a
-//! segment misses is repaid by the next ones (see [`crate::segment_budget`]), and the last is
-//! corrected from its files.
+//! cost there; after a refresh for changed content, also on one trial encode of the new
+//! content), or, for a new stream or one whose cost drifted from its model, trial encodes of
+//! every other one of the segment's first frames (up to 10, as memory allows; at least
+//! [`TRIAL_FRAMES`]), the only frames held in memory. The allocation is made for the
+//! segment's expected length; the pictures go to raw files as they arrive and are coded when
+//! the segment ends; what a segment misses is repaid by the next ones (see
+//! [`crate::segment_budget`]), and the last is corrected from its files.
 
 use crate::alloc::{self, RdModel, Trial};
 use crate::stream::{quality_range, write_init, Container, PictureReader, StreamEncoder, Written};
@@ -518,6 +518,9 @@ pub(crate) struct SegmentEncoder {
     history: Vec<Vec<RdModel>>,
     /// Per stream, whether its other-picture rates come from this segment's trials.
     fresh: Vec<bool>,
+    /// Per stream, whether its models came over a refresh for changed content and wait to be
+    /// moved onto the new content by one trial encode (see [`SegmentEncoder::reanchor`]).
+    stale: Vec<bool>,
     /// See [`Carried::inter_scale`].
     inter_scale: f64,
     /// Streams fitted by trial encodes here.
@@ -558,8 +561,10 @@ impl SegmentEncoder {
         let dir = root.join(&dir_name);
         std::fs::create_dir_all(&dir).map_err(|source| CodecError::Io { path: dir, source })?;
         let tracks: Vec<Option<u32>> = first.set.layers().iter().map(|l| l.meta.track).collect();
-        // A refresh for lost confidence or cracks says the content changed: models do not
-        // carry over it, though their other pictures' rates still serve (see `history`).
+        // A refresh for lost confidence or cracks says the content changed: models carry over
+        // it only once one trial encode has moved them onto the new content (`stale`), and
+        // where that trial finds them too far off, their other pictures' rates still serve
+        // the models fitted again (see `history`).
         let carries = matches!(first.refresh, None | Some(RefreshReason::Gop));
         let found: Vec<Vec<RdModel>> = tracks
             .iter()
@@ -573,10 +578,12 @@ impl SegmentEncoder {
                     .unwrap_or_default()
             })
             .collect();
-        let (models, history) = match carries {
-            true => (found, vec![Vec::new(); tracks.len()]),
-            false => (vec![Vec::new(); tracks.len()], found),
+        let stale = found.iter().map(|m| !carries && !m.is_empty()).collect();
+        let history = match carries {
+            true => vec![Vec::new(); tracks.len()],
+            false => found.clone(),
         };
+        let models = found;
         let fresh = (0..tracks.len())
             .map(|k| models[k].is_empty() && history[k].is_empty())
             .collect();
@@ -599,6 +606,7 @@ impl SegmentEncoder {
             models,
             history,
             fresh,
+            stale,
             inter_scale: carried.inter_scale,
             fitted: 0,
             pending: Vec::new(),
@@ -727,6 +735,19 @@ impl SegmentEncoder {
                         return Ok(false);
                     }
                     self.fit(&jobs)?;
+                }
+                if self.stale.contains(&true) {
+                    if !can_trial {
+                        return Ok(false);
+                    }
+                    let a =
+                        alloc::allocate(&sized(&self.models), &self.weights, bits, q_min, q_max);
+                    self.reanchor(&a, frames)?;
+                    // Streams whose trial found their models too far off.
+                    let jobs = lacking(&self.models, 1);
+                    if !jobs.is_empty() {
+                        self.fit(&jobs)?;
+                    }
                 }
                 // Down the ladder one rung at a time, for the streams that would take their
                 // smallest fitted rung at a quality worse than its upper trial's (all of them
@@ -873,6 +894,73 @@ impl SegmentEncoder {
     /// the stream has a model of adds its trials to it; the others (each stream's rungs in
     /// increasing order, following those it has) add models.
     fn fit(&mut self, jobs: &[Job]) -> Result<(), CodecError> {
+        let (fitted, m) = self.trials(jobs)?;
+        let mut streams: Vec<usize> = jobs.iter().map(|j| j.0).collect();
+        streams.dedup();
+        self.fitted += streams
+            .iter()
+            .filter(|&&k| self.models[k].is_empty())
+            .count();
+        for ((k, r, _), trials) in jobs.iter().zip(fitted) {
+            self.encodes += trials.len();
+            match self.models[*k].get_mut(*r) {
+                Some(model) => trials.iter().for_each(|t| model.add(t)),
+                None => {
+                    let model = RdModel::fit(&trials, m);
+                    let model = match self.history[*k].get(*r) {
+                        Some(h) => model.with_inter_of(h),
+                        None => model,
+                    };
+                    self.models[*k].push(model);
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Moves the models that came over a refresh for changed content onto the new content:
+    /// one trial encode per stream at the rung and quality `a` (allocated from those models
+    /// for segments of `frames` frames) gives it, and every rung's key-frame bits and
+    /// distortion are scaled by what that trial measured against the model (as a segment's
+    /// cost re-anchors the rates at its end). The other pictures' bits stay those measured
+    /// over whole segments (a trial's, on every other frame, are biased; fitting again kept
+    /// them too, see `history`). A stream whose trial lands more than [`DRIFT`] from its
+    /// model is fitted again. Before, every stream was fitted again after such a refresh: on
+    /// the fox, whose refreshes come every 4 to 10 frames, 42 to 63 encodes a segment.
+    fn reanchor(&mut self, a: &alloc::Allocation, frames: usize) -> Result<(), CodecError> {
+        let jobs: Vec<Job> = (0..self.tracks.len())
+            .filter(|&k| self.stale[k])
+            .map(|k| (k, a.rung[k], vec![a.quality[k]]))
+            .collect();
+        let (trials, _) = self.trials(&jobs)?;
+        self.encodes += jobs.len();
+        for ((k, r, _), t) in jobs.iter().zip(trials) {
+            let (k, t) = (*k, &t[0]);
+            self.stale[k] = false;
+            let model = &self.models[k][*r];
+            let (pi, pp) = model.intra_inter(t.q);
+            let pd = model.distortion(t.q);
+            let ri = t.intra / pi.max(1.0);
+            let rd = t.distortion.max(1e-12) / pd.max(1e-12);
+            let bits = |i: f64, p: f64| i + (frames.max(1) - 1) as f64 * p;
+            let now = bits(t.intra, t.inter.unwrap_or(pp));
+            if (now / bits(pi, pp).max(1.0)).ln().abs() > DRIFT.ln() {
+                self.models[k].clear();
+                continue;
+            }
+            for m in self.models[k].iter_mut() {
+                let mi = m.intra_inter(t.q).0;
+                let md = m.distortion(t.q);
+                m.anchor(t.q, mi * ri, None);
+                m.anchor_distortion(t.q, md * rd);
+            }
+        }
+        Ok(())
+    }
+
+    /// Runs the trial encodes of `jobs` on the held frames (every other one where that still
+    /// makes [`TRIAL_FRAMES`]); returns each job's trials and the frames they coded.
+    fn trials(&self, jobs: &[Job]) -> Result<(Vec<Vec<Trial>>, usize), CodecError> {
         let (w, h) = self.size;
         // Every other held frame when that still makes the fewest: the trials span the frames
         // held at the cost of fewer.
@@ -959,27 +1047,7 @@ impl SegmentEncoder {
                 })
                 .collect::<Result<_, CodecError>>()
         })?;
-        let mut streams: Vec<usize> = jobs.iter().map(|j| j.0).collect();
-        streams.dedup();
-        self.fitted += streams
-            .iter()
-            .filter(|&&k| self.models[k].is_empty())
-            .count();
-        for ((k, r, _), trials) in jobs.iter().zip(fitted) {
-            self.encodes += trials.len();
-            match self.models[*k].get_mut(*r) {
-                Some(model) => trials.iter().for_each(|t| model.add(t)),
-                None => {
-                    let model = RdModel::fit(&trials, m);
-                    let model = match self.history[*k].get(*r) {
-                        Some(h) => model.with_inter_of(h),
-                        None => model,
-                    };
-                    self.models[*k].push(model);
-                }
-            }
-        }
-        Ok(())
+        Ok((fitted, m))
     }
 
     /// Under a budget, when the `last` segment's coded streams (with the side stream,

@@ -592,6 +592,31 @@ fn write_frames(
 }
 
 #[test]
+fn a_refresh_for_changed_content_moves_the_models_by_one_trial_each() {
+    // The second segment starts at a refresh for lost confidence that keeps the tracks: its
+    // streams start from the first segment's models, each moved onto the new content by one
+    // trial encode instead of being fitted again.
+    let mut segs = segments(12);
+    segs[1][0].refresh = Some(RefreshReason::Confidence);
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("clip.cpsl");
+    let budget = 800_000.0;
+    let reports = write(&out, &segs, h264(RateControl::Budget(budget)));
+    let streams = reports[1].quality.len();
+    assert_eq!(reports[0].fitted, streams);
+    assert_eq!(reports[1].fitted, 0, "{:?}", reports[1]);
+    // One trial and the final encode per stream.
+    assert_eq!(reports[1].encodes, 2 * streams, "{:?}", reports[1]);
+    for r in &reports {
+        let b = r.budget_bits.unwrap();
+        assert!(r.bits <= 1.1 * b, "segment spent {} bits of {b}", r.bits);
+    }
+    let pkg = Package::open(&out).unwrap();
+    assert!(pkg.verify().is_empty(), "{:?}", pkg.verify());
+    assert!(pkg.manifest().bitrate() >= 0.5 * budget);
+}
+
+#[test]
 fn segments_start_every_gop_and_at_refreshes_that_bring_new_layers() {
     use RefreshReason::{Confidence, First};
     // GOP 4 over 9 frames: a refresh at frame 2 keeps both tracks, one at frame 6 brings a

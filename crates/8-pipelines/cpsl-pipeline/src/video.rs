@@ -202,7 +202,8 @@ pub fn layer_video(
             // Carried depth has no note of its own: a P-frame belongs to its I-frame's run
             // of depth notes ([`depth_runs`]); `video.json` says `carried`.
             _ => (
-                carry(depth, &intra_depth, job.p_depth, &frame, &cam, None)?,
+                carry(depth, &intra_depth, job.p_depth, &frame, &cam, None)
+                    .context_with(|| format!("depth of frame {}", frame.index))?,
                 None,
             ),
         };
@@ -334,9 +335,9 @@ fn carry(
     model: Option<&[f32]>,
 ) -> Result<Option<Vec<f32>>, PipelineError> {
     match (intra_depth, p_depth) {
-        (Some((from, z)), PFrameDepth::Poses) => depth
-            .carried(*from, z, f.index, &f.rgb, cam, model)
-            .context_with(|| format!("depth of frame {}", f.index)),
+        (Some((from, z)), PFrameDepth::Poses) => {
+            depth.carried(*from, z, f.index, &f.rgb, cam, model)
+        }
         _ => Ok(None),
     }
 }

@@ -212,8 +212,7 @@ impl VideoDepth {
     }
 
     /// Depth of frame `index`, whose (left) view is `rgb` seen by `cam`; `right` is its
-    /// right view for stereo input.
-    /// `model` is the source's monocular model already run on `rgb` ([`Self::model_depth`]),
+    /// right view for stereo input; `model` is the source's monocular model already run on `rgb` ([`Self::model_depth`]),
     /// which a model or the video's depth then take instead of running it again.
     pub fn depth(
         &mut self,
@@ -225,8 +224,10 @@ impl VideoDepth {
     ) -> Result<Vec<f32>, PipelineError> {
         let (width, height) = (cam.width, cam.height);
         Ok(match self {
-            VideoDepth::Model(_) if model.is_some() => model.unwrap_or_default(),
-            VideoDepth::Model(m) => m.depth(rgb, width, height)?,
+            VideoDepth::Model(m) => match model {
+                Some(z) => z,
+                None => m.depth(rgb, width, height)?,
+            },
             VideoDepth::Frames(s) => s.depth_at(index, width, height)?,
             VideoDepth::Stereo(s) => {
                 let right = right.ok_or_else(|| {

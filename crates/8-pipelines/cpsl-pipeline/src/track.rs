@@ -284,8 +284,7 @@ impl VideoTrackedDepth {
     /// `from_depth`, what [`Self::depth`] gave frame `from`, carried to it by the two frames'
     /// poses, the rest the prior fitted to it ([`TrackedDepth::carry_depth`]). `None` where
     /// the poses cannot carry it (a frame not placed, another world, a camera that does not
-    /// translate).
-    /// `prior` is the prior already run on `rgb`, if it was.
+    /// translate). `prior` is the prior already run on `rgb`, if it was.
     pub fn carried(
         &mut self,
         from: usize,

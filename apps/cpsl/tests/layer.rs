@@ -5,15 +5,10 @@ mod common;
 use common::{cpsl, models_present, ok, s};
 use std::path::{Path, PathBuf};
 
-/// Fails with `fragment` in the message and writes nothing at `out`.
+/// Fails with `fragment` in the message, each cause said once ([`common::fails`]), and writes
+/// nothing at `out`.
 fn fails(args: &[&str], fragment: &str, out: &Path) {
-    let o = cpsl(args);
-    let err = String::from_utf8_lossy(&o.stderr);
-    assert!(!o.status.success(), "cpsl {args:?} should fail");
-    assert!(
-        err.contains(fragment),
-        "cpsl {args:?}: {err:?} lacks {fragment:?}"
-    );
+    common::fails(args, fragment);
     assert!(!out.exists(), "cpsl {args:?} wrote {}", out.display());
 }
 

@@ -25,7 +25,7 @@ pub(crate) struct Triangle {
 impl Triangle {
     /// The half-open range of pixel rows whose centres it may hold.
     pub fn rows(&self) -> (i64, i64) {
-        (self.v[0].1.ceil() as i64, self.v[2].1.ceil() as i64)
+        (ceil(self.v[0].1), ceil(self.v[2].1))
     }
 
     /// The half-open range `[xa, xb)` of pixels of row `y` whose centres it holds.
@@ -38,7 +38,7 @@ impl Triangle {
         let cross = |p: (f64, f64), q: (f64, f64)| p.0 + (yf - p.1) * (q.0 - p.0) / (q.1 - p.1);
         let long = cross(a, c);
         let short = if yf < b.1 { cross(a, b) } else { cross(b, c) };
-        (long.min(short).ceil() as i64, long.max(short).ceil() as i64)
+        (ceil(long.min(short)), ceil(long.max(short)))
     }
 
     /// Whether it holds pixel `(x, y)`.
@@ -50,6 +50,14 @@ impl Triangle {
         let (a, b) = self.span(y);
         x >= a && x < b
     }
+}
+
+/// `v.ceil() as i64` without the library call that `f64::ceil` is on x86-64 without SSE4.1
+/// (the same for every value: saturating beyond `i64`, 0 for NaN).
+#[inline(always)]
+fn ceil(v: f64) -> i64 {
+    let t = v as i64;
+    t.saturating_add((v > t as f64) as i64)
 }
 
 /// A mesh layer prepared for one pose: its visible triangles, binned into output tiles.

@@ -43,6 +43,11 @@ const CUBIC: [[f32; 4]; 256] = {
     t
 };
 
+/// Shortest span the AVX2 kernel takes (its last group of eight is masked to the pixels
+/// left); shorter ones are sampled one by one.
+#[cfg(target_arch = "x86_64")]
+const SIMD_SPAN: usize = 4;
+
 /// Fixed-point offset that keeps positions >= -2 px positive before truncation.
 const OFFSET: i32 = 512;
 
@@ -320,14 +325,13 @@ impl Tex<'_> {
     fn draw_linear(&self, start: [i64; 2], step: [i64; 2], span: &mut Span<'_>) {
         // Pre-add half a 1/256 step so that a shift rounds to nearest.
         let (mut x, mut y) = (start[0] + 128, start[1] + 128);
-        let mut done = 0;
         #[cfg(target_arch = "x86_64")]
-        if self.simd && !self.cubic && span.trans.len() >= 8 {
+        if self.simd && !self.cubic && span.trans.len() >= SIMD_SPAN {
             let last = span.trans.len() as i64 - 1;
             let fits = |v: i64| v.abs() < (1 << 30);
             let ends = [x, y, x + step[0] * last, y + step[1] * last];
             if ends.iter().all(|&v| fits(v)) && fits(step[0] * 8) && fits(step[1] * 8) {
-                done = crate::simd::draw_linear(
+                crate::simd::draw_linear(
                     self.texels,
                     self.pitch,
                     self.sw as u32,
@@ -338,14 +342,10 @@ impl Tex<'_> {
                     span.trans,
                     &mut span.opaqued,
                 );
-                x += step[0] * done as i64;
-                y += step[1] * done as i64;
+                return;
             }
         }
-        for (o, t) in span.acc[done..]
-            .iter_mut()
-            .zip(span.trans[done..].iter_mut())
-        {
+        for (o, t) in span.acc.iter_mut().zip(span.trans.iter_mut()) {
             if *t > 0.0 {
                 self.sample(x >> 8, y >> 8, o, t, &mut span.opaqued);
             }
@@ -395,24 +395,31 @@ fn map(h: &[[f64; 3]; 3], x: f64, y: f64) -> (f64, f64, f64) {
 }
 
 /// Deviation, in px, between the projective mapping and its chord at the middle of the row
-/// interval `[x, x + n]`; `None` when the plane is not in front of the viewer at both ends.
-/// For a 1-D projective map this deviation peaks near the middle and scales with the square
-/// of the interval length.
+/// interval `[x, x + n]`, with the source positions of its ends; `None` when the plane is not
+/// in front of the viewer at both ends. For a 1-D projective map this deviation peaks near
+/// the middle and scales with the square of the interval length.
 #[inline]
-fn chord_error(h: &[[f64; 3]; 3], x: f64, y: f64, n: usize) -> Option<f64> {
+#[allow(clippy::type_complexity)]
+fn chord_error(
+    h: &[[f64; 3]; 3],
+    x: f64,
+    y: f64,
+    n: usize,
+) -> Option<(((f64, f64), (f64, f64)), f64)> {
     let xe = x + n as f64;
     let ((sx0, sy0, w0), (sx1, sy1, w1)) = (map(h, x, y), map(h, xe, y));
     if !(w0 > 0.0 && w1 > 0.0) {
         return None;
     }
+    let ends = ((sx0, sy0), (sx1, sy1));
     if h[2][0] == 0.0 {
-        return Some(0.0);
+        return Some((ends, 0.0));
     }
     let (sxm, sym, _) = map(h, (x + xe) * 0.5, y);
     let err = (sxm - (sx0 + sx1) * 0.5)
         .abs()
         .max((sym - (sy0 + sy1) * 0.5).abs());
-    err.is_finite().then_some(err)
+    err.is_finite().then_some((ends, err))
 }
 
 /// Start and step, in 16.16 fixed point, of `m` pixels from source position `a` towards `b`
@@ -480,13 +487,20 @@ fn draw_layer_row(
     let (x, yf) = (x0 as f64, y as f64);
     let mut s0 = 0;
     if !check_w {
-        if let Some(len) = chord_error(h, x, yf, n).and_then(|e| sub_span_len(e, n)) {
-            // Exact positions at sub-span boundaries, each computed once.
-            let at = |i: usize| {
-                let (sx, sy, _) = map(h, x + i as f64, yf);
-                (sx, sy)
+        if let Some(((first, last), len)) =
+            chord_error(h, x, yf, n).and_then(|(ends, e)| Some((ends, sub_span_len(e, n)?)))
+        {
+            // Exact positions at sub-span boundaries, each computed once (the row's ends by
+            // the chord test).
+            let at = |i: usize| match i {
+                0 => first,
+                i if i == n => last,
+                i => {
+                    let (sx, sy, _) = map(h, x + i as f64, yf);
+                    (sx, sy)
+                }
             };
-            let mut from = at(0);
+            let mut from = first;
             while s0 < n {
                 let m = len.min(n - s0);
                 let to = at(s0 + m);

@@ -10,12 +10,14 @@ pub(crate) use cpsl_core::resample::avx2::available;
 use cpsl_core::resample::avx2::{bilerp8, gather_taps};
 use std::arch::x86_64::*;
 
-/// Composites `n = trans.len()` pixels of a linear span whose positions (16.16 fixed point,
-/// with half a 1/256 step pre-added) start at `x`, `y` and advance by `dx`, `dy`. Processes
-/// whole groups of eight and returns how many pixels it handled; the caller finishes the rest.
-/// Returns the number of pixels that became opaque through `opaqued`.
+/// Composites the `n = trans.len()` pixels of a linear span whose positions (16.16 fixed
+/// point, with half a 1/256 step pre-added) start at `x`, `y` and advance by `dx`, `dy`:
+/// groups of eight, the last one masked to the pixels left (so that the short spans of mesh
+/// triangles run here too). Returns the number of pixels that became opaque through
+/// `opaqued`.
 ///
-/// Positions must stay within `i32` for the whole span (the caller checks).
+/// Positions must stay within `i32` for the whole span and seven steps beyond it (the caller
+/// checks).
 #[allow(clippy::too_many_arguments)]
 pub(crate) fn draw_linear(
     texels: &[u32],
@@ -27,13 +29,14 @@ pub(crate) fn draw_linear(
     acc: &mut [[f32; 4]],
     trans: &mut [f32],
     opaqued: &mut u32,
-) -> usize {
+) {
     assert!(texels.len() >= pitch * (sh as usize + 2) && pitch == sw as usize + 2);
     assert_eq!(acc.len(), trans.len());
     assert!(available());
     // SAFETY: AVX2 is present (checked above); the kernel only reads texels at indices that
     // the range masks prove to be inside the padded texture (see `draw_linear_avx2`), and
-    // only touches `acc`/`trans` within the groups of eight that fit their (equal) length.
+    // only touches `acc`/`trans` within their (equal) length: whole groups of eight, then the
+    // last group's pixels through masked loads and stores.
     unsafe { draw_linear_avx2(texels, pitch, sw, sh, xy, dxy, acc, trans, opaqued) }
 }
 
@@ -49,9 +52,17 @@ unsafe fn draw_linear_avx2(
     acc: &mut [[f32; 4]],
     trans: &mut [f32],
     opaqued: &mut u32,
-) -> usize {
-    let groups = trans.len() / 8;
+) {
+    let n = trans.len();
     let lane = _mm256_setr_epi32(0, 1, 2, 3, 4, 5, 6, 7);
+    let k = Kernel {
+        texels,
+        pitch,
+        minus_one: _mm256_set1_epi32(-1),
+        sw1: _mm256_set1_epi32(sw as i32 + 1),
+        sh1: _mm256_set1_epi32(sh as i32 + 1),
+        pitch_v: _mm256_set1_epi32(pitch as i32),
+    };
     let mut xs = _mm256_add_epi32(
         _mm256_set1_epi32(xy[0]),
         _mm256_mullo_epi32(lane, _mm256_set1_epi32(dxy[0])),
@@ -64,19 +75,66 @@ unsafe fn draw_linear_avx2(
         _mm256_set1_epi32(dxy[0].wrapping_mul(8)),
         _mm256_set1_epi32(dxy[1].wrapping_mul(8)),
     );
-    let one_i = _mm256_set1_epi32(1);
-    let minus_one = _mm256_set1_epi32(-1);
-    let sw1 = _mm256_set1_epi32(sw as i32 + 1);
-    let sh1 = _mm256_set1_epi32(sh as i32 + 1);
-    let pitch_v = _mm256_set1_epi32(pitch as i32);
-    let byte = _mm256_set1_epi32(255);
-    let low16 = _mm256_set1_epi32(0xFFFF);
-    let zero_f = _mm256_setzero_ps();
-    let one_f = _mm256_set1_ps(1.0);
-    let f255 = _mm256_set1_ps(255.0);
-    let opaque_a = _mm256_set1_epi32(255);
     let mut count = 0u32;
-    for g in 0..groups {
+    let mut o = 0;
+    while o + 8 <= n {
+        // SAFETY: pixels o..o + 8 lie inside `acc` and `trans`.
+        count += k.group::<false>(
+            xs,
+            ys,
+            k.minus_one,
+            acc.as_mut_ptr().add(o),
+            trans.as_mut_ptr().add(o),
+        );
+        xs = _mm256_add_epi32(xs, step_x);
+        ys = _mm256_add_epi32(ys, step_y);
+        o += 8;
+    }
+    if o < n {
+        // The pixels left: lanes below their count.
+        let live = _mm256_cmpgt_epi32(_mm256_set1_epi32((n - o) as i32), lane);
+        // SAFETY: the masked loads and stores touch only the live lanes, pixels o..n.
+        count += k.group::<true>(
+            xs,
+            ys,
+            live,
+            acc.as_mut_ptr().add(o),
+            trans.as_mut_ptr().add(o),
+        );
+    }
+    *opaqued += count;
+}
+
+/// What every group of eight pixels of a span shares.
+struct Kernel<'a> {
+    texels: &'a [u32],
+    pitch: usize,
+    minus_one: __m256i,
+    sw1: __m256i,
+    sh1: __m256i,
+    pitch_v: __m256i,
+}
+
+impl Kernel<'_> {
+    /// Composites the eight pixels at positions `xs`, `ys` (the `live` lanes when `MASKED`:
+    /// all bits set or none per lane) into the accumulators at `ap` and transmittances at
+    /// `tp`; returns how many became opaque.
+    ///
+    /// # Safety
+    /// AVX2 must be present; `ap` and `tp` must point at eight pixels' accumulators and
+    /// transmittances, or at as many as there are live lanes (the first ones) when `MASKED`.
+    #[inline]
+    #[target_feature(enable = "avx2")]
+    unsafe fn group<const MASKED: bool>(
+        &self,
+        xs: __m256i,
+        ys: __m256i,
+        live: __m256i,
+        ap: *mut [f32; 4],
+        tp: *mut f32,
+    ) -> u32 {
+        let one_i = _mm256_set1_epi32(1);
+        let byte = _mm256_set1_epi32(255);
         // 1/256 px positions, integer texel and 8-bit fractions.
         let xi = _mm256_srai_epi32(xs, 8);
         let yi = _mm256_srai_epi32(ys, 8);
@@ -87,48 +145,56 @@ unsafe fn draw_linear_avx2(
         // 0 <= x0 + 1 <= sw and 0 <= y0 + 1 <= sh: all four taps inside the padded texture,
         // whose last index is (sh + 1) * pitch + sw + 1 = (y0+1)*pitch + (x0+1) + pitch + 1
         // at most.
-        let valid = _mm256_and_si256(
+        let mut valid = _mm256_and_si256(
             _mm256_and_si256(
-                _mm256_cmpgt_epi32(x1, minus_one),
-                _mm256_cmpgt_epi32(sw1, x1),
+                _mm256_cmpgt_epi32(x1, self.minus_one),
+                _mm256_cmpgt_epi32(self.sw1, x1),
             ),
             _mm256_and_si256(
-                _mm256_cmpgt_epi32(y1, minus_one),
-                _mm256_cmpgt_epi32(sh1, y1),
+                _mm256_cmpgt_epi32(y1, self.minus_one),
+                _mm256_cmpgt_epi32(self.sh1, y1),
             ),
         );
-        let idx = _mm256_add_epi32(_mm256_mullo_epi32(y1, pitch_v), x1);
+        if MASKED {
+            valid = _mm256_and_si256(valid, live);
+        }
+        let idx = _mm256_add_epi32(_mm256_mullo_epi32(y1, self.pitch_v), x1);
         // SAFETY: valid lanes' taps are inside the padded texture (above), and so are texel
         // 0's (the texture has at least two rows of `pitch` texels).
-        let taps = gather_taps(texels, pitch, idx, valid);
+        let taps = gather_taps(self.texels, self.pitch, idx, valid);
         let [p00, p01, p10, p11] = taps;
         if _mm256_testz_si256(
             _mm256_or_si256(_mm256_or_si256(p00, p01), _mm256_or_si256(p10, p11)),
-            minus_one,
+            self.minus_one,
         ) == 1
         {
-            xs = _mm256_add_epi32(xs, step_x);
-            ys = _mm256_add_epi32(ys, step_y);
-            continue;
+            return 0;
         }
         let (v_rb, v_ga) = bilerp8(taps, fx, fy);
+        let low16 = _mm256_set1_epi32(0xFFFF);
         let a_i = _mm256_srli_epi32(v_ga, 16);
         let r = _mm256_cvtepi32_ps(_mm256_and_si256(v_rb, low16));
         let b = _mm256_cvtepi32_ps(_mm256_srli_epi32(v_rb, 16));
         let gr = _mm256_cvtepi32_ps(_mm256_and_si256(v_ga, low16));
         let a = _mm256_cvtepi32_ps(a_i);
 
-        let o = g * 8;
-        let tp = trans.as_mut_ptr().add(o);
-        let t = _mm256_loadu_ps(tp);
+        // Masked-off lanes load a transmittance of 0, so they neither count nor contribute.
+        let t = match MASKED {
+            true => _mm256_maskload_ps(tp, live),
+            false => _mm256_loadu_ps(tp),
+        };
         // Pixels whose transmittance drops to zero now (alive and fully opaque sample).
-        let alive = _mm256_castps_si256(_mm256_cmp_ps::<_CMP_GT_OQ>(t, zero_f));
-        let newly = _mm256_and_si256(alive, _mm256_cmpeq_epi32(a_i, opaque_a));
-        count += (_mm256_movemask_ps(_mm256_castsi256_ps(newly)) as u32).count_ones();
-        _mm256_storeu_ps(
-            tp,
-            _mm256_mul_ps(t, _mm256_sub_ps(one_f, _mm256_div_ps(a, f255))),
+        let alive = _mm256_castps_si256(_mm256_cmp_ps::<_CMP_GT_OQ>(t, _mm256_setzero_ps()));
+        let newly = _mm256_and_si256(alive, _mm256_cmpeq_epi32(a_i, byte));
+        let count = (_mm256_movemask_ps(_mm256_castsi256_ps(newly)) as u32).count_ones();
+        let t_new = _mm256_mul_ps(
+            t,
+            _mm256_sub_ps(_mm256_set1_ps(1.0), _mm256_div_ps(a, _mm256_set1_ps(255.0))),
         );
+        match MASKED {
+            true => _mm256_maskstore_ps(tp, live, t_new),
+            false => _mm256_storeu_ps(tp, t_new),
+        }
 
         // Contributions T * sample in lane order R, B, G, A, transposed to per-pixel order.
         let (cr, cb, cg, ca) = (
@@ -145,20 +211,95 @@ unsafe fn draw_linear_avx2(
         let u1 = _mm256_shuffle_ps::<0xEE>(t0, t2);
         let u2 = _mm256_shuffle_ps::<0x44>(t1, t3);
         let u3 = _mm256_shuffle_ps::<0xEE>(t1, t3);
+        // Pixels (0, 1), (2, 3), (4, 5) and (6, 7).
         let px = [
             _mm256_permute2f128_ps::<0x20>(u0, u1),
             _mm256_permute2f128_ps::<0x20>(u2, u3),
             _mm256_permute2f128_ps::<0x31>(u0, u1),
             _mm256_permute2f128_ps::<0x31>(u2, u3),
         ];
-        let ap = acc.as_mut_ptr().add(o) as *mut f32;
+        let ap = ap as *mut f32;
         for (k, c) in px.iter().enumerate() {
             let p = ap.add(k * 8);
-            _mm256_storeu_ps(p, _mm256_add_ps(_mm256_loadu_ps(p), *c));
+            if MASKED {
+                // Each pixel's four lanes take its live flag: lanes 2k and 2k + 1, each twice
+                // over four lanes.
+                let pair = _mm256_permutevar8x32_epi32(
+                    live,
+                    _mm256_setr_epi32(
+                        2 * k as i32,
+                        2 * k as i32,
+                        2 * k as i32,
+                        2 * k as i32,
+                        2 * k as i32 + 1,
+                        2 * k as i32 + 1,
+                        2 * k as i32 + 1,
+                        2 * k as i32 + 1,
+                    ),
+                );
+                if _mm256_testz_si256(pair, pair) == 1 {
+                    break;
+                }
+                let sum = _mm256_add_ps(_mm256_maskload_ps(p, pair), *c);
+                _mm256_maskstore_ps(p, pair, sum);
+            } else {
+                _mm256_storeu_ps(p, _mm256_add_ps(_mm256_loadu_ps(p), *c));
+            }
         }
-        xs = _mm256_add_epi32(xs, step_x);
-        ys = _mm256_add_epi32(ys, step_y);
+        count
     }
-    *opaqued += count;
-    groups * 8
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn spans_of_every_length_touch_only_their_pixels() {
+        if !available() {
+            return;
+        }
+        // A 6x4 layer, opaque grey, padded by one transparent texel all round.
+        let (sw, sh) = (6u32, 4u32);
+        let pitch = sw as usize + 2;
+        let mut texels = vec![0u32; pitch * (sh as usize + 2)];
+        for y in 1..=sh as usize {
+            for x in 1..=sw as usize {
+                texels[y * pitch + x] = 0xFF80_8080;
+            }
+        }
+        for n in 1..=20 {
+            // Sentinels after the span: -0.0 turns into +0.0 under any store of a sum with 0,
+            // and 0.5 into 0 under a store of a masked lane's transmittance.
+            let mut acc = vec![[-0.0f32; 4]; n + 8];
+            let mut trans = vec![0.5f32; n + 8];
+            trans[..n].fill(1.0);
+            acc[..n].fill([0.0; 4]);
+            let mut opaqued = 0;
+            // From the first column along the second row and a half, a quarter pixel a step.
+            let (x, y) = (128, 128 + (1 << 16) + (1 << 15));
+            draw_linear(
+                &texels,
+                pitch,
+                sw,
+                sh,
+                [x, y],
+                [1 << 14, 0],
+                &mut acc[..n],
+                &mut trans[..n],
+                &mut opaqued,
+            );
+            for (i, (a, t)) in acc.iter().zip(&trans).enumerate().skip(n) {
+                assert!(
+                    a.iter().all(|v| v.to_bits() == (-0.0f32).to_bits()),
+                    "n {n}: acc {i}"
+                );
+                assert_eq!(*t, 0.5, "n {n}: trans {i}");
+            }
+            // Every pixel of the span is over the layer and opaque.
+            assert_eq!(opaqued as usize, n, "n {n}");
+            assert!(trans[..n].iter().all(|&t| t == 0.0), "n {n}");
+            assert!(acc[..n].iter().all(|a| a[3] == 255.0), "n {n}");
+        }
+    }
 }

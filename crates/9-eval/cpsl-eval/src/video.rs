@@ -118,6 +118,10 @@ pub struct StabilityScore {
     pub flicker: Option<f64>,
     /// Novel-view PSNR against the truth, where known.
     pub psnr: Option<f64>,
+    /// Each frame's novel-view PSNR with whether it is an I-frame, where known: where the
+    /// P-frames lose, and how far from their I-frame.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub psnr_per_frame: Vec<(bool, Option<f64>)>,
     /// Novel-view LPIPS against the truth, where known and scored (pixels the view does not
     /// cover black in both).
     pub lpips: Option<f64>,
@@ -618,6 +622,7 @@ pub fn evaluate_video(
             let owners: Vec<Vec<u8>> = sets.iter().map(|s| alpha_owner(&s.0)).collect();
             let bv = boundary_variance(&owners, &input_motion);
             let (frames, i_frames) = (sets.len(), sets.iter().filter(|s| s.2).count());
+            let intra: Vec<bool> = sets.iter().map(|s| s.2).collect();
             let renders: Vec<(Vec<u8>, Vec<bool>)> = sets
                 .into_iter()
                 .zip(&c.novel)
@@ -629,12 +634,17 @@ pub fn evaluate_video(
                 })
                 .collect();
             let outs: Vec<Vec<u8>> = renders.iter().map(|r| r.0.clone()).collect();
-            let psnr = c.truth.as_ref().map(|truth| {
-                let v: Vec<f64> = renders
+            let per_frame: Vec<(bool, Option<f64>)> = match &c.truth {
+                Some(truth) => renders
                     .iter()
                     .zip(truth)
-                    .filter_map(|((o, m), t)| psnr_masked(o, t, m))
-                    .collect();
+                    .zip(&intra)
+                    .map(|(((o, m), t), &i)| (i, psnr_masked(o, t, m)))
+                    .collect(),
+                None => Vec::new(),
+            };
+            let psnr = c.truth.as_ref().map(|_| {
+                let v: Vec<f64> = per_frame.iter().filter_map(|f| f.1).collect();
                 v.iter().sum::<f64>() / v.len().max(1) as f64
             });
             let novel_lpips = match (lpips.as_mut(), c.truth.as_ref()) {
@@ -680,6 +690,7 @@ pub fn evaluate_video(
                 warping_error: warping_error(&outs, &out_motion),
                 flicker: flick,
                 psnr,
+                psnr_per_frame: per_frame,
                 lpips: novel_lpips,
             };
             rows.push(row);

@@ -576,6 +576,31 @@ fn span_misses_layer(
     )
 }
 
+/// One output pixel from its accumulator (lanes R, B, G, A on a 0..255 scale): 8-bit RGBA,
+/// rounded half up and saturating, colour at most alpha.
+#[inline(always)]
+pub(crate) fn pack_pixel(s: &[f32; 4]) -> [u8; 4] {
+    let a = (s[3] + 0.5) as u8;
+    [
+        ((s[0] + 0.5) as u8).min(a),
+        ((s[2] + 0.5) as u8).min(a),
+        ((s[1] + 0.5) as u8).min(a),
+        a,
+    ]
+}
+
+/// Packs a row of accumulators into `dst` (four bytes each), with the AVX2 kernel when `simd`.
+fn pack_row(acc: &[[f32; 4]], dst: &mut [u8], simd: bool) {
+    #[cfg(target_arch = "x86_64")]
+    if simd {
+        return crate::simd::pack_rgba8(acc, dst);
+    }
+    let _ = simd;
+    for (d, s) in dst.chunks_exact_mut(4).zip(acc) {
+        d.copy_from_slice(&pack_pixel(s));
+    }
+}
+
 impl PreparedLayers {
     pub(crate) fn warps(&self, pose: &Pose, target: &Camera) -> Vec<Option<Warp>> {
         self.layers
@@ -734,17 +759,7 @@ impl PreparedLayers {
                 self.render_band(&warps, width, band * TILE_H, th, filter, |x0, tw, acc| {
                     for r in 0..th {
                         let dst = &mut bytes[(r * width + x0) * 4..(r * width + x0 + tw) * 4];
-                        for (d, s) in dst
-                            .chunks_exact_mut(4)
-                            .zip(&acc[r * TILE_W..r * TILE_W + tw])
-                        {
-                            // Accumulator lanes are R, B, G, A.
-                            let a = (s[3] + 0.5) as u8;
-                            d[0] = ((s[0] + 0.5) as u8).min(a);
-                            d[1] = ((s[2] + 0.5) as u8).min(a);
-                            d[2] = ((s[1] + 0.5) as u8).min(a);
-                            d[3] = a;
-                        }
+                        pack_row(&acc[r * TILE_W..r * TILE_W + tw], dst, self.simd);
                     }
                 })
             })

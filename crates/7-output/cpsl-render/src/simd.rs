@@ -1,4 +1,5 @@
-//! AVX2 kernel for linear row spans: eight pixels per step.
+//! AVX2 kernels: linear row spans, eight pixels per step, and the output stage's packing of
+//! accumulators into 8-bit RGBA.
 //!
 //! It computes exactly what the scalar path computes (same fixed-point positions, the same
 //! 8-bit two-stage bilinear filter in 16-bit lanes, the same `f32` multiply-then-add
@@ -250,9 +251,110 @@ impl Kernel<'_> {
     }
 }
 
+/// Packs accumulators (lanes R, B, G, A on a 0..255 scale) into 8-bit RGBA exactly as
+/// [`crate::raster::pack_pixel`] does (round half up, saturating; colour at most alpha),
+/// eight pixels per step. `dst` holds four bytes per accumulator.
+pub(crate) fn pack_rgba8(acc: &[[f32; 4]], dst: &mut [u8]) {
+    assert_eq!(dst.len(), acc.len() * 4);
+    assert!(available());
+    // SAFETY: AVX2 is present (checked above); whole groups of eight accumulators are read
+    // and 32 bytes written per group, within the two slices (equal in pixels, checked).
+    unsafe { pack_rgba8_avx2(acc, dst) }
+}
+
+#[target_feature(enable = "avx2")]
+unsafe fn pack_rgba8_avx2(acc: &[[f32; 4]], dst: &mut [u8]) {
+    let n = acc.len() / 8 * 8;
+    let half = _mm256_set1_ps(0.5);
+    // `as u8` saturates at 255, where the conversion to i32 would overflow: values beyond
+    // 2^20 are brought down first; `min` takes its second operand when either is NaN, so
+    // NaN stays NaN and converts to i32::MIN, which packs to 0 as `as u8` gives.
+    let big = _mm256_set1_ps((1 << 20) as f32);
+    // Per pixel: R, B, G, A to R, G, B, A, and its alpha in all four bytes.
+    let order = _mm256_setr_epi8(
+        0, 2, 1, 3, 4, 6, 5, 7, 8, 10, 9, 11, 12, 14, 13, 15, 0, 2, 1, 3, 4, 6, 5, 7, 8, 10, 9, 11,
+        12, 14, 13, 15,
+    );
+    let alpha = _mm256_setr_epi8(
+        3, 3, 3, 3, 7, 7, 7, 7, 11, 11, 11, 11, 15, 15, 15, 15, 3, 3, 3, 3, 7, 7, 7, 7, 11, 11, 11,
+        11, 15, 15, 15, 15,
+    );
+    // The packs interleave the 128-bit lanes: pixels 0, 2, 4, 6 | 1, 3, 5, 7.
+    let unzip = _mm256_setr_epi32(0, 4, 1, 5, 2, 6, 3, 7);
+    for i in (0..n).step_by(8) {
+        let p = acc.as_ptr().add(i) as *const f32;
+        let q = |k: usize| {
+            let v = _mm256_add_ps(_mm256_loadu_ps(p.add(8 * k)), half);
+            _mm256_cvttps_epi32(_mm256_min_ps(big, v))
+        };
+        let words = (
+            _mm256_packs_epi32(q(0), q(1)),
+            _mm256_packs_epi32(q(2), q(3)),
+        );
+        let bytes = _mm256_packus_epi16(words.0, words.1);
+        let rgba = _mm256_min_epu8(
+            _mm256_shuffle_epi8(bytes, order),
+            _mm256_shuffle_epi8(bytes, alpha),
+        );
+        let out = _mm256_permutevar8x32_epi32(rgba, unzip);
+        _mm256_storeu_si256(dst.as_mut_ptr().add(i * 4) as *mut __m256i, out);
+    }
+    for (d, s) in dst[n * 4..].chunks_exact_mut(4).zip(&acc[n..]) {
+        d.copy_from_slice(&crate::raster::pack_pixel(s));
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn packing_matches_the_scalar_rounding() {
+        if !available() {
+            return;
+        }
+        // Every edge of the conversion: halves, saturation, negatives, NaN, huge values,
+        // colour above alpha; 8 groups and a tail.
+        let edge = [
+            0.0,
+            0.49,
+            0.5,
+            1.5,
+            127.5,
+            254.49,
+            254.5,
+            255.0,
+            255.49,
+            255.5,
+            256.0,
+            300.0,
+            -0.3,
+            -0.5,
+            -1.0,
+            -300.0,
+            f32::NAN,
+            1e7,
+            3e9,
+            f32::INFINITY,
+            f32::NEG_INFINITY,
+        ];
+        let acc: Vec<[f32; 4]> = (0..67u32)
+            .map(|i| {
+                std::array::from_fn(|c| {
+                    edge[(i as usize * 7 + c * 5 + i as usize / 3) % edge.len()]
+                })
+            })
+            .collect();
+        let mut fast = vec![0u8; acc.len() * 4];
+        pack_rgba8(&acc, &mut fast);
+        for (i, s) in acc.iter().enumerate() {
+            assert_eq!(
+                fast[i * 4..i * 4 + 4],
+                crate::raster::pack_pixel(s),
+                "pixel {i}: {s:?}"
+            );
+        }
+    }
 
     #[test]
     fn spans_of_every_length_touch_only_their_pixels() {

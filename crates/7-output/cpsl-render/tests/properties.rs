@@ -284,7 +284,8 @@ proptest! {
     #![proptest_config(ProptestConfig::with_cases(24))]
 
     /// The SIMD kernel (where the CPU has one) and the scalar kernel produce identical bits,
-    /// on planes and on meshes (whose triangles' short spans end in a masked group).
+    /// on planes and on meshes (whose triangles' short spans end in a masked group), in
+    /// `f32` and in 8-bit output.
     #[test]
     fn simd_and_scalar_kernels_agree_exactly(
         seed in any::<u64>(), k in 1usize..5, w in 1u32..150, h in 1u32..40,
@@ -299,11 +300,16 @@ proptest! {
         };
         let pose = Pose::from_euler_deg(Vec3::new(tx, ty, tz), rx, ry, rz);
         let cam = *set.camera();
-        let simd = PreparedLayers::new(&set).with_simd(true).render_f32(&pose, &cam);
-        let scalar = PreparedLayers::new(&set).with_simd(false).render_f32(&pose, &cam);
-        for (a, b) in simd.iter().zip(&scalar) {
+        let (simd, scalar) = (
+            PreparedLayers::new(&set).with_simd(true),
+            PreparedLayers::new(&set).with_simd(false),
+        );
+        for (a, b) in simd.render_f32(&pose, &cam).iter().zip(&scalar.render_f32(&pose, &cam)) {
             prop_assert_eq!(a.map(f32::to_bits), b.map(f32::to_bits));
         }
+        // And the 8-bit output stage (its own AVX2 packing).
+        let (a, b) = (simd.render(&pose), scalar.render(&pose));
+        prop_assert_eq!(a.as_bytes(), b.as_bytes());
     }
 }
 

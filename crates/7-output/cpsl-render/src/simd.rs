@@ -1,10 +1,11 @@
 //! AVX2 kernels: linear row spans, eight pixels per step, and the output stage's packing of
 //! accumulators into 8-bit RGBA.
 //!
-//! It computes exactly what the scalar path computes (same fixed-point positions, the same
-//! 8-bit two-stage bilinear filter in 16-bit lanes, the same `f32` multiply-then-add
-//! compositing and `1 - a / 255` transmittance), so renders are bit-identical with or without
-//! it; a test checks that.
+//! Both compute exactly what the scalar paths compute (the spans: the same fixed-point
+//! positions, the same 8-bit two-stage bilinear filter in 16-bit lanes, the same `f32`
+//! multiply-then-add compositing and `1 - a / 255` transmittance; the packing: the same
+//! rounding and saturation), so renders are bit-identical with or without them; tests check
+//! that.
 #![allow(unsafe_code)]
 
 pub(crate) use cpsl_core::resample::avx2::available;

@@ -123,11 +123,6 @@ pub struct LayerDepth<'a> {
 }
 
 impl LayerDepth<'_> {
-    /// Whether pixel `p` is the layer's own.
-    fn own(&self, p: usize) -> bool {
-        self.owner[p] == self.label
-    }
-
     /// [`Self::bounds`], or the whole frame: the columns and the rows to look at.
     fn span(&self) -> (std::ops::Range<usize>, std::ops::Range<usize>) {
         match self.bounds {
@@ -181,11 +176,8 @@ pub fn fit_geometry(
     };
     let (w, h) = (px.width, px.height);
     // A regular subset of the layer's own pixels.
-    let (xs, ys) = px.span();
-    let count = ys
-        .flat_map(|y| xs.clone().map(move |x| y * w + x))
-        .filter(|&p| px.own(p))
-        .count();
+    let runs = own_runs(px);
+    let count: usize = runs.iter().map(|r| r.x.len()).sum();
     if count < 64 {
         return Geometry::Plane;
     }
@@ -193,11 +185,12 @@ pub fn fit_geometry(
     let mut samples = Vec::with_capacity(count.min(MAX_SAMPLES * 2));
     let mut deepest = 0f64;
     let (sx, sy) = (cam.width as f64 / w as f64, cam.height as f64 / h as f64);
-    for y in (0..h).step_by(stride) {
-        for x in (0..w).step_by(stride) {
+    for run in runs.iter().filter(|r| r.y % stride == 0) {
+        let y = run.y;
+        for x in (run.x.start.next_multiple_of(stride)..run.x.end).step_by(stride) {
             let p = y * w + x;
             let z = px.depth[p] as f64;
-            if !(px.own(p) && z.is_finite() && z > 0.0) {
+            if !(z.is_finite() && z > 0.0) {
                 continue;
             }
             let c = px.confidence.map_or(1.0, |c| c[p] as f64).max(0.05);
@@ -226,12 +219,12 @@ pub fn fit_geometry(
                 grid.inverse_depth_at(cam, s[0] * cam.fx + cam.cx, s[1] * cam.fy + cam.cy)
             })
         };
-        if let Some(mut grid) = fit_grid(cam, px, mesh_step, depth) {
+        if let Some(mut grid) = grid_over(cam, px, &runs, mesh_step, depth) {
             let mut e = grid_error(&grid);
             // Finer where the depth bends: halve the step while that removes a clear part of
             // the error (four times the vertices each time).
             while grid.step / 2 >= finest.max(1) {
-                let Some(fine) = fit_grid(cam, px, grid.step / 2, depth) else {
+                let Some(fine) = grid_over(cam, px, &runs, grid.step / 2, depth) else {
                     break;
                 };
                 let e_fine = grid_error(&fine);
@@ -276,6 +269,47 @@ fn in_front(
 /// behind nearer layers and over the layer's extension; vertices of cells the layer does not
 /// cover take its reference depth `depth` ([`DepthGrid::settle_unused`]).
 pub fn fit_grid(cam: &Camera, px: &LayerDepth<'_>, step: u32, depth: f64) -> Option<DepthGrid> {
+    grid_over(cam, px, &own_runs(px), step, depth)
+}
+
+/// A row's run of a layer's own pixels: columns `x` of row `y`.
+struct Run {
+    y: usize,
+    x: std::ops::Range<usize>,
+}
+
+/// The layer's own pixels within [`LayerDepth::span`] as runs along the rows, in row-major
+/// order (so sums over them add in the order a scan of the span would).
+fn own_runs(px: &LayerDepth<'_>) -> Vec<Run> {
+    let (xs, ys) = px.span();
+    let mut runs = Vec::new();
+    for y in ys {
+        let row = &px.owner[y * px.width..][xs.clone()];
+        let mut x = 0;
+        while let Some(a) = row[x..].iter().position(|&o| o == px.label) {
+            let a = x + a;
+            let b = row[a..]
+                .iter()
+                .position(|&o| o != px.label)
+                .map_or(row.len(), |n| a + n);
+            runs.push(Run {
+                y,
+                x: xs.start + a..xs.start + b,
+            });
+            x = b;
+        }
+    }
+    runs
+}
+
+/// [`fit_grid`] over the layer's own pixels `runs` ([`own_runs`]).
+fn grid_over(
+    cam: &Camera,
+    px: &LayerDepth<'_>,
+    runs: &[Run],
+    step: u32,
+    depth: f64,
+) -> Option<DepthGrid> {
     let (w, h) = (px.width, px.height);
     let (cols, rows) = DepthGrid::dims(cam.width, cam.height, step);
     let (cw, ch) = (cols as usize, rows as usize);
@@ -283,7 +317,7 @@ pub fn fit_grid(cam: &Camera, px: &LayerDepth<'_>, step: u32, depth: f64) -> Opt
     let mut wsum = vec![0f32; cw * ch];
     let s = step as f32 * w as f32 / cam.width as f32;
     let t = step as f32 * h as f32 / cam.height as f32;
-    let (xs, ys) = px.span();
+    let (xs, _) = px.span();
     // Per column: its cell's left and right vertex columns and its position across it.
     let columns: Vec<(usize, usize, f32)> = xs
         .clone()
@@ -293,15 +327,17 @@ pub fn fit_grid(cam: &Camera, px: &LayerDepth<'_>, step: u32, depth: f64) -> Opt
             (i.min(cw - 1), (i + 1).min(cw - 1), gx.fract())
         })
         .collect();
-    for y in ys {
+    for run in runs {
+        let y = run.y;
         let gy = (y as f32 + 0.5) / t;
         let (j, fy) = (gy.floor() as usize, gy.fract());
         // The cell's upper and lower vertex rows.
         let (r0, r1) = (j.min(ch - 1) * cw, (j + 1).min(ch - 1) * cw);
-        for (x, &(i0, i1, fx)) in xs.clone().zip(&columns) {
+        let cells = &columns[run.x.start - xs.start..run.x.end - xs.start];
+        for (x, &(i0, i1, fx)) in run.x.clone().zip(cells) {
             let p = y * w + x;
             let z = px.depth[p];
-            if !(px.own(p) && z.is_finite() && z > 0.0) {
+            if !(z.is_finite() && z > 0.0) {
                 continue;
             }
             let c = px.confidence.map_or(1.0, |c| c[p]).max(0.05);
@@ -344,6 +380,42 @@ pub fn fit_grid(cam: &Camera, px: &LayerDepth<'_>, step: u32, depth: f64) -> Opt
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn runs_hold_exactly_the_own_pixels_of_the_span_in_row_major_order() {
+        let (w, h) = (37, 11);
+        // Labels 0..3 in irregular patches, runs touching the span's edges.
+        let owner: Vec<u8> = (0..w * h)
+            .map(|p| ((p * 7 / 5 + p / w) % 3) as u8)
+            .collect();
+        let depth = vec![1.0; w * h];
+        for bounds in [None, Some([3, 2, 30, 9]), Some([0, 0, 0, 0])] {
+            for label in 0..4 {
+                let px = LayerDepth {
+                    width: w,
+                    height: h,
+                    depth: &depth,
+                    confidence: None,
+                    owner: &owner,
+                    label,
+                    covered: &|_| true,
+                    bounds,
+                };
+                let (xs, ys) = px.span();
+                let scanned: Vec<usize> = ys
+                    .flat_map(|y| xs.clone().map(move |x| y * w + x))
+                    .filter(|&p| owner[p] == label)
+                    .collect();
+                let runs = own_runs(&px);
+                let listed: Vec<usize> = runs
+                    .iter()
+                    .flat_map(|r| r.x.clone().map(|x| r.y * w + x))
+                    .collect();
+                assert_eq!(listed, scanned, "label {label}, bounds {bounds:?}");
+                assert!(runs.iter().all(|r| !r.x.is_empty()));
+            }
+        }
+    }
 
     #[test]
     fn a_floor_gets_its_slant_and_a_wall_stays_flat() {

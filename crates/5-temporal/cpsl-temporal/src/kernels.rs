@@ -471,7 +471,7 @@ pub(crate) fn agreements(
     h: usize,
 ) -> Vec<(f32, f32)> {
     let k = lz.len();
-    let fits = |p: usize, l: usize| (ln[p] - lz[l].at(p % w, p / w)).abs() <= tolerance;
+    let fits = |x: usize, y: usize, l: usize| (ln[y * w + x] - lz[l].at(x, y)).abs() <= tolerance;
     // Whether a pixel of the 3x3 block around (x, y) lies on the boundary of the region whose
     // depth fits layer l (4-neighbourhood). Each pixel's fit is found at most once: `memo`
     // holds those of the 5x5 block around (x, y) (0 not yet known, 1 no, 2 yes).
@@ -480,7 +480,7 @@ pub(crate) fn agreements(
         let mut fit = |xx: usize, yy: usize| {
             let m = &mut memo[yy + 2 - y][xx + 2 - x];
             if *m == 0 {
-                *m = 1 + fits(yy * w + xx, l) as u8;
+                *m = 1 + fits(xx, yy, l) as u8;
             }
             *m == 2
         };
@@ -516,10 +516,10 @@ pub(crate) fn agreements(
                     row
                 };
                 for (x, &o) in row.iter().enumerate() {
-                    let (p, l) = (y * w + x, o as usize);
+                    let l = o as usize;
                     let s = &mut acc[l];
                     s[0] += 1;
-                    s[1] += fits(p, l) as u32;
+                    s[1] += fits(x, y, l) as u32;
                     // On the layer's boundary: a 4-neighbour (rows out of the image stand in
                     // for themselves) belongs to another layer.
                     let across = (x > 0 && row[x - 1] != o)

@@ -167,9 +167,29 @@ impl Rect {
         }
     }
 
-    /// The bounding box of the pixels where `f` holds, if any.
-    fn bounding(w: usize, h: usize, f: impl Fn(usize) -> bool) -> Option<Self> {
-        Self::all(w, h).bounding_in(w, f)
+    /// The bounding box of each label's pixels in `labels` (an image `w` wide; labels from
+    /// 0 to `k - 1`), if it has any.
+    fn of_labels(labels: &[u8], w: usize, k: usize) -> Vec<Option<Self>> {
+        let mut boxes: Vec<Option<Self>> = vec![None; k];
+        for (y, row) in labels.chunks_exact(w).enumerate() {
+            // Run by run of equal labels.
+            let mut x = 0;
+            while x < w {
+                let l = row[x];
+                let end = row[x..].iter().position(|&o| o != l).map_or(w, |n| x + n);
+                if let Some(b) = boxes.get_mut(l as usize) {
+                    let r = b.get_or_insert(Rect {
+                        x0: x,
+                        y0: y,
+                        x1: end,
+                        y1: y + 1,
+                    });
+                    (r.x0, r.x1, r.y1) = (r.x0.min(x), r.x1.max(end), y + 1);
+                }
+                x = end;
+            }
+        }
+        boxes
     }
 
     /// The bounding box of the pixels of `self` (in an image `w` wide) where `f` holds, if
@@ -298,16 +318,21 @@ pub fn build_layers(
     // Distance to every layer's own pixels, within reach of them (the back layer too: where
     // it is the nearest layer behind an occluder, nothing else extends there).
     let reach = (margin + cfg.max_feather).ceil() as usize + 2;
-    let dists: Vec<Option<(Rect, Vec<f32>)>> = (0..k)
+    let boxes = Rect::of_labels(owner, w, k);
+    let dists: Vec<Option<(Rect, Vec<f32>)>> = boxes
         .into_par_iter()
-        .map(|i| {
-            let own = |p: usize| owner[p] as usize == i;
-            let r = Rect::bounding(w, h, own)?.grow(reach, w, h);
-            let rw = r.width();
-            let inside: Vec<bool> = (0..rw * r.height())
-                .map(|q| own((q / rw + r.y0) * w + q % rw + r.x0))
-                .collect();
-            Some((r, distance(&inside, rw, r.height())))
+        .enumerate()
+        .map(|(i, r)| {
+            let r = r?.grow(reach, w, h);
+            let mut inside = Vec::with_capacity(r.width() * r.height());
+            for y in r.y0..r.y1 {
+                inside.extend(
+                    owner[y * w + r.x0..y * w + r.x1]
+                        .iter()
+                        .map(|&o| o as usize == i),
+                );
+            }
+            Some((r, distance(&inside, r.width(), r.height())))
         })
         .collect();
     let dist = |l: usize, x: usize, y: usize| -> f32 {

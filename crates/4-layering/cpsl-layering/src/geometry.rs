@@ -285,19 +285,14 @@ fn own_runs(px: &LayerDepth<'_>) -> Vec<Run> {
     let mut runs = Vec::new();
     for y in ys {
         let row = &px.owner[y * px.width..][xs.clone()];
-        let mut x = 0;
-        while let Some(a) = row[x..].iter().position(|&o| o == px.label) {
-            let a = x + a;
-            let b = row[a..]
-                .iter()
-                .position(|&o| o != px.label)
-                .map_or(row.len(), |n| a + n);
-            runs.push(Run {
-                y,
-                x: xs.start + a..xs.start + b,
-            });
-            x = b;
-        }
+        runs.extend(
+            crate::grid::label_runs(row)
+                .filter(|(l, _)| *l == px.label)
+                .map(|(_, r)| Run {
+                    y,
+                    x: xs.start + r.start..xs.start + r.end,
+                }),
+        );
     }
     runs
 }

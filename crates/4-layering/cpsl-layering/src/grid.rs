@@ -190,6 +190,21 @@ impl Lower {
     }
 }
 
+/// The runs of equal labels along `row`, left to right: each label and its columns.
+pub(crate) fn label_runs(row: &[u8]) -> impl Iterator<Item = (u8, std::ops::Range<usize>)> + '_ {
+    let mut x = 0;
+    std::iter::from_fn(move || {
+        let &l = row.get(x)?;
+        let end = row[x..]
+            .iter()
+            .position(|&o| o != l)
+            .map_or(row.len(), |n| x + n);
+        let run = (l, x..end);
+        x = end;
+        Some(run)
+    })
+}
+
 /// Labels 4-connected components of equal `key` where `joinable` allows; returns the
 /// component id of every pixel and the number of components.
 pub fn components(

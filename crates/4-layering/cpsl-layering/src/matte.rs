@@ -23,7 +23,7 @@
 use crate::cues::Cues;
 use crate::error::LayeringError;
 use crate::geometry::{fit_geometry, GeometryMode, LayerDepth};
-use crate::grid::distance;
+use crate::grid::{distance, label_runs};
 use crate::promote::{Kind, Plan};
 use cpsl_core::fill::push_pull;
 use cpsl_core::resample::source_coord;
@@ -172,21 +172,16 @@ impl Rect {
     fn of_labels(labels: &[u8], w: usize, k: usize) -> Vec<Option<Self>> {
         let mut boxes: Vec<Option<Self>> = vec![None; k];
         for (y, row) in labels.chunks_exact(w).enumerate() {
-            // Run by run of equal labels.
-            let mut x = 0;
-            while x < w {
-                let l = row[x];
-                let end = row[x..].iter().position(|&o| o != l).map_or(w, |n| x + n);
+            for (l, xs) in label_runs(row) {
                 if let Some(b) = boxes.get_mut(l as usize) {
                     let r = b.get_or_insert(Rect {
-                        x0: x,
+                        x0: xs.start,
                         y0: y,
-                        x1: end,
+                        x1: xs.end,
                         y1: y + 1,
                     });
-                    (r.x0, r.x1, r.y1) = (r.x0.min(x), r.x1.max(end), y + 1);
+                    (r.x0, r.x1, r.y1) = (r.x0.min(xs.start), r.x1.max(xs.end), y + 1);
                 }
-                x = end;
             }
         }
         boxes

@@ -321,7 +321,7 @@ fn sample_scalar(
     }
 }
 
-/// One pass over every pixel of the carried layers:
+/// Over every pixel of the carried layers, row by row:
 /// - hidden content (`hidden[l]`) that nothing in front covers (cover below 1/2) is dropped
 ///   unless the new depth (`depth`) lies within the layer's span (`spans[l]`, z bounds), so
 ///   that the layers behind show where the guess was wrong (the back layer is opaque
@@ -349,37 +349,47 @@ pub(crate) fn settle(
         }
     }
     let mut owner = vec![0u8; w * h];
+    // Layer by layer along each row (each pixel still sees its layers front to back), with
+    // the pixels' coverage so far kept per row.
     rows.into_par_iter()
         .zip(owner.par_chunks_mut(w))
         .enumerate()
-        .for_each(|(y, (mut layers, own))| {
-            for (x, o) in own.iter_mut().enumerate() {
-                let p = y * w + x;
-                let mut cover = 0u32; // 0..=255 * 255
-                let mut first = k - 1;
+        .for_each_init(
+            || vec![0u32; w],
+            |cover, (y, (mut layers, own))| {
+                let z = &depth[y * w..(y + 1) * w];
+                cover.fill(0); // 0..=255 * 255
+                own.fill((k - 1) as u8);
                 for (l, row) in layers[..k - 1].iter_mut().enumerate() {
-                    let a = row[x * 4 + 3] as u32;
-                    if a == 0 {
-                        continue;
-                    }
+                    let hid = &hidden[l][y * w..(y + 1) * w];
                     let (lo, hi) = spans[l];
-                    if hidden[l][p] && cover * 2 < 255 * 255 && !(depth[p] >= lo && depth[p] <= hi)
-                    {
-                        row[x * 4..x * 4 + 4].fill(0);
-                        continue;
-                    }
-                    cover += (255 * 255 - cover) * a / 255;
-                    if a >= 128 && first == k - 1 {
-                        first = l;
+                    let pixels = row.chunks_exact_mut(4).zip(hid).zip(z);
+                    for (((px, &hid), &z), (c, o)) in pixels.zip(cover.iter_mut().zip(&mut *own)) {
+                        let a = px[3] as u32;
+                        if a == 0 {
+                            continue;
+                        }
+                        if hid && *c * 2 < 255 * 255 && !(z >= lo && z <= hi) {
+                            px.fill(0);
+                            continue;
+                        }
+                        *c += (255 * 255 - *c) * a / 255;
+                        if a >= 128 && *o as usize == k - 1 {
+                            *o = l as u8;
+                        }
                     }
                 }
-                *o = first as u8;
-                let px = &mut layers[first][x * 4..x * 4 + 4];
-                if refresh && px[3] == 255 {
-                    px[..3].copy_from_slice(&rgb[p * 3..p * 3 + 3]);
+                if refresh {
+                    let colour = rgb[y * w * 3..(y + 1) * w * 3].chunks_exact(3);
+                    for (x, (&o, c)) in own.iter().zip(colour).enumerate() {
+                        let px = &mut layers[o as usize][x * 4..x * 4 + 4];
+                        if px[3] == 255 {
+                            px[..3].copy_from_slice(c);
+                        }
+                    }
                 }
-            }
-        });
+            },
+        );
     owner
 }
 

@@ -113,6 +113,17 @@ struct Segment {
     clamped: bool,
 }
 
+/// Segments per group of a row (see [`warp_layer`]).
+const GROUP: usize = 8;
+
+/// Up to `GROUP` consecutive segments of a row, with their weights laid out for straight-line
+/// code over the group (0 past its end).
+struct Group<'a> {
+    segs: &'a [Segment],
+    f0: [f32; GROUP],
+    df: [f32; GROUP],
+}
+
 /// The segments of a row of `n` pixels over a grid of `grid` nodes (pixel centres mapped to
 /// grid coordinates, clamped to the outer nodes).
 fn segments(n: usize, grid: usize) -> Vec<Segment> {
@@ -167,8 +178,16 @@ pub(crate) fn warp_layer(
     // Segments are taken in groups. Per band of pixel rows between two grid rows, a group
     // whose positions (within the hull of the grid nodes they interpolate) reach no content
     // is skipped whole.
-    const GROUP: usize = 8;
-    let groups: Vec<&[Segment]> = segs.chunks(GROUP).collect();
+    let groups: Vec<Group> = segs
+        .chunks(GROUP)
+        .map(|segs| {
+            let (mut f0, mut df) = ([0f32; GROUP], [0f32; GROUP]);
+            for ((f, d), seg) in f0.iter_mut().zip(&mut df).zip(segs) {
+                (*f, *d) = (seg.f0, seg.df);
+            }
+            Group { segs, f0, df }
+        })
+        .collect();
     let live: Vec<Vec<bool>> = (0..gh)
         .into_par_iter()
         .map(|g| {
@@ -176,7 +195,8 @@ pub(crate) fn warp_layer(
             groups
                 .iter()
                 .map(|group| {
-                    let nodes = group[0].c0..=group[group.len() - 1].c1;
+                    let segs = group.segs;
+                    let nodes = segs[0].c0..=segs[segs.len() - 1].c1;
                     let hull = |c: usize| {
                         band.iter()
                             .flat_map(|&r| nodes.clone().map(move |n| map[(r * gw + n) * 2 + c]))
@@ -210,29 +230,44 @@ pub(crate) fn warp_layer(
                 lx.extend((0..gw).map(|g| lerp(g * 2)));
                 ly.clear();
                 ly.extend((0..gw).map(|g| lerp(g * 2 + 1)));
-                for (&group, _) in groups.iter().zip(live).filter(|(_, &v)| v) {
+                for (group, _) in groups.iter().zip(live).filter(|(_, &v)| v) {
                     // Positions (1/256 px, rounded) of the group's pixels, stepped in 16.16
-                    // fixed point along each segment.
-                    let (gx0, gx1) = (group[0].x0, group[group.len() - 1].x1);
-                    for seg in group {
-                        // 16.16 fixed point (truncated: no libm call on the baseline target),
-                        // clamped so that no step overflows; positions clamped that far out
-                        // fail the range test anyway.
-                        let pos = |v: f32| {
-                            (v * 65536.0).clamp(-(1 << 29) as f32, (1 << 29) as f32) as i32
-                        };
-                        let step = |v: f32| {
-                            (v * 65536.0).clamp(-(1 << 24) as f32, (1 << 24) as f32) as i32
-                        };
-                        let (dx, dy) = (lx[seg.c1] - lx[seg.c0], ly[seg.c1] - ly[seg.c0]);
-                        let mut x = pos(lx[seg.c0] + dx * seg.f0) + 128;
-                        let mut y = pos(ly[seg.c0] + dy * seg.f0) + 128;
-                        let (sx, sy) = (step(dx * seg.df), step(dy * seg.df));
+                    // fixed point along each segment: first every segment's start and step
+                    // (straight-line code over the group, which the compiler vectorises),
+                    // then its pixels.
+                    let segs = group.segs;
+                    let (gx0, gx1) = (segs[0].x0, segs[segs.len() - 1].x1);
+                    let ends = |v: &[f32]| {
+                        let (mut a, mut b) = ([0f32; GROUP], [0f32; GROUP]);
+                        for ((a, b), seg) in a.iter_mut().zip(&mut b).zip(segs) {
+                            (*a, *b) = (v[seg.c0], v[seg.c1]);
+                        }
+                        (a, b)
+                    };
+                    let ((ax, bx), (ay, by)) = (ends(lx), ends(ly));
+                    // 16.16 fixed point (truncated: no libm call on the baseline target),
+                    // clamped so that no step overflows; positions clamped that far out fail
+                    // the range test anyway.
+                    let pos =
+                        |v: f32| (v * 65536.0).clamp(-(1 << 29) as f32, (1 << 29) as f32) as i32;
+                    let step =
+                        |v: f32| (v * 65536.0).clamp(-(1 << 24) as f32, (1 << 24) as f32) as i32;
+                    let (mut x0, mut y0, mut sx, mut sy) =
+                        ([0i32; GROUP], [0; GROUP], [0; GROUP], [0; GROUP]);
+                    for i in 0..GROUP {
+                        let (dx, dy) = (bx[i] - ax[i], by[i] - ay[i]);
+                        x0[i] = pos(ax[i] + dx * group.f0[i]) + 128;
+                        y0[i] = pos(ay[i] + dy * group.f0[i]) + 128;
+                        sx[i] = step(dx * group.df[i]);
+                        sy[i] = step(dy * group.df[i]);
+                    }
+                    for (i, seg) in segs.iter().enumerate() {
+                        let (mut x, mut y) = (x0[i], y0[i]);
                         for (a, b) in xs[seg.x0..seg.x1].iter_mut().zip(&mut ys[seg.x0..seg.x1]) {
                             *a = x >> 8;
                             *b = y >> 8;
-                            x += sx;
-                            y += sy;
+                            x += sx[i];
+                            y += sy[i];
                         }
                     }
                     let (xs, ys) = (&xs[gx0..gx1], &ys[gx0..gx1]);
@@ -525,11 +560,20 @@ pub(crate) fn agreements(
                 } else {
                     row
                 };
+                // Area and depth agreement run by run of one layer along the row.
+                let ln_row = &ln[y * w..(y + 1) * w];
+                let mut x0 = 0;
+                while x0 < w {
+                    let o = row[x0];
+                    let x1 = x0 + row[x0..].iter().take_while(|&&v| v == o).count();
+                    let s = &mut acc[o as usize];
+                    s[0] += (x1 - x0) as u32;
+                    s[1] += lz[o as usize].fits_along(y, x0, &ln_row[x0..x1], tolerance);
+                    x0 = x1;
+                }
                 for (x, &o) in row.iter().enumerate() {
                     let l = o as usize;
                     let s = &mut acc[l];
-                    s[0] += 1;
-                    s[1] += fits(x, y, l) as u32;
                     // On the layer's boundary: a 4-neighbour (rows out of the image stand in
                     // for themselves) belongs to another layer.
                     let across = (x > 0 && row[x - 1] != o)
@@ -804,6 +848,21 @@ impl LogDepth {
     /// `ln z_k` of the layer's reference depth.
     pub(crate) fn reference(&self) -> f32 {
         self.lz
+    }
+
+    /// How many of the pixels `(x0 + i, y)` have `|ln[i] - ln z| <= tolerance`, `ln z` the
+    /// surface's at the pixel ([`Self::at`], one surface type per run).
+    pub(crate) fn fits_along(&self, y: usize, x0: usize, ln: &[f32], tolerance: f32) -> u32 {
+        fn count(ln: &[f32], x0: usize, tolerance: f32, at: impl Fn(usize) -> f32) -> u32 {
+            (ln.iter().enumerate())
+                .filter(|&(i, &v)| (v - at(x0 + i)).abs() <= tolerance)
+                .count() as u32
+        }
+        match &self.surface {
+            Surface::Flat => count(ln, x0, tolerance, |_| self.lz),
+            Surface::Plane(_) => count(ln, x0, tolerance, |x| self.at(x, y)),
+            Surface::Mesh(log) => count(ln, x0, tolerance, |x| log.at(x, y)),
+        }
     }
 
     /// `ln z` of the layer's surface at pixel `(x, y)`.

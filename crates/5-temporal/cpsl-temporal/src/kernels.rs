@@ -225,11 +225,13 @@ pub(crate) fn warp_layer(
                     return;
                 }
                 let (a, b) = (&map[g0 * gw * 2..][..gw * 2], &map[g1 * gw * 2..][..gw * 2]);
-                let lerp = |c: usize| a[c] + (b[c] - a[c]) * fy;
-                lx.clear();
-                lx.extend((0..gw).map(|g| lerp(g * 2)));
-                ly.clear();
-                ly.extend((0..gw).map(|g| lerp(g * 2 + 1)));
+                lx.resize(gw, 0.0);
+                ly.resize(gw, 0.0);
+                let nodes = a.chunks_exact(2).zip(b.chunks_exact(2));
+                for ((x, y), (a, b)) in lx.iter_mut().zip(ly.iter_mut()).zip(nodes) {
+                    *x = a[0] + (b[0] - a[0]) * fy;
+                    *y = a[1] + (b[1] - a[1]) * fy;
+                }
                 for (group, _) in groups.iter().zip(live).filter(|(_, &v)| v) {
                     // Positions (1/256 px, rounded) of the group's pixels, stepped in 16.16
                     // fixed point along each segment: first every segment's start and step
@@ -612,20 +614,24 @@ pub(crate) fn crack_rate(owner: &[u8], depth: &[f32], w: usize, h: usize) -> f32
         .into_par_iter()
         .map(|y| {
             let (mut pairs, mut bad) = (0u32, 0u32);
-            let mut pair = |p: usize, q: usize| {
-                if owner[p] != owner[q] {
-                    pairs += 1;
-                    let (near, far) = if owner[p] < owner[q] { (p, q) } else { (q, p) };
-                    bad += (depth[near] > depth[far] * 1.02) as u32;
+            // Each pixel's label and depth, paired with its right and its lower neighbour's.
+            let mut count = |a: &[u8], za: &[f32], b: &[u8], zb: &[f32]| {
+                for ((&p, &q), (&zp, &zq)) in a.iter().zip(b).zip(za.iter().zip(zb)) {
+                    if p != q {
+                        pairs += 1;
+                        let (near, far) = if p < q { (zp, zq) } else { (zq, zp) };
+                        bad += (near > far * 1.02) as u32;
+                    }
                 }
             };
-            for p in y * w..(y + 1) * w - 1 {
-                pair(p, p + 1);
-            }
+            let (row, z) = (&owner[y * w..(y + 1) * w], &depth[y * w..(y + 1) * w]);
+            count(&row[..w - 1], &z[..w - 1], &row[1..], &z[1..]);
             if y + 1 < h {
-                for p in y * w..(y + 1) * w {
-                    pair(p, p + w);
-                }
+                let (below, zb) = (
+                    &owner[(y + 1) * w..(y + 2) * w],
+                    &depth[(y + 1) * w..(y + 2) * w],
+                );
+                count(row, z, below, zb);
             }
             (pairs, bad)
         })

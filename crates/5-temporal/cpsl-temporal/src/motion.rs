@@ -103,12 +103,11 @@ pub(crate) fn sample2(d: &[f32], gw: usize, gh: usize, x: f32, y: f32) -> [f32; 
     // Offsets of the right and lower taps (the same tap at the last column or row).
     let dx = if x0 + 1 < gw { 2 } else { 0 };
     let dy = if y0 + 1 < gh { gw * 2 } else { 0 };
-    let i = (y0 * gw + x0) * 2;
-    let t = &d[i..i + dy + dx + 2];
-    let (a, b) = (&t[..2], &t[dx..dx + 2]);
-    let (c, e) = (&t[dy..dy + 2], &t[dy + dx..dy + dx + 2]);
+    let a = (y0 * gw + x0) * 2;
+    let (b, c, e) = (a + dx, a + dy, a + dy + dx);
     [0, 1].map(|k| {
-        (a[k] * (1.0 - fx) + b[k] * fx) * (1.0 - fy) + (c[k] * (1.0 - fx) + e[k] * fx) * fy
+        (d[a + k] * (1.0 - fx) + d[b + k] * fx) * (1.0 - fy)
+            + (d[c + k] * (1.0 - fx) + d[e + k] * fx) * fy
     })
 }
 

@@ -191,7 +191,7 @@ impl Lower {
 }
 
 /// The runs of equal labels along `row`, left to right: each label and its columns.
-pub(crate) fn label_runs(row: &[u8]) -> impl Iterator<Item = (u8, std::ops::Range<usize>)> + '_ {
+pub fn label_runs(row: &[u8]) -> impl Iterator<Item = (u8, std::ops::Range<usize>)> + '_ {
     let mut x = 0;
     std::iter::from_fn(move || {
         let &l = row.get(x)?;

@@ -564,14 +564,10 @@ pub(crate) fn agreements(
                 };
                 // Area and depth agreement run by run of one layer along the row.
                 let ln_row = &ln[y * w..(y + 1) * w];
-                let mut x0 = 0;
-                while x0 < w {
-                    let o = row[x0];
-                    let x1 = x0 + row[x0..].iter().take_while(|&&v| v == o).count();
+                for (o, xs) in cpsl_layering::grid::label_runs(row) {
                     let s = &mut acc[o as usize];
-                    s[0] += (x1 - x0) as u32;
-                    s[1] += lz[o as usize].fits_along(y, x0, &ln_row[x0..x1], tolerance);
-                    x0 = x1;
+                    s[0] += xs.len() as u32;
+                    s[1] += lz[o as usize].fits_along(y, xs.start, &ln_row[xs], tolerance);
                 }
                 for (x, &o) in row.iter().enumerate() {
                     let l = o as usize;

@@ -113,13 +113,14 @@ struct Segment {
     clamped: bool,
 }
 
-/// Segments per group of a row (see [`warp_layer`]).
+/// Segments per group of a row (see [`RowGrid`]).
 const GROUP: usize = 8;
 
-/// Up to `GROUP` consecutive segments of a row, with their weights laid out for straight-line
-/// code over the group (0 past its end).
-struct Group<'a> {
-    segs: &'a [Segment],
+/// Up to `GROUP` consecutive segments of a row (`segs[first..first + len]`), with their
+/// weights laid out for straight-line code over the group (0 past its end).
+struct Group {
+    first: usize,
+    len: usize,
     f0: [f32; GROUP],
     df: [f32; GROUP],
 }
@@ -151,141 +152,226 @@ fn segments(n: usize, grid: usize) -> Vec<Segment> {
     out
 }
 
-/// Layer `l` of the I-frame (`key`) sampled (bilinear, 1/256 pixel) where `map` (on a
-/// `gw x gh` grid, bilinearly interpolated) sends every pixel, transparent where that lies
-/// more than half a pixel outside the image; and per pixel whether that position was hidden
-/// behind a nearer layer in the I-frame (`owner < l`).
-pub(crate) fn warp_layer(
-    key: &KeyLayer,
-    map: &[f32],
+/// How a `w x h` frame's pixels interpolate a `gw x gh` grid map (bilinearly), the same for
+/// every layer: the segments of a row, taken in groups, and per pixel row its two grid rows
+/// and the weight of the second.
+pub(crate) struct RowGrid {
+    w: usize,
+    h: usize,
     gw: usize,
     gh: usize,
-    owner: &[u8],
-    l: usize,
-) -> (PremulImage, Vec<bool>) {
-    let (w, h) = (key.w, key.h);
-    let mut out = PremulImage::new(w as u32, h as u32);
-    let mut hidden = vec![false; w * h];
-    if key.occupancy.is_empty() {
-        return (out, hidden);
+    segs: Vec<Segment>,
+    groups: Vec<Group>,
+    rows: Vec<(usize, usize, f32)>,
+}
+
+impl RowGrid {
+    pub(crate) fn new((w, h): (usize, usize), (gw, gh): (usize, usize)) -> Self {
+        let segs = segments(w, gw);
+        // Rows use the same construction along y.
+        let rows = segments(h, gh)
+            .iter()
+            .flat_map(|s| (s.x0..s.x1).map(move |y| (s.c0, s.c1, s.f0 + s.df * (y - s.x0) as f32)))
+            .collect();
+        let groups = (0..segs.len())
+            .step_by(GROUP)
+            .map(|first| {
+                let len = GROUP.min(segs.len() - first);
+                let (mut f0, mut df) = ([0f32; GROUP], [0f32; GROUP]);
+                for ((f, d), seg) in f0.iter_mut().zip(&mut df).zip(&segs[first..first + len]) {
+                    (*f, *d) = (seg.f0, seg.df);
+                }
+                Group { first, len, f0, df }
+            })
+            .collect();
+        Self {
+            w,
+            h,
+            gw,
+            gh,
+            segs,
+            groups,
+            rows,
+        }
     }
-    let segs = segments(w, gw);
-    // Rows use the same construction along y.
-    let rows: Vec<(usize, usize, f32)> = segments(h, gh)
-        .iter()
-        .flat_map(|s| (s.x0..s.x1).map(move |y| (s.c0, s.c1, s.f0 + s.df * (y - s.x0) as f32)))
-        .collect();
-    // Segments are taken in groups. Per band of pixel rows between two grid rows, a group
-    // whose positions (within the hull of the grid nodes they interpolate) reach no content
-    // is skipped whole.
-    let groups: Vec<Group> = segs
-        .chunks(GROUP)
-        .map(|segs| {
-            let (mut f0, mut df) = ([0f32; GROUP], [0f32; GROUP]);
-            for ((f, d), seg) in f0.iter_mut().zip(&mut df).zip(segs) {
-                (*f, *d) = (seg.f0, seg.df);
-            }
-            Group { segs, f0, df }
-        })
-        .collect();
-    let live: Vec<Vec<bool>> = (0..gh)
-        .into_par_iter()
-        .map(|g| {
-            let band = [g, (g + 1).min(gh - 1)];
-            groups
-                .iter()
-                .map(|group| {
-                    let segs = group.segs;
-                    let nodes = segs[0].c0..=segs[segs.len() - 1].c1;
-                    let hull = |c: usize| {
-                        band.iter()
-                            .flat_map(|&r| nodes.clone().map(move |n| map[(r * gw + n) * 2 + c]))
-                            .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), p| {
-                                (lo.min(p), hi.max(p))
-                            })
-                    };
-                    let ((x0, x1), (y0, y1)) = (hull(0), hull(1));
-                    key.occupancy.any(x0, x1 + 1.0, y0, y1 + 1.0)
+}
+
+/// Layer `l` of the I-frame (`key`) carried along its `map` (on the [`RowGrid`]'s grid,
+/// bilinearly interpolated), row by row; see [`LayerWarp::row`].
+pub(crate) struct LayerWarp<'a> {
+    key: &'a KeyLayer,
+    map: &'a [f32],
+    l: usize,
+    /// Per band of pixel rows between two grid rows, per group of segments: whether the
+    /// group's positions (within the hull of the grid nodes they interpolate) may reach
+    /// content. `None`: the layer is empty.
+    live: Option<Vec<Vec<bool>>>,
+}
+
+/// Per-task buffers of [`LayerWarp::row`].
+#[derive(Default)]
+pub(crate) struct RowScratch {
+    lx: Vec<f32>,
+    ly: Vec<f32>,
+    xs: Vec<i32>,
+    ys: Vec<i32>,
+}
+
+impl<'a> LayerWarp<'a> {
+    pub(crate) fn new(key: &'a KeyLayer, map: &'a [f32], grid: &RowGrid, l: usize) -> Self {
+        let (gw, gh) = (grid.gw, grid.gh);
+        let live = (!key.occupancy.is_empty()).then(|| {
+            (0..gh)
+                .map(|g| {
+                    let band = [g, (g + 1).min(gh - 1)];
+                    grid.groups
+                        .iter()
+                        .map(|group| {
+                            let nodes = grid.segs[group.first].c0
+                                ..=grid.segs[group.first + group.len - 1].c1;
+                            let hull = |c: usize| {
+                                band.iter()
+                                    .flat_map(|&r| {
+                                        nodes.clone().map(move |n| map[(r * gw + n) * 2 + c])
+                                    })
+                                    .fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), p| {
+                                        (lo.min(p), hi.max(p))
+                                    })
+                            };
+                            let ((x0, x1), (y0, y1)) = (hull(0), hull(1));
+                            key.occupancy.any(x0, x1 + 1.0, y0, y1 + 1.0)
+                        })
+                        .collect()
                 })
                 .collect()
-        })
+        });
+        Self { key, map, l, live }
+    }
+
+    /// Row `y` of the carried layer (bilinear, 1/256 pixel, transparent where a position lies
+    /// more than half a pixel outside the image) into `row` (RGBA, zero on entry); per pixel
+    /// with content, `hid` says whether that position was hidden behind a nearer layer in the
+    /// I-frame (`owner < l`; false on entry). A live group's positions are all written to
+    /// `scratch` before they are read (a group's segments cover its pixels without gaps).
+    pub(crate) fn row(
+        &self,
+        grid: &RowGrid,
+        y: usize,
+        owner: &[u8],
+        row: &mut [u8],
+        hid: &mut [bool],
+        scratch: &mut RowScratch,
+    ) {
+        let Some(live) = &self.live else {
+            return;
+        };
+        let (g0, g1, fy) = grid.rows[y];
+        let live = &live[g0];
+        if !live.iter().any(|&v| v) {
+            return;
+        }
+        let gw = grid.gw;
+        let RowScratch { lx, ly, xs, ys } = scratch;
+        xs.resize(grid.w, 0);
+        ys.resize(grid.w, 0);
+        let map = self.map;
+        let (a, b) = (&map[g0 * gw * 2..][..gw * 2], &map[g1 * gw * 2..][..gw * 2]);
+        lx.resize(gw, 0.0);
+        ly.resize(gw, 0.0);
+        let nodes = a.chunks_exact(2).zip(b.chunks_exact(2));
+        for ((x, y), (a, b)) in lx.iter_mut().zip(ly.iter_mut()).zip(nodes) {
+            *x = a[0] + (b[0] - a[0]) * fy;
+            *y = a[1] + (b[1] - a[1]) * fy;
+        }
+        for (group, _) in grid.groups.iter().zip(live).filter(|(_, &v)| v) {
+            // Positions (1/256 px, rounded) of the group's pixels, stepped in 16.16 fixed
+            // point along each segment: first every segment's start and step (straight-line
+            // code over the group, which the compiler vectorises), then its pixels.
+            let segs = &grid.segs[group.first..group.first + group.len];
+            let (gx0, gx1) = (segs[0].x0, segs[segs.len() - 1].x1);
+            let ends = |v: &[f32]| {
+                let (mut a, mut b) = ([0f32; GROUP], [0f32; GROUP]);
+                for ((a, b), seg) in a.iter_mut().zip(&mut b).zip(segs) {
+                    (*a, *b) = (v[seg.c0], v[seg.c1]);
+                }
+                (a, b)
+            };
+            let ((ax, bx), (ay, by)) = (ends(lx), ends(ly));
+            // 16.16 fixed point (truncated: no libm call on the baseline target), clamped so
+            // that no step overflows; positions clamped that far out fail the range test
+            // anyway.
+            let pos = |v: f32| (v * 65536.0).clamp(-(1 << 29) as f32, (1 << 29) as f32) as i32;
+            let step = |v: f32| (v * 65536.0).clamp(-(1 << 24) as f32, (1 << 24) as f32) as i32;
+            let (mut x0, mut y0, mut sx, mut sy) =
+                ([0i32; GROUP], [0; GROUP], [0; GROUP], [0; GROUP]);
+            for i in 0..GROUP {
+                let (dx, dy) = (bx[i] - ax[i], by[i] - ay[i]);
+                x0[i] = pos(ax[i] + dx * group.f0[i]) + 128;
+                y0[i] = pos(ay[i] + dy * group.f0[i]) + 128;
+                sx[i] = step(dx * group.df[i]);
+                sy[i] = step(dy * group.df[i]);
+            }
+            for (i, seg) in segs.iter().enumerate() {
+                let (mut x, mut y) = (x0[i], y0[i]);
+                for (a, b) in xs[seg.x0..seg.x1].iter_mut().zip(&mut ys[seg.x0..seg.x1]) {
+                    *a = x >> 8;
+                    *b = y >> 8;
+                    x += sx[i];
+                    y += sy[i];
+                }
+            }
+            let (xs, ys) = (&xs[gx0..gx1], &ys[gx0..gx1]);
+            let (out, hid) = (&mut row[gx0 * 4..gx1 * 4], &mut hid[gx0..gx1]);
+            sample_span(self.key, xs, ys, out, hid, owner, self.l);
+        }
+    }
+}
+
+/// The I-frame's layers (`keys`) carried along their `maps` (on `grid`'s grid) and settled
+/// ([`settle_row`]) row by row, each row's layers warped and settled while they are in
+/// cache. `key_owner` is the I-frame's owner, `depth` the new frame's, `spans` each layer's
+/// depth bounds. Returns the carried layers and the new owner.
+#[allow(clippy::too_many_arguments)]
+pub(crate) fn warp_and_settle(
+    keys: &[KeyLayer],
+    maps: &[Vec<f32>],
+    grid: &RowGrid,
+    key_owner: &[u8],
+    depth: &[f32],
+    spans: &[(f32, f32)],
+    rgb: &[u8],
+    refresh: bool,
+) -> (Vec<PremulImage>, Vec<u8>) {
+    let (w, h, k) = (grid.w, grid.h, keys.len());
+    let warps: Vec<LayerWarp> = (keys.par_iter().zip(maps).enumerate())
+        .map(|(l, (key, map))| LayerWarp::new(key, map, grid, l))
         .collect();
-    out.as_bytes_mut()
-        .par_chunks_mut(w * 4)
-        .zip(hidden.par_chunks_mut(w))
+    let mut images: Vec<PremulImage> = (0..k)
+        .into_par_iter()
+        .map(|_| PremulImage::new(w as u32, h as u32))
+        .collect();
+    let mut rows: Vec<Vec<&mut [u8]>> = (0..h).map(|_| Vec::with_capacity(k)).collect();
+    for img in images.iter_mut() {
+        for (r, chunk) in rows.iter_mut().zip(img.as_bytes_mut().chunks_mut(w * 4)) {
+            r.push(chunk);
+        }
+    }
+    let mut owner = vec![0u8; w * h];
+    rows.into_par_iter()
+        .zip(owner.par_chunks_mut(w))
         .enumerate()
-        // Each task's rows share their buffers: a live group's positions are all written
-        // before they are read (a group's segments cover its pixels without gaps).
         .for_each_init(
-            || (Vec::new(), Vec::new(), vec![0i32; w], vec![0i32; w]),
-            |(lx, ly, xs, ys), (y, (row, hid))| {
-                let (g0, g1, fy) = rows[y];
-                let live = &live[g0];
-                if !live.iter().any(|&v| v) {
-                    return;
+            || (RowScratch::default(), vec![false; k * w], vec![0u32; w]),
+            |(scratch, hidden, cover), (y, (mut layers, own))| {
+                hidden.fill(false);
+                for ((warp, row), hid) in warps.iter().zip(&mut layers).zip(hidden.chunks_mut(w)) {
+                    warp.row(grid, y, key_owner, row, hid, scratch);
                 }
-                let (a, b) = (&map[g0 * gw * 2..][..gw * 2], &map[g1 * gw * 2..][..gw * 2]);
-                lx.resize(gw, 0.0);
-                ly.resize(gw, 0.0);
-                let nodes = a.chunks_exact(2).zip(b.chunks_exact(2));
-                for ((x, y), (a, b)) in lx.iter_mut().zip(ly.iter_mut()).zip(nodes) {
-                    *x = a[0] + (b[0] - a[0]) * fy;
-                    *y = a[1] + (b[1] - a[1]) * fy;
-                }
-                for (group, _) in groups.iter().zip(live).filter(|(_, &v)| v) {
-                    // Positions (1/256 px, rounded) of the group's pixels, stepped in 16.16
-                    // fixed point along each segment: first every segment's start and step
-                    // (straight-line code over the group, which the compiler vectorises),
-                    // then its pixels.
-                    let segs = group.segs;
-                    let (gx0, gx1) = (segs[0].x0, segs[segs.len() - 1].x1);
-                    let ends = |v: &[f32]| {
-                        let (mut a, mut b) = ([0f32; GROUP], [0f32; GROUP]);
-                        for ((a, b), seg) in a.iter_mut().zip(&mut b).zip(segs) {
-                            (*a, *b) = (v[seg.c0], v[seg.c1]);
-                        }
-                        (a, b)
-                    };
-                    let ((ax, bx), (ay, by)) = (ends(lx), ends(ly));
-                    // 16.16 fixed point (truncated: no libm call on the baseline target),
-                    // clamped so that no step overflows; positions clamped that far out fail
-                    // the range test anyway.
-                    let pos =
-                        |v: f32| (v * 65536.0).clamp(-(1 << 29) as f32, (1 << 29) as f32) as i32;
-                    let step =
-                        |v: f32| (v * 65536.0).clamp(-(1 << 24) as f32, (1 << 24) as f32) as i32;
-                    let (mut x0, mut y0, mut sx, mut sy) =
-                        ([0i32; GROUP], [0; GROUP], [0; GROUP], [0; GROUP]);
-                    for i in 0..GROUP {
-                        let (dx, dy) = (bx[i] - ax[i], by[i] - ay[i]);
-                        x0[i] = pos(ax[i] + dx * group.f0[i]) + 128;
-                        y0[i] = pos(ay[i] + dy * group.f0[i]) + 128;
-                        sx[i] = step(dx * group.df[i]);
-                        sy[i] = step(dy * group.df[i]);
-                    }
-                    for (i, seg) in segs.iter().enumerate() {
-                        let (mut x, mut y) = (x0[i], y0[i]);
-                        for (a, b) in xs[seg.x0..seg.x1].iter_mut().zip(&mut ys[seg.x0..seg.x1]) {
-                            *a = x >> 8;
-                            *b = y >> 8;
-                            x += sx[i];
-                            y += sy[i];
-                        }
-                    }
-                    let (xs, ys) = (&xs[gx0..gx1], &ys[gx0..gx1]);
-                    sample_span(
-                        key,
-                        xs,
-                        ys,
-                        &mut row[gx0 * 4..gx1 * 4],
-                        &mut hid[gx0..gx1],
-                        owner,
-                        l,
-                    );
-                }
+                let (z, rgb) = (&depth[y * w..(y + 1) * w], &rgb[y * w * 3..(y + 1) * w * 3]);
+                settle_row(&mut layers, hidden, z, spans, rgb, refresh, cover, own);
             },
         );
-    (out, hidden)
+    (images, owner)
 }
 
 /// Samples `key` at positions `xs`, `ys` (1/256 px) into `out` (RGBA, one pixel per
@@ -358,76 +444,59 @@ fn sample_scalar(
     }
 }
 
-/// Over every pixel of the carried layers, row by row:
-/// - hidden content (`hidden[l]`) that nothing in front covers (cover below 1/2) is dropped
-///   unless the new depth (`depth`) lies within the layer's span (`spans[l]`, z bounds), so
-///   that the layers behind show where the guess was wrong (the back layer is opaque
-///   everywhere and keeps its own);
-/// - the owner is the nearest layer with alpha >= 1/2 (the back layer where none is);
+/// Over every pixel of a row of the carried layers (`layers`, front to back):
+/// - hidden content (`hidden`, a row per layer) that nothing in front covers (cover below
+///   1/2) is dropped unless the new depth (`z`) lies within the layer's span (`spans[l]`, z
+///   bounds), so that the layers behind show where the guess was wrong (the back layer is
+///   opaque everywhere and keeps its own);
+/// - the owner (`own`) is the nearest layer with alpha >= 1/2 (the back layer where none
+///   is);
 /// - with `refresh`, the pixels the owner shows fully opaque take the new frame's colour
 ///   `rgb`.
 ///
-/// Returns the owner per pixel.
-pub(crate) fn settle(
-    images: &mut [&mut PremulImage],
-    hidden: &[Vec<bool>],
-    depth: &[f32],
+/// Layer by layer along the row (each pixel still sees its layers front to back), with the
+/// pixels' coverage so far in `cover`.
+#[allow(clippy::too_many_arguments)]
+fn settle_row(
+    layers: &mut [&mut [u8]],
+    hidden: &[bool],
+    z: &[f32],
     spans: &[(f32, f32)],
     rgb: &[u8],
     refresh: bool,
-) -> Vec<u8> {
-    let k = images.len();
-    let w = images[0].width() as usize;
-    let h = images[0].height() as usize;
-    let mut rows: Vec<Vec<&mut [u8]>> = (0..h).map(|_| Vec::with_capacity(k)).collect();
-    for img in images.iter_mut() {
-        for (r, chunk) in rows.iter_mut().zip(img.as_bytes_mut().chunks_mut(w * 4)) {
-            r.push(chunk);
+    cover: &mut [u32],
+    own: &mut [u8],
+) {
+    let (k, w) = (layers.len(), own.len());
+    cover.fill(0); // 0..=255 * 255
+    own.fill((k - 1) as u8);
+    for (l, row) in layers[..k - 1].iter_mut().enumerate() {
+        let hid = &hidden[l * w..(l + 1) * w];
+        let (lo, hi) = spans[l];
+        let pixels = row.chunks_exact_mut(4).zip(hid).zip(z);
+        for (((px, &hid), &z), (c, o)) in pixels.zip(cover.iter_mut().zip(&mut *own)) {
+            let a = px[3] as u32;
+            if a == 0 {
+                continue;
+            }
+            if hid && *c * 2 < 255 * 255 && !(z >= lo && z <= hi) {
+                px.fill(0);
+                continue;
+            }
+            *c += (255 * 255 - *c) * a / 255;
+            if a >= 128 && *o as usize == k - 1 {
+                *o = l as u8;
+            }
         }
     }
-    let mut owner = vec![0u8; w * h];
-    // Layer by layer along each row (each pixel still sees its layers front to back), with
-    // the pixels' coverage so far kept per row.
-    rows.into_par_iter()
-        .zip(owner.par_chunks_mut(w))
-        .enumerate()
-        .for_each_init(
-            || vec![0u32; w],
-            |cover, (y, (mut layers, own))| {
-                let z = &depth[y * w..(y + 1) * w];
-                cover.fill(0); // 0..=255 * 255
-                own.fill((k - 1) as u8);
-                for (l, row) in layers[..k - 1].iter_mut().enumerate() {
-                    let hid = &hidden[l][y * w..(y + 1) * w];
-                    let (lo, hi) = spans[l];
-                    let pixels = row.chunks_exact_mut(4).zip(hid).zip(z);
-                    for (((px, &hid), &z), (c, o)) in pixels.zip(cover.iter_mut().zip(&mut *own)) {
-                        let a = px[3] as u32;
-                        if a == 0 {
-                            continue;
-                        }
-                        if hid && *c * 2 < 255 * 255 && !(z >= lo && z <= hi) {
-                            px.fill(0);
-                            continue;
-                        }
-                        *c += (255 * 255 - *c) * a / 255;
-                        if a >= 128 && *o as usize == k - 1 {
-                            *o = l as u8;
-                        }
-                    }
-                }
-                if refresh {
-                    let colour = rgb[y * w * 3..(y + 1) * w * 3].chunks_exact(3);
-                    for (x, (&o, c)) in own.iter().zip(colour).enumerate() {
-                        let px = &mut layers[o as usize][x * 4..x * 4 + 4];
-                        if px[3] == 255 {
-                            px[..3].copy_from_slice(c);
-                        }
-                    }
-                }
-            },
-        );
-    owner
+    if refresh {
+        for (x, (&o, c)) in own.iter().zip(rgb.chunks_exact(3)).enumerate() {
+            let px = &mut layers[o as usize][x * 4..x * 4 + 4];
+            if px[3] == 255 {
+                px[..3].copy_from_slice(c);
+            }
+        }
+    }
 }
 
 /// Median of each label's depths (`None` for a label without pixels), see
@@ -781,7 +850,22 @@ mod tests {
             .collect();
         let owner = vec![1u8; w * h];
         let key = KeyLayer::new(&img);
-        let (out, hidden) = warp_layer(&key, &map, gw, gh, &owner, 1);
+        let grid = RowGrid::new((w, h), (gw, gh));
+        let warp = |l: usize| {
+            let warp = LayerWarp::new(&key, &map, &grid, l);
+            let mut out = PremulImage::new(w as u32, h as u32);
+            let mut hidden = vec![false; w * h];
+            let mut scratch = RowScratch::default();
+            let rows = out
+                .as_bytes_mut()
+                .chunks_mut(w * 4)
+                .zip(hidden.chunks_mut(w));
+            for (y, (row, hid)) in rows.enumerate() {
+                warp.row(&grid, y, &owner, row, hid, &mut scratch);
+            }
+            (out, hidden)
+        };
+        let (out, hidden) = warp(1);
         // The grid's border clamps the map within half a grid cell of the edge; inside it the
         // warp is exact.
         for y in 2..h - 2 {
@@ -790,7 +874,7 @@ mod tests {
             }
         }
         assert!(hidden.iter().all(|&h| !h));
-        let (_, hidden) = warp_layer(&key, &map, gw, gh, &owner, 2);
+        let (_, hidden) = warp(2);
         assert!(hidden[10 * w + 10]);
     }
 }

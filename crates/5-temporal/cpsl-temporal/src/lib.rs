@@ -41,7 +41,7 @@
 //! layers they overlap most (IoU at least `min_iou`), so a layer's identity
 //! ([`cpsl_core::LayerMeta::track`]) survives refreshes even when depth order changes its index.
 
-use cpsl_core::{Camera, LayerSet, LayeredFrame, Limits, NoProgress, PremulImage, RefreshReason};
+use cpsl_core::{Camera, LayerSet, LayeredFrame, Limits, NoProgress, RefreshReason};
 use cpsl_flow::{Flow, FlowConfig, FlowMethod, Grey};
 use cpsl_layering::geometry::{fit_geometry, fit_grid, LayerDepth};
 use cpsl_layering::matte::edge_depth_cache_from;
@@ -57,7 +57,7 @@ mod robust;
 mod warp;
 
 use motion::{identity_map, layer_maps, mapped, shrink_flow, Depths, FrameMotion};
-pub use warp::{warp_labels, warp_values};
+pub use warp::{warp_labels, warp_values, warp_values_pair};
 #[cfg(target_arch = "x86_64")]
 mod simd;
 
@@ -247,8 +247,11 @@ impl GopConfig {
 /// What the next frame needs from the previous ones.
 struct State {
     grey: Grey,
-    /// The previous frame's depth and owner.
+    /// The previous frame's depth, its logarithm (carried with it: the nearest-pixel warp
+    /// copies values, so the carried logarithm is the logarithm of the carried depth) and
+    /// owner.
     depth: Vec<f32>,
+    ln_depth: Vec<f32>,
     owner: Vec<u8>,
     /// The last I-frame's layers and owner.
     key: LayerSet,
@@ -479,6 +482,7 @@ impl VideoLayerer {
         self.state = Some(State {
             grey,
             depth: cues.depth,
+            ln_depth,
             owner: layered.owner.clone(),
             key: set.clone(),
             key_owner: layered.owner.clone(),
@@ -529,15 +533,22 @@ impl VideoLayerer {
         // Each layer moves with the flow of its own interior, filled in elsewhere, so that
         // motion never bleeds across a layer boundary; its map into the I-frame follows.
         let depth_propagated = depth.is_none();
-        let carried = warp_values(&s.depth, &motion.at_full(w, h), w, h);
+        let (carried, carried_ln) =
+            warp_values_pair(&s.depth, &s.ln_depth, &motion.at_full(w, h), w, h);
         // A model may leave pixels without depth: they keep the depth carried along.
-        let depth: Vec<f32> = match depth {
+        let (depth, ln_depth): (Vec<f32>, Vec<f32>) = match depth {
             Some(d) => d
                 .par_iter()
-                .zip(&carried)
-                .map(|(&z, &c)| if z.is_finite() && z > 0.0 { z } else { c })
-                .collect(),
-            None => carried,
+                .zip(carried.par_iter().zip(&carried_ln))
+                .map(|(&z, (&c, &lc))| {
+                    if z.is_finite() && z > 0.0 {
+                        (z, z.ln())
+                    } else {
+                        (c, lc)
+                    }
+                })
+                .unzip(),
+            None => (carried, carried_ln),
         };
         // Each layer's I-frame depth span, moved with the layer's depth since.
         let spans =
@@ -553,43 +564,35 @@ impl VideoLayerer {
         let maps = layer_maps(&s.owner, &motion.grid, &s.maps, &depths);
         timings.push(("propagation", ms(t)));
         // The I-frame's layers carried along their motions, each pixel marked where it
-        // carries content the I-frame hid behind a nearer layer (extension and fill).
+        // carries content the I-frame hid behind a nearer layer (extension and fill). Hidden
+        // content that nothing covers any more was never seen: it is dropped so that the
+        // layers behind show. Owner: the nearest layer with alpha >= 1/2. With refinement,
+        // the pixels a layer shows fully opaque and unoccluded take the new frame's colour.
+        // Both row by row, each row's layers settled while they are in cache.
         let t = Instant::now();
-        let (mut layers, hidden): (Vec<cpsl_core::Layer>, Vec<Vec<bool>>) = s
-            .key
-            .layers()
-            .par_iter()
-            .zip(&maps)
-            .enumerate()
-            .map(|(l, (key, m))| {
-                let (image, hidden) =
-                    kernels::warp_layer(&s.key_layers[l], m, gw, gh, &s.key_owner, l);
-                let layer = cpsl_core::Layer {
-                    image,
-                    depth: key.depth,
-                    geometry: key.geometry.clone(),
-                    meta: key.meta.clone(),
-                };
-                (layer, hidden)
+        let grid = kernels::RowGrid::new((w, h), (gw, gh));
+        let (images, owner) = kernels::warp_and_settle(
+            &s.key_layers,
+            &maps,
+            &grid,
+            &s.key_owner,
+            &depth,
+            &depths.spans,
+            rgb,
+            g.refine,
+        );
+        let mut layers: Vec<cpsl_core::Layer> = (s.key.layers().iter().zip(images))
+            .map(|(key, image)| cpsl_core::Layer {
+                image,
+                depth: key.depth,
+                geometry: key.geometry.clone(),
+                meta: key.meta.clone(),
             })
-            .unzip();
-        timings.push(("warp", ms(t)));
-        // Hidden content that nothing covers any more was never seen: it is dropped so that
-        // the layers behind show. Owner: the nearest layer with alpha >= 1/2. With
-        // refinement, the pixels a layer shows fully opaque and unoccluded take the new
-        // frame's colour.
-        let t = Instant::now();
-        let owner = {
-            let mut images: Vec<&mut PremulImage> =
-                layers.iter_mut().map(|l| &mut l.image).collect();
-            kernels::settle(&mut images, &hidden, &depth, &depths.spans, rgb, g.refine)
-        };
-        drop(hidden);
-        timings.push(("visibility", ms(t)));
+            .collect();
+        timings.push(("warp and visibility", ms(t)));
         // Layer depths from the new depth: the median over each layer's pixels, smoothed
         // over time with refinement, kept in order.
         let t = Instant::now();
-        let ln_depth: Vec<f32> = depth.par_iter().map(|z| z.ln()).collect();
         let medians = kernels::median_depths(&owner, &ln_depth, k);
         let mut prev = 0.0f64;
         for (l, layer) in layers.iter_mut().enumerate() {
@@ -704,6 +707,7 @@ impl VideoLayerer {
         let confidence = s.confidence.clone();
         s.grey = grey;
         s.depth = depth;
+        s.ln_depth = ln_depth;
         s.owner = owner.clone();
         s.maps = maps;
         s.depths = set.layers().iter().map(|l| l.depth).collect();

@@ -57,7 +57,8 @@ mod robust;
 mod warp;
 
 use motion::{identity_map, layer_maps, mapped, shrink_flow, Depths, FrameMotion};
-pub use warp::{warp_labels, warp_values, warp_values_pair};
+use warp::warp_values_pair;
+pub use warp::{warp_labels, warp_values};
 #[cfg(target_arch = "x86_64")]
 mod simd;
 

@@ -17,7 +17,7 @@ pub fn warp_values(prev: &[f32], flow: &Flow, w: usize, h: usize) -> Vec<f32> {
 
 /// [`warp_values`] of two per-pixel maps along the same flow (one pass: each pixel's source
 /// is found once). Panics unless `a`, `b` and `flow` are `w x h`.
-pub fn warp_values_pair(
+pub(crate) fn warp_values_pair(
     a: &[f32],
     b: &[f32],
     flow: &Flow,
@@ -25,7 +25,7 @@ pub fn warp_values_pair(
     h: usize,
 ) -> (Vec<f32>, Vec<f32>) {
     check(a, flow, w, h);
-    assert_eq!(b.len(), w * h, "values for every pixel");
+    check(b, flow, w, h);
     let (mut out_a, mut out_b) = (vec![0f32; w * h], vec![0f32; w * h]);
     out_a
         .par_chunks_mut(w)

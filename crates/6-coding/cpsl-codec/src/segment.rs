@@ -1005,45 +1005,52 @@ impl SegmentEncoder {
                         .collect();
                     let pics: Vec<yuv::Yuv420> = srcs.iter().map(|i| picture(i, factor)).collect();
                     let size = (pics[0].width, pics[0].height);
-                    let mut trials = Vec::new();
-                    for (t, &q) in qualities.iter().enumerate() {
-                        let path = dir.join(format!("layer_{k:02}.trial{r}{t}.mp4"));
-                        let run = || -> Result<(Written, f64), CodecError> {
-                            let mut e = StreamEncoder::create_as(
-                                &path, container, size, codec, q, fps, gop,
-                            )?;
-                            for p in &pics {
-                                e.push(p)?;
-                            }
-                            let written = e.finish()?;
-                            let mut reader =
-                                PictureReader::<u8>::open_as(&path, container, codec, sw, sh)?;
-                            let mut err = 0.0;
-                            for (src, v) in srcs.iter().zip(&vis) {
-                                let p =
-                                    reader.next_picture()?.ok_or_else(|| CodecError::Stream {
-                                        path: path.clone(),
-                                        reason: format!("fewer pictures than the {m} coded"),
+                    // A job's qualities are coded in parallel too, so that a round of
+                    // fewer jobs than threads (one stream's new content, say) keeps them
+                    // all busy.
+                    qualities
+                        .par_iter()
+                        .enumerate()
+                        .map(|(t, &q)| {
+                            let path = dir.join(format!("layer_{k:02}.trial{r}{t}.mp4"));
+                            let run = || -> Result<(Written, f64), CodecError> {
+                                let mut e = StreamEncoder::create_as(
+                                    &path, container, size, codec, q, fps, gop,
+                                )?;
+                                for p in &pics {
+                                    e.push(p)?;
+                                }
+                                let written = e.finish()?;
+                                let mut reader =
+                                    PictureReader::<u8>::open_as(&path, container, codec, sw, sh)?;
+                                let mut err = 0.0;
+                                for (src, v) in srcs.iter().zip(&vis) {
+                                    let p = reader.next_picture()?.ok_or_else(|| {
+                                        CodecError::Stream {
+                                            path: path.clone(),
+                                            reason: format!("fewer pictures than the {m} coded"),
+                                        }
                                     })?;
-                                let dec = scale::upscale(yuv::unstack(&p, sw, sh), w, h, factor);
-                                err += alloc::distortion(src, &dec, v);
-                            }
-                            Ok((written, err))
-                        };
-                        let result = run();
-                        let _ = std::fs::remove_file(&path);
-                        let (written, err) = result?;
-                        let (intra, inter) = written.intra_inter_bits();
-                        trials.push(Trial {
-                            q,
-                            intra,
-                            inter: (m > 1).then_some(inter_scale * inter),
-                            // Summed over the picture, not averaged per stream: a layer's share
-                            // of the frame's error.
-                            distortion: err / (4.0 * (w * h) as f64 * m as f64),
-                        });
-                    }
-                    Ok(trials)
+                                    let dec =
+                                        scale::upscale(yuv::unstack(&p, sw, sh), w, h, factor);
+                                    err += alloc::distortion(src, &dec, v);
+                                }
+                                Ok((written, err))
+                            };
+                            let result = run();
+                            let _ = std::fs::remove_file(&path);
+                            let (written, err) = result?;
+                            let (intra, inter) = written.intra_inter_bits();
+                            Ok(Trial {
+                                q,
+                                intra,
+                                inter: (m > 1).then_some(inter_scale * inter),
+                                // Summed over the picture, not averaged per stream: a layer's
+                                // share of the frame's error.
+                                distortion: err / (4.0 * (w * h) as f64 * m as f64),
+                            })
+                        })
+                        .collect::<Result<Vec<Trial>, CodecError>>()
                 })
                 .collect::<Result<_, CodecError>>()
         })?;

@@ -534,22 +534,18 @@ impl VideoLayerer {
         // Each layer moves with the flow of its own interior, filled in elsewhere, so that
         // motion never bleeds across a layer boundary; its map into the I-frame follows.
         let depth_propagated = depth.is_none();
-        let (carried, carried_ln) =
-            warp_values_pair(&s.depth, &s.ln_depth, &motion.at_full(w, h), w, h);
-        // A model may leave pixels without depth: they keep the depth carried along.
+        // A model may leave pixels without depth: they keep the depth carried along. Without
+        // new depth the logarithm is carried with the depth, not taken again.
         let (depth, ln_depth): (Vec<f32>, Vec<f32>) = match depth {
             Some(d) => d
                 .par_iter()
-                .zip(carried.par_iter().zip(&carried_ln))
-                .map(|(&z, (&c, &lc))| {
-                    if z.is_finite() && z > 0.0 {
-                        (z, z.ln())
-                    } else {
-                        (c, lc)
-                    }
+                .zip(warp_values(&s.depth, &motion.at_full(w, h), w, h))
+                .map(|(&z, c)| {
+                    let z = if z.is_finite() && z > 0.0 { z } else { c };
+                    (z, z.ln())
                 })
                 .unzip(),
-            None => (carried, carried_ln),
+            None => warp_values_pair(&s.depth, &s.ln_depth, &motion.at_full(w, h), w, h),
         };
         // Each layer's I-frame depth span, moved with the layer's depth since.
         let spans =

@@ -467,6 +467,9 @@ pub(crate) struct BudgetPlan {
     pub expected: usize,
     /// Whether the expected frames are all the video has left.
     pub last: bool,
+    /// Whether the segment may be the video's last (it is, or the frames left are unknown):
+    /// only the last segment may be coded again (see `SegmentEncoder::correct`).
+    pub may_be_last: bool,
 }
 
 impl BudgetPlan {
@@ -805,9 +808,10 @@ impl SegmentEncoder {
             }
         };
         let (w, h) = self.size;
-        // Under a budget the pictures are kept (on disk) for a correction round; so are they
-        // when the encoders would not fit in memory together.
-        let spill = self.parallel < n_streams || self.budget.is_some();
+        // The pictures are kept (on disk) when the encoders would not fit in memory together,
+        // and under a budget where the segment may be the last, for its correction round; the
+        // other segments' streams are coded as the frames arrive, as at constant quality.
+        let spill = self.parallel < n_streams || self.budget.is_some_and(|p| p.may_be_last);
         self.sinks = (0..n_streams)
             .map(|k| {
                 let (sw, sh) = scale::scaled_size(w, h, self.rungs[coding.rung[k]]);
@@ -976,7 +980,7 @@ impl SegmentEncoder {
         let dir = self.root.join(&self.dir_name);
         let (blank, rungs) = (&self.blank, &self.rungs);
         let pending = &pending;
-        let inter_scale = self.inter_scale;
+        let (inter_scale, parallel) = (self.inter_scale, self.parallel);
         let fitted: Vec<Vec<Trial>> = self.pool.install(|| {
             jobs.par_iter()
                 .map(|(k, r, qualities)| {
@@ -992,19 +996,26 @@ impl SegmentEncoder {
                         })
                         .collect();
                     // How much of it shows there.
-                    let vis: Vec<Vec<u8>> = pending
-                        .iter()
-                        .map(|(f, map)| match map.iter().position(|&s| s as usize == k) {
+                    let vis = |(f, map): &(LayeredFrame, Vec<u8>)| -> Vec<u8> {
+                        match map.iter().position(|&s| s as usize == k) {
                             Some(li) => {
                                 let front: Vec<&PremulImage> =
                                     f.set.layers()[..li].iter().map(|l| &l.image).collect();
                                 alloc::visibility(&front, w, h)
                             }
                             None => vec![0; (w * h) as usize],
-                        })
-                        .collect();
-                    let pics: Vec<yuv::Yuv420> = srcs.iter().map(|i| picture(i, factor)).collect();
-                    let size = (pics[0].width, pics[0].height);
+                        }
+                    };
+                    // Held for the job's qualities, unless the encoders run one at a time
+                    // (large frames): each trial then makes them as it goes (at 4K, five held
+                    // frames' pictures are 124 MB and their visibilities 41 MB).
+                    let lean = parallel == 1;
+                    let held_vis: Option<Vec<Vec<u8>>> =
+                        (!lean).then(|| pending.iter().map(|p| vis(p)).collect());
+                    let held_pics: Option<Vec<yuv::Yuv420>> =
+                        (!lean).then(|| srcs.iter().map(|i| picture(i, factor)).collect());
+                    let (cw, ch) = yuv::coded_size(sw, sh);
+                    let size = (cw, 2 * ch);
                     // A job's qualities are coded in parallel too, so that a round of
                     // fewer jobs than threads (one stream's new content, say) keeps them
                     // all busy.
@@ -1017,14 +1028,17 @@ impl SegmentEncoder {
                                 let mut e = StreamEncoder::create_as(
                                     &path, container, size, codec, q, fps, gop,
                                 )?;
-                                for p in &pics {
-                                    e.push(p)?;
+                                for (i, src) in srcs.iter().enumerate() {
+                                    match &held_pics {
+                                        Some(pics) => e.push(&pics[i])?,
+                                        None => e.push(&picture(src, factor))?,
+                                    }
                                 }
                                 let written = e.finish()?;
                                 let mut reader =
                                     PictureReader::<u8>::open_as(&path, container, codec, sw, sh)?;
                                 let mut err = 0.0;
-                                for (src, v) in srcs.iter().zip(&vis) {
+                                for (i, src) in srcs.iter().enumerate() {
                                     let p = reader.next_picture()?.ok_or_else(|| {
                                         CodecError::Stream {
                                             path: path.clone(),
@@ -1033,7 +1047,10 @@ impl SegmentEncoder {
                                     })?;
                                     let dec =
                                         scale::upscale(yuv::unstack(&p, sw, sh), w, h, factor);
-                                    err += alloc::distortion(src, &dec, v);
+                                    err += match &held_vis {
+                                        Some(v) => alloc::distortion(src, &dec, &v[i]),
+                                        None => alloc::distortion(src, &dec, &vis(pending[i])),
+                                    };
                                 }
                                 Ok((written, err))
                             };

@@ -159,6 +159,7 @@ impl PackageWriter {
                 spent: self.spent,
                 expected: left.unwrap_or(self.opts.gop).max(1) as usize,
                 last,
+                may_be_last: last || self.left.is_none(),
             }),
             RateControl::Quality(_) => None,
         };

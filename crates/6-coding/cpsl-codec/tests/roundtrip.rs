@@ -666,6 +666,61 @@ fn segments_start_every_gop_and_at_refreshes_that_bring_new_layers() {
 }
 
 #[test]
+fn under_a_budget_known_frames_code_the_segments_before_the_last_as_they_arrive() {
+    // With the frames left known, only the last segment keeps its pictures for a correction
+    // round; the others are coded as the frames arrive. Either way every frame decodes and
+    // the package keeps to its budget.
+    let frames: Vec<LayeredFrame> = (0..12u32)
+        .map(|i| {
+            let refresh = (i == 0).then_some(RefreshReason::First);
+            two_layers(i, refresh, [0, 1], 4 + 3 * i as usize)
+        })
+        .collect();
+    let budget = 20_000.0;
+    let coded = |known: bool| {
+        let dir = tempfile::tempdir().unwrap();
+        let out = dir.path().join("clip.cpsl");
+        let opts = CodingOptions {
+            gop: 4,
+            ..h264(RateControl::Budget(budget))
+        };
+        let manifest = write_frames(&out, &frames, opts, known);
+        let pkg = Package::open(&out).unwrap();
+        assert!(pkg.verify().is_empty(), "{:?}", pkg.verify());
+        let decoded: Vec<_> = (0..manifest.segments.len())
+            .flat_map(|s| decode_segment(&pkg, s).unwrap())
+            .collect();
+        assert_eq!(decoded.len(), frames.len());
+        for (d, f) in decoded.iter().zip(&frames) {
+            assert!(psnr(&d.set, &f.set) > 30.0, "frame {}", f.index);
+        }
+        let rate = manifest.bitrate();
+        assert!(rate <= 1.1 * budget && rate >= 0.5 * budget, "{rate} bit/s");
+        // No spilled pictures are left behind.
+        let left: Vec<_> = walk(&out)
+            .into_iter()
+            .filter(|p| p.to_string_lossy().ends_with(".part"))
+            .collect();
+        assert!(left.is_empty(), "{left:?}");
+        manifest.segments.len()
+    };
+    assert_eq!(coded(true), 3);
+    assert_eq!(coded(false), 3);
+}
+
+fn walk(dir: &Path) -> Vec<std::path::PathBuf> {
+    let mut out = Vec::new();
+    for e in std::fs::read_dir(dir).unwrap() {
+        let p = e.unwrap().path();
+        match p.is_dir() {
+            true => out.extend(walk(&p)),
+            false => out.push(p),
+        }
+    }
+    out
+}
+
+#[test]
 fn a_short_tail_joins_the_last_segment() {
     let frames: Vec<LayeredFrame> = (0..9u32)
         .map(|i| {

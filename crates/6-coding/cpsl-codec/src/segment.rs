@@ -313,8 +313,9 @@ fn pool(n: usize) -> Result<rayon::ThreadPool, CodecError> {
 }
 
 /// Where a stream's pictures go: straight into its encoder, or, when the segment's encoders
-/// would not fit in memory together (large frames), into a raw file beside the stream that
-/// is coded when the segment ends, a few streams at a time.
+/// would not fit in memory together (large frames) or the segment may be a budget's last
+/// (whose correction codes streams again), into a raw file beside the stream that is coded
+/// when the segment ends, a few streams at a time.
 enum Sink {
     Encoder(StreamEncoder),
     Spill {

@@ -666,10 +666,11 @@ fn segments_start_every_gop_and_at_refreshes_that_bring_new_layers() {
 }
 
 #[test]
-fn under_a_budget_known_frames_code_the_segments_before_the_last_as_they_arrive() {
-    // With the frames left known, only the last segment keeps its pictures for a correction
-    // round; the others are coded as the frames arrive. Either way every frame decodes and
-    // the package keeps to its budget.
+fn under_a_budget_segments_decode_whether_or_not_the_frames_left_are_known() {
+    // With the frames left known, only the last segment keeps its pictures on disk for a
+    // correction round and the others are coded as the frames arrive; unknown, every segment
+    // keeps them. Either way every frame decodes, the package keeps to its budget and no
+    // spill file is left behind.
     let frames: Vec<LayeredFrame> = (0..12u32)
         .map(|i| {
             let refresh = (i == 0).then_some(RefreshReason::First);

@@ -33,6 +33,8 @@ pub struct VideoFile {
     damaged_in_a_row: usize,
     flushed: bool,
     mvs: bool,
+    /// The last frame's luma, where the decoder's motion vectors are exported.
+    prev_luma: Option<Vec<u8>>,
 }
 
 /// How a Y'CbCr source's samples are read.
@@ -165,6 +167,7 @@ impl VideoFile {
             damaged_in_a_row: 0,
             flushed: false,
             mvs,
+            prev_luma: None,
         })
     }
 
@@ -260,10 +263,20 @@ impl VideoFile {
                 }
             }
         }
-        let motion = if self.mvs {
-            frame
-                .side_data(ffmpeg::frame::side_data::Type::MotionVectors)
-                .and_then(|sd| motion_from_vectors(sd.data(), w, h))
+        // The vectors' reference distances are found from this frame's and the previous
+        // frame's luma (8-bit 4:2:0 only: other H.264 streams take optical flow).
+        let motion = if self.mvs && self.ycc.as_ref().is_some_and(|y| y.planar420) {
+            let (stride, data) = (frame.stride(0), frame.data(0));
+            let mut luma = vec![0u8; w * h];
+            for (y, row) in luma.chunks_exact_mut(w).enumerate() {
+                row.copy_from_slice(&data[y * stride..][..w]);
+            }
+            let motion = self.prev_luma.as_deref().and_then(|prev| {
+                let sd = frame.side_data(ffmpeg::frame::side_data::Type::MotionVectors)?;
+                motion_from_vectors(sd.data(), w, h, &luma, prev)
+            });
+            self.prev_luma = Some(luma);
+            motion
         } else {
             None
         };

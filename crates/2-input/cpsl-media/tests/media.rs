@@ -74,6 +74,38 @@ fn decodes_h264_with_motion_vectors_and_vp9() {
     assert!(frames.iter().all(|f| f.motion.is_none()));
 }
 
+/// H.264 at x264's defaults (three B-frames: a P-frame refers four frames back, B-frames to
+/// later frames too) of a texture scrolling 2 pixels a frame: every frame's vectors, whatever
+/// their reference, come out as the motion to the previous frame.
+#[test]
+fn motion_vectors_of_b_frames_and_far_references_are_per_frame() {
+    let dir = tempfile::tempdir().unwrap();
+    let clip = dir.path().join("scroll.mp4");
+    let status = Command::new("ffmpeg")
+        .args(["-v", "error", "-y", "-f", "lavfi", "-i"])
+        .arg("color=c=gray:s=160x120:r=10,noise=alls=100:allf=0,gblur=sigma=1.2,scroll=horizontal=0.0125")
+        .args(["-frames:v", "12", "-c:v", "libx264", "-pix_fmt", "yuv420p"])
+        .arg(&clip)
+        .status()
+        .expect("the ffmpeg tool");
+    assert!(status.success());
+    let frames = drain(open(&clip).unwrap().as_mut()).unwrap();
+    let mut with = 0;
+    for (i, f) in frames.iter().enumerate() {
+        let Some(m) = &f.motion else { continue };
+        with += 1;
+        // The median over the frame's inner part (the pattern wraps round at the edges).
+        let mut u: Vec<f32> = (20..100)
+            .flat_map(|y| (20..140).map(move |x| (x, y)))
+            .map(|(x, y)| m.at(x, y).0)
+            .collect();
+        let mid = u.len() / 2;
+        let u = *u.select_nth_unstable_by(mid, f32::total_cmp).1;
+        assert!((u - 2.0).abs() < 0.5, "frame {i}: {u} pixels a frame");
+    }
+    assert!(with >= 8, "{with} frames with motion");
+}
+
 #[test]
 fn bad_files_give_clear_errors() {
     let dir = tempfile::tempdir().unwrap();

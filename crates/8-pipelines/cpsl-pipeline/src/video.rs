@@ -18,10 +18,12 @@ use std::time::Instant;
 /// Where P-frame motion comes from.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum MotionSource {
-    /// The decoder's motion vectors where the input is H.264 and they cover the frame,
-    /// optical flow otherwise.
+    /// The decoder's motion vectors where the input is 8-bit 4:2:0 H.264 and they cover the
+    /// frame (each divided by the distance of its reference, found from the pictures), optical
+    /// flow otherwise.
     Auto,
-    /// Always optical flow.
+    /// Always optical flow: slower (a 720p P-frame's motion about 40 ms against 5-7), closer to the
+    /// pictures than block vectors (EVALUATION.md, "The decoder's motion vectors").
     Flow,
 }
 

@@ -8,7 +8,7 @@ use crate::util::FilterArg;
 use crate::video::PDepthArg;
 use anyhow::Result;
 use clap::{Args, ValueEnum};
-use cpsl_eval::rd::{evaluate_rd, Curve, Ratio, RdClip, RdOptions, Summary};
+use cpsl_eval::rd::{evaluate_rd, Curve, Ratio, RdClip, RdInput, RdOptions, Summary};
 use cpsl_layering::GeometryMode;
 use cpsl_package::Codec;
 use std::path::PathBuf;
@@ -99,9 +99,26 @@ pub struct EvalRdArgs {
     /// `estimated` (the clip's own depth of every frame).
     #[arg(long, value_enum, default_value_t = PDepthArg::Poses)]
     pub p_depth: PDepthArg,
+    /// What CPSL's layering is given of the clip: `pictures` (the default), `h264` (the
+    /// pictures coded as H.264 by the ffmpeg tool at libx264's defaults, three B-frames, CRF
+    /// 12, and decoded, P-frames' motion from its motion vectors, as `cpsl layer-video` of such
+    /// a file) or `h264-flow` (the same pictures, motion from optical flow)
+    #[arg(long, value_enum, default_value_t = InputArg::Pictures)]
+    pub input: InputArg,
     /// Write the curves and summary as JSON.
     #[arg(long)]
     pub json: Option<PathBuf>,
+}
+
+/// `--input`.
+#[derive(ValueEnum, Clone, Copy, Debug)]
+pub enum InputArg {
+    /// The pictures themselves.
+    Pictures,
+    /// Through H.264, motion from its vectors.
+    H264,
+    /// Through H.264, motion from optical flow.
+    H264Flow,
 }
 
 /// Runs `cpsl eval-rd`.
@@ -127,6 +144,11 @@ pub fn run(a: EvalRdArgs) -> Result<()> {
         filter: a.filter.into(),
         video_depth: a.depth == "video",
         p_depth: a.p_depth.into(),
+        input: match a.input {
+            InputArg::Pictures => RdInput::Pictures,
+            InputArg::H264 => RdInput::H264Vectors,
+            InputArg::H264Flow => RdInput::H264Flow,
+        },
     };
     let report = evaluate_rd(&opts, &Bars::default(), |method, p| {
         let spend: Vec<String> = p

@@ -657,6 +657,45 @@ fn eval_rd_small() {
     assert!(String::from_utf8_lossy(&o.stderr).contains("--qualities 99"));
 }
 
+/// `cpsl eval-rd --input h264`: CPSL layered from the clip coded as H.264 with B-frames (its
+/// motion vectors used), scored as from the pictures.
+#[test]
+fn eval_rd_through_h264() {
+    let d = tempfile::tempdir().unwrap();
+    let json = d.path().join("rd.json");
+    ok(&[
+        "eval-rd",
+        "--width",
+        "96",
+        "--height",
+        "64",
+        "--frames",
+        "6",
+        "--mpi-planes",
+        "4",
+        "--score-every",
+        "3",
+        "--no-lpips",
+        "--bitrates",
+        "2M",
+        "--qualities",
+        "30",
+        "--input",
+        "h264",
+        "--json",
+        s(&json),
+    ]);
+    let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
+    assert_eq!(v["clip"]["input"], "h264");
+    let cpsl = &v["curves"][0];
+    assert_eq!(cpsl["method"], "cpsl");
+    assert!(
+        cpsl["uncompressed"]["psnr"].as_f64().unwrap() > 15.0,
+        "{cpsl}"
+    );
+    assert!(cpsl["points"][0]["psnr"].as_f64().unwrap() > 15.0, "{cpsl}");
+}
+
 #[test]
 fn info_summarises_a_layer_set_with_its_grid_files() {
     let d = tempfile::tempdir().unwrap();

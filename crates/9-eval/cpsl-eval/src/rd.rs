@@ -44,6 +44,32 @@ pub enum RdClip {
     Fox,
 }
 
+/// What CPSL's layering is given of the clip's pictures.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum RdInput {
+    /// The pictures themselves; P-frames' motion from optical flow.
+    #[default]
+    Pictures,
+    /// The pictures coded as H.264 by the `ffmpeg` tool at libx264's defaults (preset medium:
+    /// three B-frames, three references) at CRF 12, as a camera's or a download's file is, and
+    /// decoded; P-frames' motion from its motion vectors where they cover the frame (as
+    /// `cpsl layer-video --motion auto`), from optical flow otherwise.
+    H264Vectors,
+    /// The same decoded pictures, every P-frame's motion from optical flow (`--motion flow`).
+    H264Flow,
+}
+
+impl RdInput {
+    /// The name in the report.
+    pub fn name(self) -> &'static str {
+        match self {
+            RdInput::Pictures => "pictures",
+            RdInput::H264Vectors => "h264",
+            RdInput::H264Flow => "h264-flow",
+        }
+    }
+}
+
 /// What to evaluate, and how.
 #[derive(Debug, Clone)]
 pub struct RdOptions {
@@ -89,6 +115,9 @@ pub struct RdOptions {
     /// I-frame by the tracked poses (the fox with depth from the video; along the motion
     /// otherwise), or the clip's own depth of every frame.
     pub p_depth: PFrameDepth,
+    /// What CPSL's layering is given of the pictures (the baselines always take them as they
+    /// are).
+    pub input: RdInput,
 }
 
 /// Everything a run measured (the JSON of `cpsl eval-rd --json`).
@@ -391,11 +420,76 @@ fn render_layers(frame: &FrameLayers, dps: bool, pose: &Pose, filter: Filter) ->
     img.over_fill()
 }
 
+/// A picture of the clip after H.264, and the decoder's motion to the one before.
+type DecodedPicture = (Vec<u8>, Option<cpsl_core::Flow>);
+
+/// The clip's pictures through H.264 ([`RdInput::H264Vectors`]), coded into `dir`.
+fn through_h264(dir: &Path, clip: &Clip) -> Result<Vec<DecodedPicture>> {
+    use std::io::Write;
+    let (w, h) = (clip.camera.width, clip.camera.height);
+    let path = dir.join("input.mp4");
+    let tool = |e: std::io::Error| {
+        EvalError::Invalid(format!("running the ffmpeg tool (apt install ffmpeg): {e}"))
+    };
+    let mut child = std::process::Command::new("ffmpeg")
+        .args([
+            "-v", "error", "-y", "-f", "rawvideo", "-pix_fmt", "rgb24", "-s",
+        ])
+        .arg(format!("{w}x{h}"))
+        .args([
+            "-r",
+            "30",
+            "-i",
+            "pipe:0",
+            "-vf",
+            "scale=out_color_matrix=bt709",
+        ])
+        .args(["-c:v", "libx264", "-crf", "12", "-pix_fmt", "yuv420p"])
+        .args([
+            "-colorspace",
+            "bt709",
+            "-color_primaries",
+            "bt709",
+            "-color_trc",
+            "bt709",
+        ])
+        .arg(&path)
+        .stdin(std::process::Stdio::piped())
+        .spawn()
+        .map_err(tool)?;
+    let mut stdin = child.stdin.take().expect("piped");
+    for f in &clip.rgb {
+        stdin.write_all(f).map_err(tool)?;
+    }
+    drop(stdin);
+    if !child.wait().map_err(tool)?.success() {
+        return Err(EvalError::Invalid(
+            "the ffmpeg tool failed to code the clip as H.264".into(),
+        ));
+    }
+    let media = |e: cpsl_media::MediaError| EvalError::Invalid(format!("{}: {e}", path.display()));
+    let mut src = cpsl_media::open(&path).map_err(media)?;
+    let mut out = Vec::with_capacity(clip.rgb.len());
+    while let Some(f) = src.next_frame().map_err(media)? {
+        out.push((f.rgb, f.motion));
+    }
+    if out.len() != clip.rgb.len() {
+        return Err(EvalError::Invalid(format!(
+            "{}: {} of {} pictures decoded",
+            path.display(),
+            out.len(),
+            clip.rgb.len()
+        )));
+    }
+    Ok(out)
+}
+
 /// CPSL: I/P propagation with the clip's depth on I-frames (P-frames as `a.p_depth` says).
 fn cpsl_layers(
     clip: &Clip,
     a: &RdOptions,
     gop: GopConfig,
+    decoded: Option<&[DecodedPicture]>,
     bars: &dyn Progress,
 ) -> Result<Vec<LayeredFrame>> {
     let mut cfg = cpsl_layering::LayeringConfig {
@@ -412,6 +506,13 @@ fn cpsl_layers(
     let mut frames = Vec::with_capacity(clip.rgb.len());
     let mut intra = 0;
     for (i, (rgb, depth)) in clip.rgb.iter().zip(&clip.depth).enumerate() {
+        let (rgb, motion) = match decoded {
+            Some(d) => (
+                &d[i].0,
+                d[i].1.clone().filter(|_| a.input == RdInput::H264Vectors),
+            ),
+            None => (rgb, None),
+        };
         layerer.set_frames_left(Some(clip.rgb.len() - i));
         let is_intra = layerer.next_is_intra();
         if is_intra {
@@ -428,7 +529,8 @@ fn cpsl_layers(
             PFrameDepth::Estimated => Some(depth.as_slice()),
             PFrameDepth::Poses | PFrameDepth::Motion => carried.as_deref(),
         };
-        frames.push(layerer.push(rgb, z).context_with(|| format!("frame {i}"))?);
+        let frame = layerer.push_with_motion(rgb, z, motion);
+        frames.push(frame.context_with(|| format!("frame {i}"))?);
         bars.event(ProgressEvent::Advance {
             stage,
             done: i as u64 + 1,
@@ -754,7 +856,12 @@ pub fn evaluate_rd(
         rate_aware_refresh: a.rate_aware_refresh,
         ..GopConfig::default()
     };
-    let mut frames = cpsl_layers(&clip, a, base, bars)?;
+    let decoded = match a.input {
+        RdInput::Pictures => None,
+        RdInput::H264Vectors | RdInput::H264Flow => Some(through_h264(tmp.path(), &clip)?),
+    };
+    let decoded = decoded.as_deref();
+    let mut frames = cpsl_layers(&clip, a, base, decoded, bars)?;
     let mut layered_for = base;
     let (p, l) = score(&clip, &mut lpips, |f, pose| {
         let (set, edc) = (frames[f].set.clone(), frames[f].edc.clone());
@@ -775,7 +882,7 @@ pub fn evaluate_rd(
         let gop = base.for_budget(b / pixels_per_second);
         if gop != layered_for {
             drop(std::mem::take(&mut frames));
-            frames = cpsl_layers(&clip, a, gop, bars)?;
+            frames = cpsl_layers(&clip, a, gop, decoded, bars)?;
             layered_for = gop;
         }
         let coded = code(
@@ -882,7 +989,7 @@ pub fn evaluate_rd(
         .collect();
     Ok(RdReport {
         clip: serde_json::json!({
-            "description": clip.description, "width": clip.camera.width,
+            "description": clip.description, "input": a.input.name(), "width": clip.camera.width,
             "height": clip.camera.height, "frames": clip.rgb.len(), "fps": FPS,
             "scored_frames": wanted, "novel_viewpoints": views,
         }),

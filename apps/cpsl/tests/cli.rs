@@ -591,26 +591,29 @@ fn demo_end_to_end_small() {
     assert!(bits <= 2e6 * 1.1, "budget kept: {bits}");
 }
 
+/// `cpsl eval-rd` on a tiny clip, without LPIPS.
+const EVAL_RD_TINY: [&str; 12] = [
+    "eval-rd",
+    "--width",
+    "96",
+    "--height",
+    "64",
+    "--frames",
+    "6",
+    "--mpi-planes",
+    "4",
+    "--score-every",
+    "3",
+    "--no-lpips",
+];
+
 /// `cpsl eval-rd` on a tiny clip: four curves, coded rates that follow the settings, and its
 /// errors.
 #[test]
 fn eval_rd_small() {
     let d = tempfile::tempdir().unwrap();
     let json = d.path().join("rd.json");
-    let base = [
-        "eval-rd",
-        "--width",
-        "96",
-        "--height",
-        "64",
-        "--frames",
-        "6",
-        "--mpi-planes",
-        "4",
-        "--score-every",
-        "3",
-        "--no-lpips",
-    ];
+    let base = EVAL_RD_TINY;
     let mut args = base.to_vec();
     args.extend([
         "--bitrates",
@@ -663,28 +666,10 @@ fn eval_rd_small() {
 fn eval_rd_through_h264() {
     let d = tempfile::tempdir().unwrap();
     let json = d.path().join("rd.json");
-    ok(&[
-        "eval-rd",
-        "--width",
-        "96",
-        "--height",
-        "64",
-        "--frames",
-        "6",
-        "--mpi-planes",
-        "4",
-        "--score-every",
-        "3",
-        "--no-lpips",
-        "--bitrates",
-        "2M",
-        "--qualities",
-        "30",
-        "--input",
-        "h264",
-        "--json",
-        s(&json),
-    ]);
+    let mut args = EVAL_RD_TINY.to_vec();
+    args.extend(["--bitrates", "2M", "--qualities", "30", "--input", "h264"]);
+    args.extend(["--json", s(&json)]);
+    ok(&args);
     let v: serde_json::Value = serde_json::from_slice(&std::fs::read(&json).unwrap()).unwrap();
     assert_eq!(v["clip"]["input"], "h264");
     let cpsl = &v["curves"][0];

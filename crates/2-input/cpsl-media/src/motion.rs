@@ -82,6 +82,13 @@ fn difference(v: &Vector, u: (f32, f32), cur: &[u8], prev: &[u8], w: usize, h: u
     }
 }
 
+/// The index of the least of `costs` (distance index: 0 is one frame).
+fn least(costs: &[f64; MAX_DISTANCE]) -> usize {
+    (0..MAX_DISTANCE)
+        .min_by(|&a, &b| costs[a].total_cmp(&costs[b]))
+        .unwrap_or(0)
+}
+
 /// A dense backward motion field (this frame to the previous one) from `AVMotionVector`
 /// records, each vector's reference distance found from the pictures (see the module), if the
 /// blocks carried cover at least half of the frame. `cur` and `prev` are this frame's and the
@@ -125,22 +132,19 @@ pub fn motion_from_vectors(
                 *s += d.min(255.0) as f64;
             }
         }
-        (0..MAX_DISTANCE)
-            .min_by(|&a, &b| sums[a].total_cmp(&sums[b]))
-            .unwrap_or(0)
+        least(&sums)
     };
     let (past, future) = (common(-1.0), common(1.0));
     let mut data = vec![0f32; w * h * 2];
     let mut best = vec![f32::INFINITY; w * h];
     let mut kept = Vec::new();
     for (v, c) in vectors.iter().zip(&costs) {
-        let own = (0..MAX_DISTANCE)
-            .min_by(|&a, &b| c[a].total_cmp(&c[b]))
-            .unwrap_or(0);
+        let own = least(&c.map(f64::from));
         let frame = if v.dir < 0.0 { past } else { future };
-        let s = match c[frame] <= c[own] * PREFER_FACTOR + PREFER_SLACK {
-            true => frame,
-            false => own,
+        let s = if c[frame] <= c[own] * PREFER_FACTOR + PREFER_SLACK {
+            frame
+        } else {
+            own
         };
         if c[s] > MAX_DIFFERENCE {
             continue;

@@ -6,17 +6,20 @@ use std::process::Command;
 
 /// Writes `frames` frames of FFmpeg's moving test pattern with the given encoder arguments.
 fn encode(dir: &Path, name: &str, frames: usize, args: &[&str]) -> std::path::PathBuf {
+    encode_from("testsrc2=size=160x120:rate=10", dir, name, frames, args)
+}
+
+/// Writes `frames` frames of the lavfi `source` with the given encoder arguments.
+fn encode_from(
+    source: &str,
+    dir: &Path,
+    name: &str,
+    frames: usize,
+    args: &[&str],
+) -> std::path::PathBuf {
     let out = dir.join(name);
     let status = Command::new("ffmpeg")
-        .args([
-            "-v",
-            "error",
-            "-y",
-            "-f",
-            "lavfi",
-            "-i",
-            "testsrc2=size=160x120:rate=10",
-        ])
+        .args(["-v", "error", "-y", "-f", "lavfi", "-i", source])
         .args(["-frames:v", &frames.to_string()])
         .args(args)
         .arg(&out)
@@ -80,15 +83,10 @@ fn decodes_h264_with_motion_vectors_and_vp9() {
 #[test]
 fn motion_vectors_of_b_frames_and_far_references_are_per_frame() {
     let dir = tempfile::tempdir().unwrap();
-    let clip = dir.path().join("scroll.mp4");
-    let status = Command::new("ffmpeg")
-        .args(["-v", "error", "-y", "-f", "lavfi", "-i"])
-        .arg("color=c=gray:s=160x120:r=10,noise=alls=100:allf=0,gblur=sigma=1.2,scroll=horizontal=0.0125")
-        .args(["-frames:v", "12", "-c:v", "libx264", "-pix_fmt", "yuv420p"])
-        .arg(&clip)
-        .status()
-        .expect("the ffmpeg tool");
-    assert!(status.success());
+    let scroll = "color=c=gray:s=160x120:r=10,noise=alls=100:allf=0,gblur=sigma=1.2,\
+                  scroll=horizontal=0.0125";
+    let x264 = ["-c:v", "libx264", "-pix_fmt", "yuv420p"];
+    let clip = encode_from(scroll, dir.path(), "scroll.mp4", 12, &x264);
     let frames = drain(open(&clip).unwrap().as_mut()).unwrap();
     let mut with = 0;
     for (i, f) in frames.iter().enumerate() {

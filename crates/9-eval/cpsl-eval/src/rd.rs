@@ -438,7 +438,7 @@ fn through_h264(dir: &Path, clip: &Clip) -> Result<Vec<DecodedPicture>> {
         .arg(format!("{w}x{h}"))
         .args([
             "-r",
-            "30",
+            &FPS.to_string(),
             "-i",
             "pipe:0",
             "-vf",

@@ -739,6 +739,8 @@ struct Solver {
 }
 
 impl Solver {
+    /// The solver of `frames` frames with `tracks`; each frame's observations are listed in
+    /// track order.
     fn new(cam: Camera, cfg: TrackConfig, frames: usize, tracks: Vec<Vec<Obs>>) -> Self {
         let mut by_frame = vec![Vec::new(); frames];
         for (id, t) in tracks.iter().enumerate() {
@@ -765,15 +767,14 @@ impl Solver {
         camera_matrix(&self.cam)
     }
 
-    /// Tracks seen in both frames, as positions in each.
+    /// Tracks seen in both frames, as positions in each, in track order (a frame's
+    /// observations are listed by track, [`Solver::new`], so the two lists merge).
     fn common(&self, a: usize, b: usize) -> (Vec<usize>, Vector<Point2f>, Vector<Point2f>) {
-        let mut at_b: HashMap<usize, (f32, f32)> = HashMap::new();
-        for &(id, x, y) in &self.by_frame[b] {
-            at_b.insert(id, (x, y));
-        }
         let (mut ids, mut pa, mut pb) = (Vec::new(), Vector::new(), Vector::new());
+        let mut at_b = self.by_frame[b].iter().peekable();
         for &(id, x, y) in &self.by_frame[a] {
-            if let Some(&(u, v)) = at_b.get(&id) {
+            while at_b.next_if(|o| o.0 < id).is_some() {}
+            if let Some(&&(_, u, v)) = at_b.peek().filter(|o| o.0 == id) {
                 ids.push(id);
                 pa.push(Point2f::new(x, y));
                 pb.push(Point2f::new(u, v));

@@ -46,7 +46,7 @@ pub fn rotation_of(matrix: &[u8]) -> u32 {
     }
     let deg = (m(1) / s1).atan2(m(0) / s0).to_degrees().round();
     let deg = deg.rem_euclid(360.0) as u32;
-    if deg % 90 == 0 {
+    if deg.is_multiple_of(90) {
         deg % 360
     } else {
         0

@@ -310,7 +310,7 @@ fn upsample_chroma(
 ) {
     let c = y / 2;
     // The nearer chroma row weighs 3/4, the other (above for even rows) 1/4.
-    let other = if y % 2 == 0 {
+    let other = if y.is_multiple_of(2) {
         c.saturating_sub(1)
     } else {
         (c + 1).min(ch - 1)

@@ -78,8 +78,8 @@ impl StereoLayout {
     /// is odd.
     pub fn view_size(self, width: u32, height: u32) -> Result<(u32, u32)> {
         match self {
-            Self::SideBySide if width >= 2 && width % 2 == 0 => Ok((width / 2, height)),
-            Self::TopBottom if height >= 2 && height % 2 == 0 => Ok((width, height / 2)),
+            Self::SideBySide if width >= 2 && width.is_multiple_of(2) => Ok((width / 2, height)),
+            Self::TopBottom if height >= 2 && height.is_multiple_of(2) => Ok((width, height / 2)),
             Self::SideBySide => Err(StereoError::Input(format!(
                 "a side-by-side frame needs an even width, found {width}"
             ))),
@@ -223,7 +223,7 @@ pub fn match_pair(
 ) -> Result<Disparity> {
     check_rgb(left, width, height)?;
     check_rgb(right, width, height)?;
-    if cfg.block % 2 == 0 || !(1..=31).contains(&cfg.block) {
+    if cfg.block.is_multiple_of(2) || !(1..=31).contains(&cfg.block) {
         return Err(StereoError::Input(format!(
             "the matching block must be odd and 1..=31, found {}",
             cfg.block

@@ -273,6 +273,8 @@ mod tests {
             (40, 15, 6),
             (40, 2, 7),
             (33, 1003, 8),
+            (40, 13, 9),
+            (40, 6, 10),
         ] {
             let (q, t) = (sample(nq, seed), sample(nt, seed + 100));
             // Make some queries copies of train rows, so that exact and tied matches occur.

@@ -423,8 +423,9 @@ fn render_layers(frame: &FrameLayers, dps: bool, pose: &Pose, filter: Filter) ->
 /// A picture of the clip after H.264, and the decoder's motion to the one before.
 type DecodedPicture = (Vec<u8>, Option<cpsl_core::Flow>);
 
-/// The clip's pictures through H.264 ([`RdInput::H264Vectors`]), coded into `dir`.
-fn through_h264(dir: &Path, clip: &Clip) -> Result<Vec<DecodedPicture>> {
+/// The clip's pictures through H.264 ([`RdInput::H264Vectors`]), coded into `dir`; the
+/// decoder's motion only where `vectors` asks for it.
+fn through_h264(dir: &Path, clip: &Clip, vectors: bool) -> Result<Vec<DecodedPicture>> {
     use std::io::Write;
     let (w, h) = (clip.camera.width, clip.camera.height);
     let path = dir.join("input.mp4");
@@ -468,7 +469,7 @@ fn through_h264(dir: &Path, clip: &Clip) -> Result<Vec<DecodedPicture>> {
         ));
     }
     let media = |e: cpsl_media::MediaError| EvalError::Invalid(format!("{}: {e}", path.display()));
-    let mut src = cpsl_media::open(&path).map_err(media)?;
+    let mut src = cpsl_media::open_with(&path, vectors).map_err(media)?;
     let mut out = Vec::with_capacity(clip.rgb.len());
     while let Some(f) = src.next_frame().map_err(media)? {
         out.push((f.rgb, f.motion));
@@ -507,10 +508,7 @@ fn cpsl_layers(
     let mut intra = 0;
     for (i, (rgb, depth)) in clip.rgb.iter().zip(&clip.depth).enumerate() {
         let (rgb, motion) = match decoded {
-            Some(d) => (
-                &d[i].0,
-                d[i].1.clone().filter(|_| a.input == RdInput::H264Vectors),
-            ),
+            Some(d) => (&d[i].0, d[i].1.clone()),
             None => (rgb, None),
         };
         layerer.set_frames_left(Some(clip.rgb.len() - i));
@@ -858,7 +856,11 @@ pub fn evaluate_rd(
     };
     let decoded = match a.input {
         RdInput::Pictures => None,
-        RdInput::H264Vectors | RdInput::H264Flow => Some(through_h264(tmp.path(), &clip)?),
+        RdInput::H264Vectors | RdInput::H264Flow => Some(through_h264(
+            tmp.path(),
+            &clip,
+            a.input == RdInput::H264Vectors,
+        )?),
     };
     let decoded = decoded.as_deref();
     let mut frames = cpsl_layers(&clip, a, base, decoded, bars)?;

@@ -68,12 +68,16 @@ fn nearest_two_of(q: &Descriptor, train: &[Descriptor]) -> [(u32, u32); 2] {
     best
 }
 
+/// `nearest` of every query, the queries in parallel.
+fn per_query(
+    query: &[Descriptor],
+    nearest: impl Fn(&Descriptor) -> [(u32, u32); 2] + Sync + Send,
+) -> Vec<[(u32, u32); 2]> {
+    query.par_iter().with_min_len(32).map(nearest).collect()
+}
+
 fn nearest_two_portable(query: &[Descriptor], train: &[Descriptor]) -> Vec<[(u32, u32); 2]> {
-    query
-        .par_iter()
-        .with_min_len(32)
-        .map(|q| nearest_two_of(q, train))
-        .collect()
+    per_query(query, |q| nearest_two_of(q, train))
 }
 
 /// [`nearest_two_of`] compiled with `popcnt`.
@@ -176,12 +180,10 @@ pub fn nearest_two(query: &[Descriptor], train: &[Descriptor]) -> Vec<[(u32, u32
         && std::arch::is_x86_feature_detected!("avx512vpopcntdq")
     {
         let words = by_word(train);
-        return query
-            .par_iter()
-            .with_min_len(32)
-            // SAFETY: the CPU has AVX-512F and VPOPCNTDQ.
-            .map(|q| unsafe { nearest_two_of_avx512(q, &words, train.len()) })
-            .collect();
+        // SAFETY: the CPU has AVX-512F and VPOPCNTDQ.
+        return per_query(query, |q| unsafe {
+            nearest_two_of_avx512(q, &words, train.len())
+        });
     }
     #[cfg(target_arch = "x86_64")]
     if std::arch::is_x86_feature_detected!("popcnt") {
@@ -197,12 +199,8 @@ pub fn nearest_two(query: &[Descriptor], train: &[Descriptor]) -> Vec<[(u32, u32
 #[cfg(target_arch = "x86_64")]
 fn nearest_two_popcnt(query: &[Descriptor], train: &[Descriptor]) -> Vec<[(u32, u32); 2]> {
     assert!(std::arch::is_x86_feature_detected!("popcnt"));
-    query
-        .par_iter()
-        .with_min_len(32)
-        // SAFETY: the CPU has `popcnt`.
-        .map(|q| unsafe { nearest_two_of_popcnt(q, train) })
-        .collect()
+    // SAFETY: the CPU has `popcnt`.
+    per_query(query, |q| unsafe { nearest_two_of_popcnt(q, train) })
 }
 
 /// Mutual nearest neighbours (OpenCV's cross check): `(i, j, distance)` where `train[j]` is

@@ -39,7 +39,7 @@ pub fn descriptors(m: &Mat) -> Result<Vec<Descriptor>> {
 }
 
 #[inline(always)]
-fn distance(a: &Descriptor, b: &Descriptor) -> u32 {
+pub(crate) fn distance(a: &Descriptor, b: &Descriptor) -> u32 {
     (a[0] ^ b[0]).count_ones()
         + (a[1] ^ b[1]).count_ones()
         + (a[2] ^ b[2]).count_ones()

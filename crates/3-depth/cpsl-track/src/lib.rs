@@ -13,6 +13,11 @@
 //! 2. *Registration.* Every other frame is placed by PnP (RANSAC) on the triangulated tracks
 //!    it sees, nearest frames first; each placed frame triangulates the tracks it shares with
 //!    the placed frame that sees them under the widest angle (at least `min_angle_deg`).
+//!    Where many tracks are born in a placed frame (after a break or a large loss), those that
+//!    continue a track lost there up to [`MERGE_GAP`] frames before (its point projects
+//!    within a few pixels, their ORB descriptors where one died and the other was born
+//!    agree) join it, and the frame is solved again: the frames after a break stay tied to
+//!    the points before it.
 //! 3. *Refinement.* One round of alternating resection and intersection (every frame
 //!    re-solved by PnP, every point re-triangulated from all placed frames), then bundle
 //!    adjustment (`ba.rs`: Levenberg-Marquardt with analytic Jacobians, the points eliminated
@@ -50,10 +55,11 @@ pub use fused::{DepthFrom, TrackedDepth};
 pub use opencv::core::Mat;
 
 use cpsl_core::{Camera, Mat3, Pose, Vec3};
+use hamming::Descriptor;
 use opencv::core::{self, Point2f, Scalar, Size, TermCriteria, Vector};
 use opencv::prelude::*;
 use opencv::{calib3d, imgproc, video};
-use std::collections::HashMap;
+use std::collections::{HashMap, HashSet};
 use thiserror::Error;
 
 /// Why tracking failed.
@@ -208,6 +214,10 @@ impl Trajectory {
 /// One observation of a track: frame and working-pixel position.
 pub(crate) type Obs = (u32, f32, f32);
 
+/// Where a track was born and where it died (the frame and its ORB descriptor there, when
+/// ORB could describe it).
+type Ends = [Option<(u32, Descriptor)>; 2];
+
 /// Follows corners through a clip; see the [crate docs](crate).
 pub struct Tracker {
     cfg: TrackConfig,
@@ -220,6 +230,8 @@ pub struct Tracker {
     frames: u32,
     /// Per frame, its ORB features, for relocalisation (`reloc.rs`).
     features: Vec<reloc::Features>,
+    /// Per track, its ends.
+    ends: Vec<Ends>,
 }
 
 impl Tracker {
@@ -254,6 +266,7 @@ impl Tracker {
             tracks: Vec::new(),
             frames: 0,
             features: Vec::new(),
+            ends: Vec::new(),
         })
     }
 
@@ -283,6 +296,7 @@ impl Tracker {
             )));
         }
         let f = self.frames;
+        let (was_live, known) = (self.live.clone(), self.tracks.len());
         let pyramid = lk_pyramid(&grey)?;
         let features = reloc::features(&grey, reloc::KEPT_FEATURES)?;
         if let Some((prev, prev_pyramid)) = &self.prev {
@@ -330,10 +344,60 @@ impl Tracker {
         if self.live.len() < self.cfg.max_features * 7 / 10 {
             self.detect(&grey, f)?;
         }
+        self.describe_ends(&grey, &was_live, known)?;
         self.prev = Some((grey, pyramid));
         self.features.push(features);
         self.frames += 1;
         Ok(())
+    }
+
+    /// Records the ends of the tracks born into frame `f` (`grey`; those from `known` on)
+    /// and of those of `was_live` that died in it, with their descriptors where they were
+    /// last or first seen (frame `f` or the one before).
+    fn describe_ends(
+        &mut self,
+        grey: &Mat,
+        was_live: &[(usize, Point2f)],
+        known: usize,
+    ) -> Result<()> {
+        let f = self.frames;
+        self.ends.resize(self.tracks.len(), [None, None]);
+        let alive: HashSet<usize> = self.live.iter().map(|l| l.0).collect();
+        // (track, end, observation) per frame: this one and the one before.
+        let mut todo: [Vec<(usize, usize, Obs)>; 2] = [Vec::new(), Vec::new()];
+        for id in known..self.tracks.len() {
+            let o = self.tracks[id][0];
+            todo[usize::from(o.0 == f)].push((id, 0, o));
+        }
+        for &(id, _) in was_live.iter().filter(|l| !alive.contains(&l.0)) {
+            let o = *self.tracks[id]
+                .last()
+                .expect("a live track has an observation");
+            todo[usize::from(o.0 == f)].push((id, 1, o));
+        }
+        for (list, image) in todo
+            .iter()
+            .zip([self.prev.as_ref().map(|p| &p.0), Some(grey)])
+        {
+            let Some(image) = image.filter(|_| !list.is_empty()) else {
+                continue;
+            };
+            let points: Vec<Point2f> = list.iter().map(|t| Point2f::new(t.2 .1, t.2 .2)).collect();
+            for (&(id, end, o), d) in list.iter().zip(reloc::descriptors_at(image, &points)?) {
+                self.ends[id][end] = d.map(|d| (o.0, d));
+            }
+        }
+        Ok(())
+    }
+
+    /// The tracks' ends in the frames from `start` on, counted from it.
+    fn ends(&self, start: usize) -> Vec<Ends> {
+        let mut ends = self.ends.clone();
+        ends.resize(self.tracks.len(), [None, None]);
+        for e in ends.iter_mut().flatten() {
+            *e = e.and_then(|(g, d)| Some((g.checked_sub(start as u32)?, d)));
+        }
+        ends
     }
 
     fn detect(&mut self, grey: &Mat, f: u32) -> Result<()> {
@@ -386,7 +450,8 @@ impl Tracker {
     /// segment, with its own origin and scale ([`Trajectory::segment`]).
     pub fn finish(self) -> Result<Trajectory> {
         let n = self.frames as usize;
-        let mut whole = Solver::new(self.camera, self.cfg, n, self.tracks.clone()).solve()?;
+        let mut whole =
+            Solver::new(self.camera, self.cfg, n, self.tracks.clone(), self.ends(0)).solve()?;
         let mut errors = whole.1;
         let mut start = match whole.0.poses.iter().rposition(|p| p.is_some()) {
             Some(last) => last + 1,
@@ -406,7 +471,8 @@ impl Tracker {
                         .collect()
                 })
                 .collect();
-            let (part, e) = Solver::new(self.camera, self.cfg, n - start, tracks).solve()?;
+            let (part, e) =
+                Solver::new(self.camera, self.cfg, n - start, tracks, self.ends(start)).solve()?;
             let Some(last) = part.poses.iter().rposition(|p| p.is_some()) else {
                 // Nothing placed from this frame on (it may be blank, as at a fade): try from
                 // the next, a few times.
@@ -521,6 +587,17 @@ const BA_ITERATIONS: usize = 30;
 /// Observations farther than this from their adjusted point are dropped before the second
 /// adjustment (working pixels; on the fox 2 px left 0.26 degrees, 1 px 0.22, 0.7 px 0.24).
 const CULL_PX: f64 = 1.0;
+
+/// Most frames between a track's loss and its rebirth that [`Solver::merge`] joins over.
+const MERGE_GAP: usize = 12;
+/// Least tracks born into a frame for [`Solver::merge`] to join them to dead ones (after a
+/// break or a large loss; joining in every frame scored worse on the fox, EVALUATION.md).
+const MERGE_BORN: usize = 100;
+/// Farthest a born track lies from a dead track's projected point to join it (working
+/// pixels).
+const MERGE_RADIUS_PX: f64 = 4.0;
+/// Most bits the descriptors of two joined tracks differ in.
+const MERGE_BITS: u32 = 64;
 
 /// Fewer tracks than this surviving into a frame is a break.
 const MIN_LIVE: usize = 150;
@@ -728,6 +805,9 @@ pub(crate) fn from_extrinsics(r: Mat3, t: Vec3) -> Pose {
 
 struct Solver {
     cam: Camera,
+    /// Per track, the frame it was born in and the one it died in, with its ORB
+    /// descriptors there (for [`Solver::merge`]).
+    ends: Vec<Ends>,
     cfg: TrackConfig,
     frames: usize,
     tracks: Vec<Vec<Obs>>,
@@ -739,9 +819,15 @@ struct Solver {
 }
 
 impl Solver {
-    /// The solver of `frames` frames with `tracks`; each frame's observations are listed in
-    /// track order.
-    fn new(cam: Camera, cfg: TrackConfig, frames: usize, tracks: Vec<Vec<Obs>>) -> Self {
+    /// The solver of `frames` frames with `tracks` and their `ends`; each frame's
+    /// observations are listed in track order.
+    fn new(
+        cam: Camera,
+        cfg: TrackConfig,
+        frames: usize,
+        tracks: Vec<Vec<Obs>>,
+        ends: Vec<Ends>,
+    ) -> Self {
         let mut by_frame = vec![Vec::new(); frames];
         for (id, t) in tracks.iter().enumerate() {
             if t.len() < 2 {
@@ -753,6 +839,7 @@ impl Solver {
         }
         Self {
             cam,
+            ends,
             cfg,
             frames,
             tracks,
@@ -1042,6 +1129,9 @@ impl Solver {
                 if n < MIN_PNP_NEW || !self.resect(f, false)? {
                     continue;
                 }
+                if self.merge(f)? > 0 {
+                    self.resect(f, true)?;
+                }
                 progress = true;
                 // New points with every placed frame, farthest in time first (widest
                 // angles; a point keeps the first pair that triangulates it).
@@ -1078,6 +1168,84 @@ impl Solver {
                 }
             }
         }
+    }
+
+    /// Joins tracks born in placed frame `c` to tracks with points that died at most
+    /// [`MERGE_GAP`] frames before it (the tracker lost a corner and found it again as a new
+    /// track): a dead track's point projected into `c` joins the born track nearest in
+    /// descriptor within [`MERGE_RADIUS_PX`] of it, when their ORB descriptors (where one
+    /// died and the other was born) differ in at most [`MERGE_BITS`] bits and clearly less
+    /// than those of the second nearest. The later track's observations move to the
+    /// earlier one. Returns how many tracks were joined.
+    fn merge(&mut self, c: usize) -> Result<usize> {
+        let Some(pose) = self.poses[c] else {
+            return Ok(0);
+        };
+        let born: Vec<(usize, Descriptor, f32, f32)> = self.by_frame[c]
+            .iter()
+            .filter_map(|&(id, x, y)| {
+                let (g, d) = self.ends[id][0]?;
+                (g as usize == c).then_some((id, d, x, y))
+            })
+            .collect();
+        if born.len() < MERGE_BORN {
+            return Ok(0);
+        }
+        // (Hamming distance, dead track, born track) of each dead track's best.
+        let mut pairs = Vec::new();
+        for (&id, &x) in &self.points {
+            let Some((g, d)) = self.ends[id][1] else {
+                continue;
+            };
+            let g = g as usize;
+            if g >= c || g + MERGE_GAP < c {
+                continue;
+            }
+            let Some((u, v)) = self.cam.project(pose.inverse().view_to_ref(x)) else {
+                continue;
+            };
+            let (mut best, mut second) = ((u32::MAX, 0), u32::MAX);
+            for (j, b) in born.iter().enumerate() {
+                if (b.2 as f64 - u).hypot(b.3 as f64 - v) > MERGE_RADIUS_PX {
+                    continue;
+                }
+                let h = hamming::distance(&d, &b.1);
+                if h < best.0 {
+                    second = best.0;
+                    best = (h, j);
+                } else {
+                    second = second.min(h);
+                }
+            }
+            if best.0 <= MERGE_BITS && (best.0 as f32) < 0.8 * second as f32 {
+                pairs.push((best.0, id, best.1));
+            }
+        }
+        pairs.sort_unstable();
+        let mut taken = vec![false; born.len()];
+        let mut touched = HashSet::new();
+        let mut joined = 0;
+        for (_, old, j) in pairs {
+            if std::mem::replace(&mut taken[j], true) {
+                continue;
+            }
+            let new = born[j].0;
+            let moved = std::mem::take(&mut self.tracks[new]);
+            for &(f, _, _) in &moved {
+                for o in self.by_frame[f as usize].iter_mut().filter(|o| o.0 == new) {
+                    o.0 = old;
+                }
+                touched.insert(f as usize);
+            }
+            self.tracks[old].extend(moved);
+            self.points.remove(&new);
+            self.ends[old][1] = self.ends[new][1];
+            joined += 1;
+        }
+        for f in touched {
+            self.by_frame[f].sort_unstable_by_key(|o| o.0);
+        }
+        Ok(joined)
     }
 
     /// Places frame `f` from placed frame `g` by their essential matrix; the baseline's length
@@ -1257,9 +1425,110 @@ fn mat3(m: &Mat) -> Result<Mat3> {
 }
 
 fn vec3(m: &Mat) -> Result<Vec3> {
+    // OpenCV may hand back a view into a larger matrix (solvePnPRansac does on some inputs).
+    let copy;
+    let m = if m.is_continuous() {
+        m
+    } else {
+        copy = m.try_clone()?;
+        &copy
+    };
     let v = m.data_typed::<f64>()?;
     if v.len() < 3 {
         return Err(TrackError::Input("OpenCV returned a short vector".into()));
     }
     Ok(Vec3::new(v[0], v[1], v[2]))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Descriptors from a fixed-seed generator.
+    fn descriptor(seed: &mut u64) -> Descriptor {
+        std::array::from_fn(|_| {
+            *seed = seed
+                .wrapping_mul(6_364_136_223_846_793_005)
+                .wrapping_add(1_442_695_040_888_963_407);
+            *seed
+        })
+    }
+
+    #[test]
+    fn merge_joins_reborn_tracks_to_their_dead_points_only() {
+        let cam = Camera {
+            width: 480,
+            height: 270,
+            fx: 400.0,
+            fy: 400.0,
+            cx: 240.0,
+            cy: 135.0,
+        };
+        let born_n = MERGE_BORN + 20;
+        // Tracks 0..born_n died in frame 1 with points; track born_n + 0 died too long
+        // ago, born_n + 1 lies near a born track with a different descriptor; the born
+        // tracks follow, one 20 px apart from the next on a grid.
+        let mut seed = 7;
+        let at = |i: usize| (20.0 + 20.0 * (i % 22) as f32, 20.0 + 20.0 * (i / 22) as f32);
+        let (mut tracks, mut ends, mut points) = (Vec::new(), Vec::new(), HashMap::new());
+        let born_desc: Vec<Descriptor> = (0..born_n).map(|_| descriptor(&mut seed)).collect();
+        let frames = MERGE_GAP + 4;
+        let c = MERGE_GAP + 2;
+        for (i, d) in born_desc.iter().enumerate() {
+            let mut dead = *d;
+            dead[0] ^= 0b1011; // 3 bits apart
+            let (u, v) = at(i);
+            tracks.push(vec![(c as u32 - 2, u, v), (c as u32 - 1, u, v)]);
+            ends.push([None, Some((c as u32 - 1, dead))]);
+            // Seen in frame c 1.5 px from where the born track is.
+            let z = 5.0;
+            let x = Vec3::new(
+                (u as f64 + 1.5 - cam.cx) / cam.fx * z,
+                (v as f64 - cam.cy) / cam.fy * z,
+                z,
+            );
+            points.insert(i, x);
+        }
+        // Dead too long ago (frame 1, with born track 0's very descriptor), and a stranger
+        // (another descriptor) dead in frame c - 1: both seen in frame c 1 px from a born track.
+        for (dead, near, desc) in [
+            (1, 0, born_desc[0]),
+            (c as u32 - 1, 3, descriptor(&mut seed)),
+        ] {
+            let (u, v) = at(near);
+            tracks.push(vec![(dead - 1, u, v), (dead, u, v)]);
+            ends.push([None, Some((dead, desc))]);
+            let x = Vec3::new(
+                (u as f64 - cam.cx) / cam.fx,
+                (v as f64 + 1.0 - cam.cy) / cam.fy,
+                1.0,
+            );
+            points.insert(tracks.len() - 1, x);
+        }
+        let first_born = tracks.len();
+        for (i, d) in born_desc.iter().enumerate() {
+            let (u, v) = at(i);
+            tracks.push(vec![(c as u32, u, v), (c as u32 + 1, u + 0.5, v)]);
+            ends.push([Some((c as u32, *d)), Some((c as u32 + 1, *d))]);
+        }
+        let mut solver = Solver::new(cam, TrackConfig::default(), frames, tracks, ends);
+        solver.points = points;
+        solver.poses[c] = Some(Pose::IDENTITY);
+
+        assert_eq!(solver.merge(c).unwrap(), born_n);
+        for i in 0..born_n {
+            let frames: Vec<u32> = solver.tracks[i].iter().map(|o| o.0).collect();
+            assert_eq!(frames, [c as u32 - 2, c as u32 - 1, c as u32, c as u32 + 1]);
+            assert!(solver.tracks[first_born + i].is_empty());
+            assert_eq!(solver.ends[i][1].map(|e| e.0), Some(c as u32 + 1));
+        }
+        assert_eq!(solver.tracks[born_n].len(), 2);
+        assert_eq!(solver.tracks[born_n + 1].len(), 2);
+        for f in [c, c + 1] {
+            let ids: Vec<usize> = solver.by_frame[f].iter().map(|o| o.0).collect();
+            assert_eq!(ids, (0..born_n).collect::<Vec<_>>(), "frame {f}");
+        }
+        // No born tracks are left in frame c.
+        assert_eq!(solver.merge(c).unwrap(), 0);
+    }
 }

@@ -55,6 +55,37 @@ pub(crate) fn features(grey: &Mat, count: i32) -> Result<Features> {
     })
 }
 
+/// ORB descriptors of `grey` at `points` (level 0, oriented as ORB orients its own); `None`
+/// for a point too near the border for ORB's patch.
+pub(crate) fn descriptors_at(grey: &Mat, points: &[Point2f]) -> Result<Vec<Option<Descriptor>>> {
+    let mut out = vec![None; points.len()];
+    if points.is_empty() {
+        return Ok(out);
+    }
+    let mut orb = features2d::ORB::create(
+        points.len() as i32,
+        1.2,
+        1,
+        31,
+        0,
+        2,
+        features2d::ORB_ScoreType::HARRIS_SCORE,
+        31,
+        10,
+    )?;
+    let mut kp: Vector<core::KeyPoint> = points
+        .iter()
+        .enumerate()
+        .map(|(i, p)| core::KeyPoint::new_point(*p, 31.0, -1.0, 0.0, 0, i as i32))
+        .collect::<std::result::Result<_, _>>()?;
+    let mut desc = Mat::default();
+    orb.detect_and_compute(grey, &core::no_array(), &mut kp, &mut desc, true)?;
+    for (k, d) in kp.iter().zip(hamming::descriptors(&desc)?) {
+        out[k.class_id() as usize] = Some(d);
+    }
+    Ok(out)
+}
+
 /// Nearest-neighbour matches from the descriptors `a` to those of `b` that pass the ratio
 /// test (the second nearest at least 1/0.8 as far) and are at most 64 bits apart.
 pub(crate) fn matches(a: &[Descriptor], b: &[Descriptor]) -> Vec<(usize, usize)> {

@@ -14,7 +14,7 @@
 //!    it sees, nearest frames first; each placed frame triangulates the tracks it shares with
 //!    the placed frame that sees them under the widest angle (at least `min_angle_deg`).
 //!    Where many tracks are born in a placed frame (after a break or a large loss), those that
-//!    continue a track lost there up to [`MERGE_GAP`] frames before (its point projects
+//!    continue a track lost there up to 12 frames before (its point projects
 //!    within a few pixels, their ORB descriptors where one died and the other was born
 //!    agree) join it, and the frame is solved again: the frames after a break stay tied to
 //!    the points before it.

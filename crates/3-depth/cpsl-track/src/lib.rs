@@ -1465,9 +1465,8 @@ mod tests {
             cy: 135.0,
         };
         let born_n = MERGE_BORN + 20;
-        // Tracks 0..born_n died in frame 1 with points; track born_n + 0 died too long
-        // ago, born_n + 1 lies near a born track with a different descriptor; the born
-        // tracks follow, one 20 px apart from the next on a grid.
+        // Tracks 0..born_n died in frame c - 1 with points; two more follow (below); then
+        // the tracks born in frame c, 20 px apart on a grid, one for each of the first.
         let mut seed = 7;
         let at = |i: usize| (20.0 + 20.0 * (i % 22) as f32, 20.0 + 20.0 * (i / 22) as f32);
         let (mut tracks, mut ends, mut points) = (Vec::new(), Vec::new(), HashMap::new());

@@ -393,6 +393,7 @@ impl Tracker {
     /// The tracks' ends in the frames from `start` on, counted from it.
     fn ends(&self, start: usize) -> Vec<Ends> {
         let mut ends = self.ends.clone();
+        // A push that failed after adding tracks left them without ends.
         ends.resize(self.tracks.len(), [None, None]);
         for e in ends.iter_mut().flatten() {
             *e = e.and_then(|(g, d)| Some((g.checked_sub(start as u32)?, d)));
@@ -1191,6 +1192,7 @@ impl Solver {
         if born.len() < MERGE_BORN {
             return Ok(0);
         }
+        let to_camera = pose.inverse();
         // (Hamming distance, dead track, born track) of each dead track's best.
         let mut pairs = Vec::new();
         for (&id, &x) in &self.points {
@@ -1201,7 +1203,7 @@ impl Solver {
             if g >= c || g + MERGE_GAP < c {
                 continue;
             }
-            let Some((u, v)) = self.cam.project(pose.inverse().view_to_ref(x)) else {
+            let Some((u, v)) = self.cam.project(to_camera.view_to_ref(x)) else {
                 continue;
             };
             let (mut best, mut second) = ((u32::MAX, 0), u32::MAX);

@@ -32,20 +32,29 @@ pub(crate) struct Features {
 /// Most ORB features kept per frame for relocalisation (40 KB a frame).
 pub(crate) const KEPT_FEATURES: i32 = 1000;
 
-/// Up to `count` ORB features of a frame (Harris-scored FAST corners over 8 levels, 1.2
-/// apart).
-pub(crate) fn features(grey: &Mat, count: i32) -> Result<Features> {
-    let mut orb = features2d::ORB::create(
+/// ORB's patch (and edge) size, pixels.
+const PATCH: i32 = 31;
+
+/// An ORB of up to `count` features over `levels` pyramid levels 1.2 apart, Harris-scored
+/// FAST corners, [`PATCH`]-pixel patches: the one setting every ORB of the crate uses.
+fn orb(count: i32, levels: i32) -> Result<core::Ptr<features2d::ORB>> {
+    Ok(features2d::ORB::create(
         count,
         1.2,
-        8,
-        31,
+        levels,
+        PATCH,
         0,
         2,
         features2d::ORB_ScoreType::HARRIS_SCORE,
-        31,
+        PATCH,
         10,
-    )?;
+    )?)
+}
+
+/// Up to `count` ORB features of a frame (Harris-scored FAST corners over 8 levels, 1.2
+/// apart).
+pub(crate) fn features(grey: &Mat, count: i32) -> Result<Features> {
+    let mut orb = orb(count, 8)?;
     let mut kp = Vector::<core::KeyPoint>::new();
     let mut desc = Mat::default();
     orb.detect_and_compute(grey, &core::no_array(), &mut kp, &mut desc, false)?;
@@ -62,21 +71,11 @@ pub(crate) fn descriptors_at(grey: &Mat, points: &[Point2f]) -> Result<Vec<Optio
     if points.is_empty() {
         return Ok(out);
     }
-    let mut orb = features2d::ORB::create(
-        points.len() as i32,
-        1.2,
-        1,
-        31,
-        0,
-        2,
-        features2d::ORB_ScoreType::HARRIS_SCORE,
-        31,
-        10,
-    )?;
+    let mut orb = orb(points.len() as i32, 1)?;
     let mut kp: Vector<core::KeyPoint> = points
         .iter()
         .enumerate()
-        .map(|(i, p)| core::KeyPoint::new_point(*p, 31.0, -1.0, 0.0, 0, i as i32))
+        .map(|(i, p)| core::KeyPoint::new_point(*p, PATCH as f32, -1.0, 0.0, 0, i as i32))
         .collect::<std::result::Result<_, _>>()?;
     let mut desc = Mat::default();
     orb.detect_and_compute(grey, &core::no_array(), &mut kp, &mut desc, true)?;

@@ -617,6 +617,43 @@ fn a_refresh_for_changed_content_moves_the_models_by_one_trial_each() {
 }
 
 #[test]
+fn a_segment_that_may_be_the_last_moves_its_models_by_one_trial_each() {
+    // Frames pushed without their number: every segment may be the last, whose miss would be
+    // corrected by coding its streams again, so each carried model is first moved onto the
+    // segment's content by one trial encode (as after a refresh for changed content).
+    let segs = segments(18);
+    assert_eq!(segs.len(), 3);
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("clip.cpsl");
+    let reports = write(&out, &segs, h264(RateControl::Budget(800_000.0)));
+    let streams = reports[0].quality.len();
+    assert_eq!(reports[0].fitted, streams);
+    for r in &reports[1..] {
+        // The carried models serve (a stream whose trial lands more than twice off its model
+        // is fitted again).
+        assert!(r.fitted < streams, "{r:?}");
+        // One trial and the final encode per stream, and any refit's or correction's encodes.
+        assert!(r.encodes >= 2 * streams, "{r:?}");
+    }
+    // Told how many frames are left, only the last segment may be the last: the middle one
+    // codes each stream once.
+    let frames: Vec<LayeredFrame> = segs.into_iter().flatten().collect();
+    let cam = *frames[0].set.camera();
+    let out = dir.path().join("known.cpsl");
+    let mut w = PackageWriter::create(&out, cam, 6, h264(RateControl::Budget(800_000.0))).unwrap();
+    let mut reports = Vec::new();
+    for (i, f) in frames.iter().enumerate() {
+        w.set_frames_left(Some((frames.len() - i) as u32));
+        reports.extend(w.push(f.clone()).unwrap());
+    }
+    reports.extend(w.flush().unwrap());
+    w.finish().unwrap();
+    assert_eq!(reports.len(), 3);
+    assert_eq!(reports[1].encodes, streams, "{:?}", reports[1]);
+    assert!(reports[2].encodes >= 2 * streams, "{:?}", reports[2]);
+}
+
+#[test]
 fn segments_start_every_gop_and_at_refreshes_that_bring_new_layers() {
     use RefreshReason::{Confidence, First};
     // GOP 4 over 9 frames: a refresh at frame 2 keeps both tracks, one at frame 6 brings a
